@@ -1,0 +1,30 @@
+# Two commands do all set-up on a fresh machine:
+#   make demo   -> creates .venv, installs the package, runs the paper's first case study end to end
+#   make test   -> creates .venv, installs the package with test extras, runs the test suite
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+
+.PHONY: demo test venv bench clean
+
+$(VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[test]'
+	touch $@
+
+venv: $(VENV)/.installed
+
+demo: venv
+	$(PY) examples/three_mode_linear.py --out results/three_mode_linear
+
+test: venv
+	$(PY) -m pytest -q
+
+bench: venv
+	$(PY) benchmarks/solver.py
+	$(PY) benchmarks/abstraction.py
+	$(PY) benchmarks/bounds.py
+
+clean:
+	rm -rf $(VENV) results

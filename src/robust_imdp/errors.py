@@ -1,0 +1,91 @@
+"""Exception and warning classes of robust_imdp.
+
+Every exception subclasses a built-in (``ValueError``, ``RuntimeError``, ...) so
+callers can catch it without importing this module, and every message names the
+argument, the expected form and what was received, e.g.::
+
+    DimensionError("x_next must have shape (m, 2) like x; got (m, 3)")
+"""
+
+from __future__ import annotations
+
+
+class RobustImdpError(Exception):
+    """Base class of every exception raised on purpose by robust_imdp."""
+
+
+# --------------------------------------------------------------------------- bad input
+class InvalidInputError(RobustImdpError, ValueError):
+    """An argument does not have the expected form or value."""
+
+
+class DimensionError(InvalidInputError):
+    """An array has the wrong shape or length."""
+
+
+class InvalidIntervalError(InvalidInputError):
+    """A probability interval violates 0 <= lower <= upper <= 1 or the row-sum conditions."""
+
+
+class InvalidModelError(InvalidInputError):
+    """A model (IMDP, DFA, system) is structurally invalid (indices, missing choices, ...)."""
+
+
+class FormulaSyntaxError(InvalidInputError):
+    """An LTLf formula cannot be parsed; the message shows the position with a caret."""
+
+
+class UnknownAtomError(InvalidInputError):
+    """A formula or DFA names an atomic proposition that no region defines."""
+
+
+class OutsideDomainError(InvalidInputError):
+    """A continuous state lies outside the compact set X where the abstraction is defined."""
+
+
+class ProblemFileError(InvalidInputError):
+    """A problem file (TOML) or data file is missing a key, has a misspelt key or a bad value."""
+
+
+# --------------------------------------------------------------------------- run-time failures
+class ConvergenceError(RobustImdpError, RuntimeError):
+    """An iterative solver or optimiser did not reach the requested precision."""
+
+
+class SoundnessError(RobustImdpError, RuntimeError):
+    """An internal soundness check failed (e.g. a row with sum(lower) > 1 after rounding).
+
+    This always indicates a bug or an input that breaks a stated assumption; it is
+    never silently repaired.
+    """
+
+
+# --------------------------------------------------------------------------- warnings
+class RobustImdpWarning(UserWarning):
+    """Base class of warnings issued by robust_imdp."""
+
+
+class ConvergenceWarning(RobustImdpWarning):
+    """A solver stopped before its precision target; the reported bounds stay sound but loose."""
+
+
+class AssumptionWarning(RobustImdpWarning):
+    """A user assumption looks doubtful (e.g. the RKHS bound B is below the norm of the posterior mean)."""
+
+
+__all__ = [
+    "RobustImdpError",
+    "InvalidInputError",
+    "DimensionError",
+    "InvalidIntervalError",
+    "InvalidModelError",
+    "FormulaSyntaxError",
+    "UnknownAtomError",
+    "OutsideDomainError",
+    "ProblemFileError",
+    "ConvergenceError",
+    "SoundnessError",
+    "RobustImdpWarning",
+    "ConvergenceWarning",
+    "AssumptionWarning",
+]
