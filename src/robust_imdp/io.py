@@ -1,0 +1,610 @@
+"""Problem files (TOML), data files (CSV / NPZ) and result files (JSON + NPZ).
+
+Problem file contract (keys in ``[brackets]`` are tables; ``?`` marks optional keys)::
+
+    [space]         lower, upper, cell_size          (lists of n floats)
+    [[regions.NAME]] lower, upper                    (one entry per box; any number of regions)
+    [spec]          formula, threshold, horizon?     (horizon: int for k-step, absent = unbounded)
+    [data]          path                             (.csv or .npz, relative to the problem file)
+    [modes.NAME]    A (n x n), b (n)                 (known affine part f_u(x) = A x + b)
+    [noise]         kind = "truncated_gaussian" (sigma, bound) | "gaussian" (sigma) | "uniform" (bound)
+    [gp]            rkhs_bound, lengthscale?, signal_variance?, delta?, bound_tol?
+    [abstraction]?  eta?, eps_rule?, combine?
+
+Data files: ``.csv`` with header ``x_1..x_n,u,x_next_1..x_next_n`` (``u`` holds mode names), or
+``.npz`` with arrays ``x`` (m, n), ``u`` (m,) and ``x_next`` (m, n). Every mode name in ``u``
+must be one of the ``[modes.*]`` tables.
+
+Result files: ``result.json`` (the documented contract, see :func:`result_to_dict`) and
+``result.npz`` (the same arrays in binary form). Both are written under temporary names and
+renamed only when complete, so an interrupted run never leaves a result that looks finished.
+"""
+
+from __future__ import annotations
+
+import csv
+import difflib
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from robust_imdp.errors import ProblemFileError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - exercised on Python 3.10 only
+    import tomli as tomllib
+
+__all__ = [
+    "ProblemFileError",
+    "parse_problem_file",
+    "parse_problem_dict",
+    "load_problem",
+    "read_data_file",
+    "write_data_file",
+    "result_to_dict",
+    "save_result",
+    "load_result",
+]
+
+# --------------------------------------------------------------------------- schema
+# table -> (required keys, optional keys)
+_SCHEMA: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
+    "space": (("lower", "upper", "cell_size"), ()),
+    "spec": (("formula", "threshold"), ("horizon",)),
+    "data": (("path",), ()),
+    "noise": (("kind",), ("sigma", "bound")),
+    "gp": (("rkhs_bound",), ("lengthscale", "signal_variance", "delta", "bound_tol")),
+    "abstraction": ((), ("eta", "eps_rule", "combine")),
+}
+_TOP_REQUIRED = ("space", "regions", "spec", "data", "modes", "noise", "gp")
+_TOP_OPTIONAL = ("abstraction",)
+_NOISE_KEYS = {
+    "truncated_gaussian": ("sigma", "bound"),
+    "gaussian": ("sigma",),
+    "uniform": ("bound",),
+}
+EPS_RULES = ("optimized", "paper")
+COMBINE_RULES = ("product", "union")
+
+
+def _suggest(key: str, valid) -> str:
+    close = difflib.get_close_matches(key, list(valid), n=1, cutoff=0.6)
+    return f" (did you mean '{close[0]}'?)" if close else f" (valid keys: {', '.join(valid)})"
+
+
+def _check_keys(table: dict, name: str, required, optional, where: str) -> None:
+    """Raise ProblemFileError naming the first missing or unknown key of ``[name]``."""
+    valid = tuple(required) + tuple(optional)
+    for key in table:
+        if key not in valid:
+            raise ProblemFileError(
+                f"{where}: table [{name}] has unknown key '{key}'{_suggest(key, valid)}"
+            )
+    for key in required:
+        if key not in table:
+            raise ProblemFileError(f"{where}: table [{name}] is missing required key '{key}'")
+
+
+def _float_vector(value, name: str, where: str, n: int | None = None) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ProblemFileError(
+            f"{where}: {name} must be a list of numbers; got {value!r}"
+        ) from None
+    if arr.ndim != 1 or (n is not None and arr.shape[0] != n):
+        want = f"{n} numbers" if n is not None else "a list of numbers"
+        raise ProblemFileError(f"{where}: {name} must be {want}; got {value!r}")
+    if not np.all(np.isfinite(arr)):
+        raise ProblemFileError(f"{where}: {name} must be finite; got {value!r}")
+    return arr
+
+
+def _positive_vector(value, name, where, n) -> np.ndarray:
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        value = [float(value)] * n
+    arr = _float_vector(value, name, where, n)
+    if np.any(arr <= 0):
+        raise ProblemFileError(f"{where}: {name} must be > 0 in every dimension; got {value!r}")
+    return arr
+
+
+def _number(value, name, where, *, lo=None, hi=None, integer=False):
+    ok_type = int if integer else (int, float)
+    if isinstance(value, bool) or not isinstance(value, ok_type):
+        kind = "an integer" if integer else "a number"
+        raise ProblemFileError(f"{where}: {name} must be {kind}; got {value!r}")
+    if (lo is not None and value < lo) or (hi is not None and value > hi):
+        raise ProblemFileError(f"{where}: {name} must lie in [{lo}, {hi}]; got {value!r}")
+    return value
+
+
+def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, Any]:
+    """Validate a parsed TOML document and return plain, typed values.
+
+    Parameters
+    ----------
+    doc : dict
+        The document as returned by ``tomllib``.
+    where : str
+        Name used in error messages (usually the file path).
+
+    Returns
+    -------
+    dict
+        Keys ``lower``, ``upper``, ``cell_size`` ((n,) float arrays), ``regions``
+        (``{name: [(lower, upper), ...]}``), ``formula``, ``threshold``, ``horizon`` (int or
+        None), ``data_path`` (str, as written), ``modes`` (``{name: (A (n, n), b (n,))}`` in
+        file order), ``noise`` (``{"kind", "sigma", "bound"}``), ``gp`` (dict of the given keys),
+        ``abstraction`` (dict with ``eta`` ((n,) array or None), ``eps_rule``, ``combine``).
+
+    Raises
+    ------
+    ProblemFileError
+        Naming the table and key that is missing, misspelt (with the closest valid key) or
+        has a bad value.
+    """
+    if not isinstance(doc, dict):
+        raise ProblemFileError(f"{where}: expected a TOML document; got {type(doc).__name__}")
+    _check_keys(doc, "top level", _TOP_REQUIRED, _TOP_OPTIONAL, where)
+    for name, (req, opt) in _SCHEMA.items():
+        if name in doc:
+            if not isinstance(doc[name], dict):
+                raise ProblemFileError(f"{where}: [{name}] must be a table; got {doc[name]!r}")
+            _check_keys(doc[name], name, req, opt, where)
+
+    sp = doc["space"]
+    lower = _float_vector(sp["lower"], "[space].lower", where)
+    n = lower.shape[0]
+    upper = _float_vector(sp["upper"], "[space].upper", where, n)
+    if np.any(upper <= lower):
+        raise ProblemFileError(
+            f"{where}: [space] needs lower < upper in every dimension; got lower={lower.tolist()}, "
+            f"upper={upper.tolist()}"
+        )
+    cell_size = _positive_vector(sp["cell_size"], "[space].cell_size", where, n)
+
+    regions: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
+    if not isinstance(doc["regions"], dict) or not doc["regions"]:
+        raise ProblemFileError(
+            f"{where}: [regions] must define at least one region as [[regions.NAME]] boxes"
+        )
+    for rname, boxes in doc["regions"].items():
+        if isinstance(boxes, dict):
+            boxes = [boxes]
+        if not isinstance(boxes, list) or not boxes:
+            raise ProblemFileError(
+                f"{where}: region '{rname}' must be a list of boxes ([[regions.{rname}]]); "
+                f"got {boxes!r}"
+            )
+        parsed = []
+        for j, box in enumerate(boxes):
+            tname = f"regions.{rname}[{j}]"
+            if not isinstance(box, dict):
+                raise ProblemFileError(f"{where}: [{tname}] must be a table; got {box!r}")
+            _check_keys(box, tname, ("lower", "upper"), (), where)
+            blo = _float_vector(box["lower"], f"[{tname}].lower", where, n)
+            bup = _float_vector(box["upper"], f"[{tname}].upper", where, n)
+            if np.any(bup <= blo):
+                raise ProblemFileError(
+                    f"{where}: [{tname}] needs lower < upper; got lower={blo.tolist()}, "
+                    f"upper={bup.tolist()}"
+                )
+            if np.any(blo < lower) or np.any(bup > upper):
+                raise ProblemFileError(
+                    f"{where}: [{tname}] = [{blo.tolist()}, {bup.tolist()}] lies outside the "
+                    f"space [{lower.tolist()}, {upper.tolist()}]"
+                )
+            parsed.append((blo, bup))
+        regions[rname] = parsed
+
+    spec = doc["spec"]
+    formula = spec["formula"]
+    if not isinstance(formula, str) or not formula.strip():
+        raise ProblemFileError(f"{where}: [spec].formula must be a non-empty string; got {formula!r}")
+    threshold = float(_number(spec["threshold"], "[spec].threshold", where, lo=0.0, hi=1.0))
+    horizon = spec.get("horizon")
+    if horizon is not None:
+        horizon = _number(horizon, "[spec].horizon", where, lo=1, integer=True)
+
+    data_path = doc["data"]["path"]
+    if not isinstance(data_path, str) or not data_path:
+        raise ProblemFileError(f"{where}: [data].path must be a file name; got {data_path!r}")
+
+    if not isinstance(doc["modes"], dict) or not doc["modes"]:
+        raise ProblemFileError(f"{where}: [modes] must define at least one [modes.NAME] table")
+    modes: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for mname, table in doc["modes"].items():
+        tname = f"modes.{mname}"
+        if not isinstance(table, dict):
+            raise ProblemFileError(f"{where}: [{tname}] must be a table; got {table!r}")
+        _check_keys(table, tname, ("A", "b"), (), where)
+        try:
+            A = np.asarray(table["A"], dtype=float)
+        except (TypeError, ValueError):
+            A = None
+        if A is None or A.shape != (n, n) or not np.all(np.isfinite(A)):
+            raise ProblemFileError(
+                f"{where}: [{tname}].A must be a finite {n}x{n} matrix (list of {n} rows); "
+                f"got {table['A']!r}"
+            )
+        modes[str(mname)] = (A, _float_vector(table["b"], f"[{tname}].b", where, n))
+
+    nz = doc["noise"]
+    kind = nz["kind"]
+    if kind not in _NOISE_KEYS:
+        raise ProblemFileError(
+            f"{where}: [noise].kind must be one of {', '.join(_NOISE_KEYS)}; got {kind!r}"
+            + (_suggest(str(kind), _NOISE_KEYS) if isinstance(kind, str) else "")
+        )
+    needed = _NOISE_KEYS[kind]
+    _check_keys(nz, "noise", ("kind",) + needed, (), where)
+    noise = {"kind": kind, "sigma": None, "bound": None}
+    for key in needed:
+        noise[key] = _positive_vector(nz[key], f"[noise].{key}", where, n)
+
+    gp_in = doc["gp"]
+    gp: dict[str, Any] = {
+        "rkhs_bound": float(_number(gp_in["rkhs_bound"], "[gp].rkhs_bound", where))
+    }
+    if gp["rkhs_bound"] <= 0:
+        raise ProblemFileError(f"{where}: [gp].rkhs_bound must be > 0; got {gp_in['rkhs_bound']!r}")
+    if "lengthscale" in gp_in:
+        gp["lengthscale"] = _positive_vector(gp_in["lengthscale"], "[gp].lengthscale", where, n)
+    if "signal_variance" in gp_in:
+        gp["signal_variance"] = float(
+            _number(gp_in["signal_variance"], "[gp].signal_variance", where, lo=1e-300)
+        )
+    if "delta" in gp_in:
+        gp["delta"] = float(_number(gp_in["delta"], "[gp].delta", where, lo=0.0, hi=1.0))
+    if "bound_tol" in gp_in:
+        gp["bound_tol"] = float(_number(gp_in["bound_tol"], "[gp].bound_tol", where, lo=1e-12))
+
+    ab_in = doc.get("abstraction", {})
+    ab: dict[str, Any] = {"eta": None, "eps_rule": "optimized", "combine": "product"}
+    if "eta" in ab_in:
+        ab["eta"] = _positive_vector(ab_in["eta"], "[abstraction].eta", where, n)
+    for key, valid in (("eps_rule", EPS_RULES), ("combine", COMBINE_RULES)):
+        if key in ab_in:
+            if ab_in[key] not in valid:
+                raise ProblemFileError(
+                    f"{where}: [abstraction].{key} must be one of {', '.join(valid)}; "
+                    f"got {ab_in[key]!r}"
+                )
+            ab[key] = ab_in[key]
+
+    return {
+        "lower": lower, "upper": upper, "cell_size": cell_size, "regions": regions,
+        "formula": formula, "threshold": threshold, "horizon": horizon,
+        "data_path": data_path, "modes": modes, "noise": noise, "gp": gp, "abstraction": ab,
+    }
+
+
+def parse_problem_file(path) -> dict[str, Any]:
+    """Read a TOML problem file and validate it with :func:`parse_problem_dict`.
+
+    The returned dict has an extra key ``data_file``: the data path resolved relative to the
+    problem file's directory.
+    """
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            doc = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise ProblemFileError(f"{path}: not valid TOML: {exc}") from None
+    except OSError as exc:
+        raise ProblemFileError(f"problem file {path}: cannot be read ({exc.strerror})") from None
+    spec = parse_problem_dict(doc, where=str(path))
+    spec["data_file"] = str((path.parent / spec["data_path"]).resolve())
+    return spec
+
+
+# --------------------------------------------------------------------------- data files
+def _check_data(x, u, x_next, mode_names, where):
+    """Validate arrays read from a data file; return (x, u_index, x_next)."""
+    if x.ndim != 2 or x_next.shape != x.shape:
+        raise ProblemFileError(
+            f"{where}: x_next must have shape (m, n) like x {x.shape}; got {x_next.shape}"
+        )
+    if u.shape != (x.shape[0],):
+        raise ProblemFileError(f"{where}: u must have shape ({x.shape[0]},); got {u.shape}")
+    bad = ~(np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(x_next), axis=1))
+    if np.any(bad):
+        rows = np.flatnonzero(bad)[:5].tolist()
+        raise ProblemFileError(
+            f"{where}: x and x_next must be finite; {int(bad.sum())} rows are not "
+            f"(first data rows, 0-based: {rows})"
+        )
+    names = [str(v) for v in u.tolist()]
+    if mode_names is None:
+        mode_names = list(dict.fromkeys(names))
+    index = {m: i for i, m in enumerate(mode_names)}
+    unknown = sorted(set(names) - set(index))
+    if unknown:
+        raise ProblemFileError(
+            f"{where}: column u names modes {unknown} that are not in [modes.*] "
+            f"(known modes: {list(mode_names)})"
+        )
+    return x, np.array([index[s] for s in names], dtype=np.int64), x_next, tuple(mode_names)
+
+
+def read_data_file(path, mode_names=None, n_dims: int | None = None):
+    """Read a data file.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``.csv`` (header ``x_1..x_n,u,x_next_1..x_next_n``) or ``.npz`` (``x``, ``u``, ``x_next``).
+    mode_names : sequence of str, optional
+        The valid mode names (``[modes.*]`` order). Default: the names in order of appearance.
+    n_dims : int, optional
+        Expected state dimension n.
+
+    Returns
+    -------
+    x : (m, n) float array
+    u : (m,) int array of indices into ``modes``
+    x_next : (m, n) float array
+    modes : tuple of str
+    """
+    path = Path(path)
+    where = f"data file {path}"
+    if not path.exists():
+        raise ProblemFileError(f"{where}: file not found")
+    if path.suffix == ".npz":
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                missing = [k for k in ("x", "u", "x_next") if k not in z.files]
+                if missing:
+                    raise ProblemFileError(
+                        f"{where}: missing arrays {missing}; expected x, u, x_next (got {z.files})"
+                    )
+                x = np.asarray(z["x"], dtype=float)
+                u = np.asarray(z["u"])
+                x_next = np.asarray(z["x_next"], dtype=float)
+        except (ValueError, OSError) as exc:
+            if isinstance(exc, ProblemFileError):
+                raise
+            raise ProblemFileError(f"{where}: cannot be read as .npz ({exc})") from None
+        if x.ndim == 1:
+            x, x_next = x[:, None], x_next.reshape(-1, 1) if x_next.ndim == 1 else x_next
+    elif path.suffix == ".csv":
+        x, u, x_next = _read_csv(path, where)
+    else:
+        raise ProblemFileError(f"{where}: expected a .csv or .npz file; got suffix '{path.suffix}'")
+    if n_dims is not None and (x.ndim != 2 or x.shape[1] != n_dims):
+        raise ProblemFileError(
+            f"{where}: x must have {n_dims} columns like [space]; got shape {x.shape}"
+        )
+    return _check_data(x, u, x_next, mode_names, where)
+
+
+def _read_csv(path: Path, where: str):
+    with open(path, newline="") as fh:
+        reader = csv.reader(fh)
+        try:
+            header = [h.strip() for h in next(reader)]
+        except StopIteration:
+            raise ProblemFileError(f"{where}: file is empty") from None
+        rows = [r for r in reader if r]
+    n = (len(header) - 1) // 2
+    expected = [f"x_{i + 1}" for i in range(n)] + ["u"] + [f"x_next_{i + 1}" for i in range(n)]
+    if n < 1 or header != expected:
+        raise ProblemFileError(
+            f"{where}: header must be {','.join(expected) if n >= 1 else 'x_1,u,x_next_1'}; "
+            f"got {','.join(header)}"
+        )
+    if not rows:
+        raise ProblemFileError(f"{where}: no data rows after the header")
+    for i, r in enumerate(rows):
+        if len(r) != len(header):
+            raise ProblemFileError(
+                f"{where}: line {i + 2} has {len(r)} fields; expected {len(header)}"
+            )
+    table = np.array(rows, dtype=object)
+    try:
+        x = table[:, :n].astype(float)
+        x_next = table[:, n + 1:].astype(float)
+    except ValueError as exc:
+        raise ProblemFileError(f"{where}: non-numeric state value ({exc})") from None
+    u = np.array([s.strip() for s in table[:, n]], dtype=str)
+    return x, u, x_next
+
+
+def write_data_file(path, x, u, x_next, modes=None) -> None:
+    """Write a data file (.csv or .npz) readable by :func:`read_data_file`.
+
+    Parameters
+    ----------
+    x, x_next : (m, n) float arrays
+    u : (m,) int (indices into ``modes``) or str array (mode names)
+    modes : sequence of str, optional
+        Mode names; required when ``u`` holds indices.
+    """
+    path = Path(path)
+    x = np.asarray(x, dtype=float)
+    x_next = np.asarray(x_next, dtype=float)
+    u = np.asarray(u)
+    if u.dtype.kind in "iu":
+        if modes is None:
+            raise ProblemFileError("write_data_file: modes names are needed when u holds indices")
+        u = np.asarray(modes, dtype=str)[u]
+    u = u.astype(str)
+    n = x.shape[1]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix == ".npz":
+        np.savez(path, x=x, u=u, x_next=x_next)
+        return
+    header = [f"x_{i + 1}" for i in range(n)] + ["u"] + [f"x_next_{i + 1}" for i in range(n)]
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(header)
+        for xi, ui, yi in zip(x, u, x_next):
+            w.writerow([repr(float(v)) for v in xi] + [ui] + [repr(float(v)) for v in yi])
+
+
+# --------------------------------------------------------------------------- result files
+def _atomic_write(path: Path, write) -> None:
+    """Write via ``write(tmp_path)`` to a temporary file in the same directory, then rename."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
+    os.close(fd)
+    try:
+        write(Path(tmp))
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    return obj
+
+
+RESULT_FORMAT = "robust_imdp.result/1"
+CLASS_NAMES = ("yes", "no", "maybe")
+
+
+def result_to_dict(result) -> dict[str, Any]:
+    """The ``result.json`` contract as a plain dict.
+
+    Keys
+    ----
+    format : str
+        ``"robust_imdp.result/1"``.
+    space : {"lower", "upper"}
+        The compact set X; leaving it is a violation.
+    cells : {"lower", "upper"}
+        Per cell (index order), lists of n floats.
+    labels : list of list of str
+        Per cell, the regions (atoms) containing it.
+    modes : list of str
+        Mode names; ``strategy`` entries are these names.
+    dfa : {"atoms", "initial", "accepting", "delta"}
+        ``delta[state][letter]`` where bit i of ``letter`` is ``atoms[i]``; ``accepting`` is the
+        list of accepting states.
+    strategy : list (cells) of list (DFA states) of str
+        ``strategy[q][s]``: the mode to apply in cell q when the DFA is in state s.
+    p_low, p_up, p_up_star, error : list of float
+        Per cell, bounds for the cell's initial product state (q, delta(initial, L(q))).
+    classes : list of str
+        Per cell ``"yes"`` (p_low >= threshold), ``"no"`` (p_up < threshold) or ``"maybe"``.
+    formula, threshold, horizon, parameters, timings
+        What was solved, with which settings, and stage times in seconds.
+
+    How to run the controller without the library: start in cell q0 with DFA state
+    ``s = delta[initial][L(q0)]``; while s is neither accepting nor a sink, apply
+    ``strategy[q][s]``, step the system, stop with a violation if the state leaves X, else
+    find the new cell q' and set ``s = delta[s][L(q')]``.
+    """
+    part = result.partition
+    dfa = result.dfa
+    syn = result.synthesis
+    modes = list(result.mode_names)
+    part_atoms = list(part.atoms)
+    labels_int = np.asarray(part.labels, dtype=np.int64)
+    labels = [[a for i, a in enumerate(part_atoms) if (int(v) >> i) & 1] for v in labels_int]
+    strategy = np.asarray(syn.strategy, dtype=np.int64)
+    names = np.asarray(modes, dtype=object)
+    strategy_named = np.where(strategy >= 0, names[np.clip(strategy, 0, len(modes) - 1)], None)
+    accepting = np.flatnonzero(np.asarray(dfa.accepting, dtype=bool)).tolist()
+    return _jsonable({
+        "format": RESULT_FORMAT,
+        "space": {"lower": result.space_lower, "upper": result.space_upper},
+        "cells": {"lower": part.cells_lower, "upper": part.cells_upper},
+        "labels": labels,
+        "modes": modes,
+        "dfa": {
+            "atoms": list(dfa.atoms),
+            "initial": int(dfa.initial),
+            "accepting": accepting,
+            "delta": np.asarray(dfa.delta, dtype=np.int64),
+        },
+        "strategy": strategy_named.tolist(),
+        "p_low": np.asarray(syn.p_low, dtype=float),
+        "p_up": np.asarray(syn.p_up, dtype=float),
+        "p_up_star": np.asarray(syn.p_up_star, dtype=float),
+        "error": np.asarray(syn.error, dtype=float),
+        "classes": list(result.class_names),
+        "formula": result.formula,
+        "threshold": result.threshold,
+        "horizon": result.horizon,
+        "parameters": result.parameters,
+        "timings": result.timings,
+    })
+
+
+def save_result(result, out_dir) -> Path:
+    """Write ``result.npz`` then ``result.json`` into ``out_dir`` (created if needed).
+
+    Each file is written under a temporary name and renamed when complete; ``result.json``
+    is written last, so its presence means the result is complete.
+
+    Returns
+    -------
+    Path
+        The path of ``result.json``.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    doc = result_to_dict(result)
+    arrays = {
+        "cells_lower": np.asarray(doc["cells"]["lower"], dtype=float),
+        "cells_upper": np.asarray(doc["cells"]["upper"], dtype=float),
+        "strategy": np.asarray(result.synthesis.strategy, dtype=np.int64),
+        "dfa_delta": np.asarray(doc["dfa"]["delta"], dtype=np.int64),
+        "p_low": np.asarray(doc["p_low"], dtype=float),
+        "p_up": np.asarray(doc["p_up"], dtype=float),
+        "p_up_star": np.asarray(doc["p_up_star"], dtype=float),
+        "error": np.asarray(doc["error"], dtype=float),
+        "classes": np.asarray(doc["classes"], dtype=str),
+        "modes": np.asarray(doc["modes"], dtype=str),
+    }
+
+    def write_npz(tmp: Path) -> None:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+
+    def write_json(tmp: Path) -> None:
+        tmp.write_text(json.dumps(doc, indent=1))
+
+    _atomic_write(out / "result.npz", write_npz)
+    _atomic_write(out / "result.json", write_json)
+    return out / "result.json"
+
+
+def load_result(path):
+    """Read a ``result.json`` (or the directory holding it) into a :class:`ResultFile`."""
+    from robust_imdp.validate import ResultFile  # the table-driven controller lives there
+
+    path = Path(path)
+    if path.is_dir():
+        path = path / "result.json"
+    try:
+        doc = json.loads(path.read_text())
+    except OSError as exc:
+        raise ProblemFileError(f"result file {path}: cannot be read ({exc.strerror})") from None
+    except json.JSONDecodeError as exc:
+        raise ProblemFileError(f"result file {path}: not valid JSON ({exc})") from None
+    if not isinstance(doc, dict) or doc.get("format") != RESULT_FORMAT:
+        raise ProblemFileError(
+            f"result file {path}: expected format '{RESULT_FORMAT}'; "
+            f"got {doc.get('format') if isinstance(doc, dict) else type(doc).__name__!r}"
+        )
+    return ResultFile.from_dict(doc)
