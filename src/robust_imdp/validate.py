@@ -67,9 +67,11 @@ def wilson_interval(successes, trials, confidence: float = 0.999):
     denom = n + z * z
     centre = (k + z * z / 2.0) / denom
     half = z / denom * np.sqrt(k * (n - k) / n + z * z / 4.0)
-    # Clamps to [0, 1]: the Wilson interval lies in [0, 1] mathematically; clipping only
-    # removes rounding overshoot and cannot exclude a proportion in [0, 1].
-    return np.clip(centre - half, 0.0, 1.0), np.clip(centre + half, 0.0, 1.0)
+    # Widen by 1e-12 (the closed form's rounding error is ~1e-15) so that e.g. k = n gives an
+    # upper end of exactly 1 and a correct bound is never flagged by rounding. The clamps to
+    # [0, 1] are safe: a proportion lies in [0, 1], so clipping cannot exclude it.
+    slack = 1e-12
+    return np.clip(centre - half - slack, 0.0, 1.0), np.clip(centre + half + slack, 0.0, 1.0)
 
 
 # --------------------------------------------------------------------------- result tables
