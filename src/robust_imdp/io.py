@@ -8,7 +8,7 @@ Problem file contract (keys in ``[brackets]`` are tables; ``?`` marks optional k
     [data]          path                             (.csv or .npz, relative to the problem file)
     [modes.NAME]    A (n x n), b (n)                 (known affine part f_u(x) = A x + b)
     [noise]         kind = "truncated_gaussian" (sigma, bound) | "gaussian" (sigma) | "uniform" (bound)
-    [gp]            rkhs_bound, lengthscale?, signal_variance?, delta?, bound_tol?
+    [gp]            rkhs_bound, lengthscale?, signal_variance?, optimize?, info_gain?, bound_tol?
     [abstraction]?  eta?, eps_rule?, combine?
 
 Data files: ``.csv`` with header ``x_1..x_n,u,x_next_1..x_next_n`` (``u`` holds mode names), or
@@ -45,6 +45,7 @@ __all__ = [
     "parse_problem_file",
     "parse_problem_dict",
     "load_problem",
+    "make_noise",
     "read_data_file",
     "write_data_file",
     "result_to_dict",
@@ -59,7 +60,7 @@ _SCHEMA: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "spec": (("formula", "threshold"), ("horizon",)),
     "data": (("path",), ()),
     "noise": (("kind",), ("sigma", "bound")),
-    "gp": (("rkhs_bound",), ("lengthscale", "signal_variance", "delta", "bound_tol")),
+    "gp": (("rkhs_bound",), ("lengthscale", "signal_variance", "optimize", "info_gain", "bound_tol")),
     "abstraction": ((), ("eta", "eps_rule", "combine")),
 }
 _TOP_REQUIRED = ("space", "regions", "spec", "data", "modes", "noise", "gp")
@@ -261,8 +262,16 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
         gp["signal_variance"] = float(
             _number(gp_in["signal_variance"], "[gp].signal_variance", where, lo=1e-300)
         )
-    if "delta" in gp_in:
-        gp["delta"] = float(_number(gp_in["delta"], "[gp].delta", where, lo=0.0, hi=1.0))
+    if "optimize" in gp_in:
+        if not isinstance(gp_in["optimize"], bool):
+            raise ProblemFileError(f"{where}: [gp].optimize must be true or false; got {gp_in['optimize']!r}")
+        gp["optimize"] = gp_in["optimize"]
+    if "info_gain" in gp_in:
+        if gp_in["info_gain"] not in ("data", "trivial"):
+            raise ProblemFileError(
+                f"{where}: [gp].info_gain must be one of data, trivial; got {gp_in['info_gain']!r}"
+            )
+        gp["info_gain"] = gp_in["info_gain"]
     if "bound_tol" in gp_in:
         gp["bound_tol"] = float(_number(gp_in["bound_tol"], "[gp].bound_tol", where, lo=1e-12))
 
@@ -303,6 +312,53 @@ def parse_problem_file(path) -> dict[str, Any]:
     spec = parse_problem_dict(doc, where=str(path))
     spec["data_file"] = str((path.parent / spec["data_path"]).resolve())
     return spec
+
+
+def make_noise(noise: dict):
+    """The noise model object for a parsed ``[noise]`` table."""
+    from robust_imdp import noise as nz
+
+    if noise["kind"] == "truncated_gaussian":
+        return nz.TruncatedGaussianNoise(noise["sigma"], noise["bound"])
+    if noise["kind"] == "gaussian":
+        return nz.GaussianNoise(noise["sigma"])
+    return nz.UniformNoise(noise["bound"])
+
+
+def load_problem(path):
+    """Read a problem file and its data file into a :class:`robust_imdp.pipeline.Problem`.
+
+    Raises
+    ------
+    ProblemFileError
+        For any missing / misspelt key, bad value or bad data file (see
+        :func:`parse_problem_file` and :func:`read_data_file`).
+    """
+    from robust_imdp.pipeline import Problem
+    from robust_imdp.system import AffineMap, Dataset
+
+    spec = parse_problem_file(path)
+    names = list(spec["modes"])
+    n = spec["lower"].shape[0]
+    x, u, x_next, _ = read_data_file(spec["data_file"], names, n_dims=n)
+    missing = [names[i] for i in range(len(names)) if not np.any(u == i)]
+    if missing:
+        raise ProblemFileError(
+            f"data file {spec['data_file']}: modes {missing} have no samples; every [modes.*] "
+            "table needs data"
+        )
+    gp = dict(spec["gp"])
+    rkhs_bound = gp.pop("rkhs_bound")
+    bound_tol = gp.pop("bound_tol", 1e-3)
+    ab = spec["abstraction"]
+    return Problem(
+        space_lower=spec["lower"], space_upper=spec["upper"], cell_size=spec["cell_size"],
+        regions=spec["regions"], formula=spec["formula"], threshold=spec["threshold"],
+        horizon=spec["horizon"], data=Dataset(x, u, x_next, modes=tuple(names)),
+        mode_names=tuple(names), maps=tuple(AffineMap(A, b) for A, b in spec["modes"].values()),
+        noise=make_noise(spec["noise"]), rkhs_bound=rkhs_bound, gp_options=gp,
+        bound_tol=bound_tol, eta=ab["eta"], eps_rule=ab["eps_rule"], combine=ab["combine"],
+    )
 
 
 # --------------------------------------------------------------------------- data files

@@ -1,0 +1,433 @@
+"""From data and a requirement to a controller with guarantees, in one call.
+
+``synthesize_from_data(problem)`` chains the stages of the paper (Jackson et al., HSCC 2021):
+
+1. **specify** -- LTLf formula to a minimal DFA (``dfa.ltlf_to_dfa``); checked first, so an
+   unknown region fails before any expensive work;
+2. **partition** -- grid over X respecting the labelled regions (``geometry.Partition``);
+3. **learn** -- one GP per mode and output on the residual ``x_next - f_u(x)`` with the RKHS
+   error bound of Chowdhury & Gopalan (2017, Thm 2) (``gp.learn``);
+4. **bound** -- certified bounds of the image ``f_u + mu`` and of the posterior std over every
+   cell (``bounds.bound_image``);
+5. **abstract** -- the interval MDP of the paper's Thm 1 (``abstraction.abstract``);
+6. **synthesize** -- product with the DFA, robust strategy, ``p_low``, ``p_up``, ``p_up_star``,
+   ``error`` and the classes Q_yes / Q_no / Q_? (``synthesis.synthesize``).
+
+Stages 3-5 depend only on the data, modes, noise, grid, regions and GP / abstraction options;
+with ``abstraction_cache=DIR`` their result is saved under a hash of exactly those inputs and
+reused when only the formula, threshold or horizon changes (:func:`resynthesize` does the same
+in memory).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import sys
+import time
+from dataclasses import dataclass, field, fields, is_dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from robust_imdp.errors import InvalidInputError, UnknownAtomError
+
+__all__ = ["Problem", "Result", "synthesize_from_data", "resynthesize", "abstraction_key"]
+
+CLASS_NAMES = ("yes", "no", "maybe")
+
+
+@dataclass(frozen=True, eq=False)
+class Problem:
+    """Everything the pipeline needs, as plain values.
+
+    Attributes
+    ----------
+    space_lower, space_upper, cell_size : (n,) float arrays
+        The compact set X and the grid size.
+    regions : dict str -> list of (lower (n,), upper (n,)) pairs
+        Named regions (the formula's atoms), each a union of boxes.
+    formula : str
+        LTLf formula over the region names.
+    threshold : float in [0, 1]
+    horizon : int or None
+        k-step horizon; None for the unbounded problem.
+    data : system.Dataset
+        ``x``, ``u`` (mode indices), ``x_next``.
+    mode_names : tuple of str
+    maps : tuple of system.AffineMap
+        Known part ``f_u(x) = A x + b`` per mode, in ``mode_names`` order.
+    noise : noise model (``noise.TruncatedGaussianNoise`` etc.)
+    rkhs_bound : float
+        The user's assumption B on the RKHS norm of every unknown component (unit-amplitude SE
+        kernel; see ``gp.RKHSErrorBound``).
+    gp_options : dict
+        Passed to ``gp.learn`` (e.g. ``lengthscale``, ``signal_variance``, ``optimize``,
+        ``info_gain``).
+    bound_tol : float
+        Certified gap of the image / std bounds.
+    eta : (n,) float array or None
+        Noise threshold of Thm 1; None = the noise model's default.
+    eps_rule : {"optimized", "paper"}
+    combine : {"product", "union"}
+    """
+
+    space_lower: np.ndarray
+    space_upper: np.ndarray
+    cell_size: np.ndarray
+    regions: dict
+    formula: str
+    threshold: float
+    horizon: int | None
+    data: Any
+    mode_names: tuple
+    maps: tuple
+    noise: Any
+    rkhs_bound: float
+    gp_options: dict = field(default_factory=dict)
+    bound_tol: float = 1e-3
+    eta: Any = None
+    eps_rule: str = "optimized"
+    combine: str = "product"
+
+    def replace(self, **changes) -> "Problem":
+        """A copy with some attributes changed (e.g. ``formula=...``)."""
+        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        unknown = set(changes) - set(values)
+        if unknown:
+            raise InvalidInputError(f"Problem has no attributes {sorted(unknown)}")
+        values.update(changes)
+        return Problem(**values)
+
+
+@dataclass(frozen=True, eq=False)
+class Result:
+    """Output of :func:`synthesize_from_data`.
+
+    Attributes
+    ----------
+    problem : Problem
+    partition : geometry.Partition
+    abstraction : abstraction.Abstraction
+    dfa : dfa.DFA
+    synthesis : synthesis.SynthesisResult
+        ``strategy (n_cells, S)``, ``p_low``, ``p_up``, ``p_up_star``, ``error``, ``classes``.
+    class_names : (n_cells,) str array
+        ``"yes"`` / ``"no"`` / ``"maybe"`` per cell.
+    timings : dict str -> float
+        Seconds per stage (``specify``, ``partition``, ``learn``, ``bound``, ``abstract``,
+        ``synthesize``, ``total``; ``load_abstraction`` when the cache was used).
+    parameters : dict
+        The settings that produced the result (JSON-able).
+    from_cache : bool
+        Whether the abstraction was reused.
+    """
+
+    problem: Problem
+    partition: Any
+    abstraction: Any
+    dfa: Any
+    synthesis: Any
+    class_names: np.ndarray
+    timings: dict
+    parameters: dict
+    from_cache: bool = False
+
+    # Convenience views used by io.result_to_dict and plotting.
+    @property
+    def mode_names(self) -> tuple:
+        return tuple(self.problem.mode_names)
+
+    @property
+    def space_lower(self) -> np.ndarray:
+        return np.asarray(self.problem.space_lower, float)
+
+    @property
+    def space_upper(self) -> np.ndarray:
+        return np.asarray(self.problem.space_upper, float)
+
+    @property
+    def formula(self) -> str:
+        return self.problem.formula
+
+    @property
+    def threshold(self) -> float:
+        return float(self.problem.threshold)
+
+    @property
+    def horizon(self):
+        return self.problem.horizon
+
+    def counts(self) -> dict:
+        """Number of cells per class: ``{"yes": .., "no": .., "maybe": ..}``."""
+        return {c: int(np.sum(self.class_names == c)) for c in CLASS_NAMES}
+
+    def controller(self):
+        """The refined switching controller (``controller.Controller``)."""
+        return self.synthesis.controller(self.partition, self.mode_names)
+
+    def summary(self) -> str:
+        """Class counts, mean error and stage times as text."""
+        c = self.counts()
+        n = len(self.class_names)
+        times = ", ".join(f"{k} {v:.2f} s" for k, v in self.timings.items())
+        return "\n".join([
+            f"formula {self.formula!r}, threshold {self.threshold:g}"
+            + (f", horizon {self.horizon}" if self.horizon is not None else ""),
+            f"cells: {n}  Q_yes {c['yes']}  Q_no {c['no']}  Q_? {c['maybe']}",
+            f"mean p_low {np.mean(self.synthesis.p_low):.4f}  mean error "
+            f"{np.mean(self.synthesis.error):.4f}  (abstraction "
+            f"{'reused from cache' if self.from_cache else 'built'})",
+            f"stage times: {times}",
+        ])
+
+
+# --------------------------------------------------------------------------- helpers
+class _Log:
+    def __init__(self, enabled: bool):
+        self.enabled = enabled
+        self.timings: dict[str, float] = {}
+        self.t0 = time.perf_counter()
+
+    def stage(self, name: str):
+        log = self
+
+        class _Stage:
+            def __enter__(self):
+                self.t = time.perf_counter()
+                if log.enabled:
+                    print(f"[robust-imdp] {name} ...", file=sys.stderr, flush=True)
+                return self
+
+            def __exit__(self, *exc):
+                dt = time.perf_counter() - self.t
+                log.timings[name] = log.timings.get(name, 0.0) + dt
+                return False
+
+        return _Stage()
+
+    def info(self, text: str) -> None:
+        if self.enabled:
+            print(f"[robust-imdp]   {text}", file=sys.stderr, flush=True)
+
+
+def _fingerprint(h, obj) -> None:
+    """Feed a canonical description of ``obj`` into the hash ``h`` (arrays by value)."""
+    if isinstance(obj, np.ndarray) or isinstance(obj, np.generic):
+        a = np.ascontiguousarray(obj)
+        h.update(f"nd{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes())
+    elif isinstance(obj, dict):
+        h.update(b"{")
+        for k in sorted(obj, key=str):
+            _fingerprint(h, str(k))
+            _fingerprint(h, obj[k])
+        h.update(b"}")
+    elif isinstance(obj, (list, tuple)):
+        h.update(f"[{len(obj)}".encode())
+        for v in obj:
+            _fingerprint(h, v)
+        h.update(b"]")
+    elif obj is None or isinstance(obj, (bool, int, float, str)):
+        h.update(f"{type(obj).__name__}:{obj!r};".encode())
+    elif is_dataclass(obj):
+        h.update(type(obj).__qualname__.encode())
+        _fingerprint(h, {f.name: getattr(obj, f.name) for f in fields(obj)})
+    elif hasattr(obj, "__dict__"):
+        h.update(type(obj).__qualname__.encode())
+        _fingerprint(h, {k: v for k, v in vars(obj).items() if not k.startswith("_")})
+    else:
+        h.update(repr(obj).encode())
+
+
+def abstraction_key(problem: Problem) -> str:
+    """Hash of everything the abstraction depends on (not the formula, threshold, horizon)."""
+    import robust_imdp
+
+    h = hashlib.sha256()
+    d = problem.data
+    _fingerprint(h, [
+        robust_imdp.__version__, problem.space_lower, problem.space_upper, problem.cell_size,
+        {k: [(np.asarray(lo, float), np.asarray(up, float)) for lo, up in v]
+         for k, v in problem.regions.items()},
+        np.asarray(d.x, float), np.asarray(d.u), np.asarray(d.x_next, float),
+        list(problem.mode_names), [(np.asarray(m.A, float), np.asarray(m.b, float)) for m in problem.maps],
+        problem.noise, float(problem.rkhs_bound), problem.gp_options, float(problem.bound_tol),
+        None if problem.eta is None else np.asarray(problem.eta, float), problem.eps_rule,
+        problem.combine,
+    ])
+    return h.hexdigest()[:20]
+
+
+def _parameters(problem: Problem, abstraction) -> dict:
+    noise = problem.noise
+    params = {
+        "space": {"lower": problem.space_lower, "upper": problem.space_upper},
+        "cell_size": problem.cell_size,
+        "n_data": int(np.asarray(problem.data.u).shape[0]),
+        "rkhs_bound": float(problem.rkhs_bound),
+        "gp_options": {k: v for k, v in problem.gp_options.items()},
+        "bound_tol": float(problem.bound_tol),
+        "noise": {"kind": type(noise).__name__,
+                  **{k: v for k, v in vars(noise).items() if not k.startswith("_")}}
+        if hasattr(noise, "__dict__") else repr(noise),
+        "eta": None if problem.eta is None else problem.eta,
+        "eta_used": getattr(abstraction, "eta", None),
+        "eps_rule": problem.eps_rule,
+        "combine": problem.combine,
+        "abstraction_key": abstraction_key(problem),
+    }
+    from robust_imdp.io import _jsonable
+
+    return _jsonable(params)
+
+
+def _region_objects(problem: Problem):
+    from robust_imdp.geometry import Box, Region
+
+    return [Region(name, [Box(lo, up) for lo, up in boxes]) for name, boxes in problem.regions.items()]
+
+
+def _check_atoms(dfa, problem: Problem) -> None:
+    unknown = sorted(set(dfa.atoms) - set(problem.regions))
+    if unknown:
+        raise UnknownAtomError(
+            f"formula {problem.formula!r} names regions {unknown} that are not defined; "
+            f"known regions: {sorted(problem.regions)}"
+        )
+
+
+def _build_abstraction(problem: Problem, partition, log: _Log):
+    from robust_imdp.abstraction import CellBounds, abstract
+    from robust_imdp.bounds import bound_image
+    from robust_imdp.gp import learn
+
+    theta = problem.noise.sub_gaussian_parameter()
+    with log.stage("learn"):
+        learned = learn(problem.data, list(problem.maps), rkhs_bound=problem.rkhs_bound,
+                        noise_theta=theta, **problem.gp_options)
+    n_modes, n = len(problem.mode_names), len(problem.space_lower)
+    log.info(f"learned {n_modes} modes x {n} outputs from {len(problem.data.u)} points")
+    lo, up = partition.cells_lower, partition.cells_upper
+    with log.stage("bound"):
+        images = [bound_image(learned.gps[u], problem.maps[u].A, problem.maps[u].b, lo, up,
+                              tol=problem.bound_tol) for u in range(n_modes)]
+    log.info(f"bounded images of {partition.n_cells} cells x {n_modes} modes")
+    cell_bounds = CellBounds(
+        image_lower=np.stack([im.lower for im in images]),
+        image_upper=np.stack([im.upper for im in images]),
+        std_upper=np.stack([im.std_upper for im in images]),
+    )
+    with log.stage("abstract"):
+        abstraction = abstract(partition, cell_bounds, problem.noise, learned.error_bounds,
+                               eta=problem.eta, eps_rule=problem.eps_rule, combine=problem.combine)
+    log.info(f"IMDP: {abstraction.imdp.n_states} states")
+    return abstraction
+
+
+def _synthesize(problem: Problem, partition, abstraction, dfa, log: _Log):
+    from robust_imdp.synthesis import synthesize
+
+    with log.stage("synthesize"):
+        syn = synthesize(abstraction.imdp, partition.labels, partition.atoms, dfa,
+                         threshold=problem.threshold, horizon=problem.horizon,
+                         outside_state=partition.outside_state)
+    classes = _class_names(syn.classes, syn, problem.threshold)
+    return syn, classes
+
+
+def _class_names(classes, syn, threshold) -> np.ndarray:
+    """Per-cell "yes"/"no"/"maybe" from whatever form SynthesisResult.classes has."""
+    c = np.asarray(classes)
+    if c.dtype.kind in "US":
+        return c.astype(str)
+    if c.dtype == object:
+        return np.array([str(getattr(v, "value", v)).lower() for v in c])
+    # Fall back to the definition (paper, Sec. 5): yes iff p_low >= threshold, no iff p_up < threshold.
+    p_low, p_up = np.asarray(syn.p_low), np.asarray(syn.p_up)
+    return np.where(p_low >= threshold, "yes", np.where(p_up < threshold, "no", "maybe"))
+
+
+# --------------------------------------------------------------------------- entry points
+def synthesize_from_data(problem: Problem, *, progress: bool = True,
+                         abstraction_cache=None) -> Result:
+    """Learn, bound, abstract and synthesize: data and formula in, guarantees out.
+
+    Parameters
+    ----------
+    problem : Problem
+    progress : bool
+        Print one line per stage (and counts) to stderr.
+    abstraction_cache : str or Path, optional
+        Directory where the abstraction is saved as ``abstraction-<key>.npz``; an existing file
+        with the same key (see :func:`abstraction_key`) is loaded instead of re-running learn,
+        bound and abstract.
+
+    Returns
+    -------
+    Result
+    """
+    from robust_imdp.dfa import ltlf_to_dfa
+    from robust_imdp.geometry import Box, Partition
+
+    log = _Log(progress)
+    with log.stage("specify"):
+        dfa = ltlf_to_dfa(problem.formula)
+        _check_atoms(dfa, problem)
+    log.info(f"DFA: {dfa.n_states} states over atoms {list(dfa.atoms)}")
+    with log.stage("partition"):
+        partition = Partition(Box(problem.space_lower, problem.space_upper), problem.cell_size,
+                              _region_objects(problem))
+    log.info(f"partition: {partition.n_cells} cells")
+
+    abstraction, from_cache = None, False
+    cache_file = None
+    if abstraction_cache is not None:
+        cache_file = Path(abstraction_cache) / f"abstraction-{abstraction_key(problem)}.npz"
+        if cache_file.exists():
+            from robust_imdp.abstraction import Abstraction
+
+            with log.stage("load_abstraction"):
+                abstraction = Abstraction.load(cache_file)
+            from_cache = True
+            log.info(f"reused abstraction {cache_file.name}")
+    if abstraction is None:
+        abstraction = _build_abstraction(problem, partition, log)
+        if cache_file is not None:
+            cache_file.parent.mkdir(parents=True, exist_ok=True)
+            abstraction.save(cache_file)
+    syn, classes = _synthesize(problem, partition, abstraction, dfa, log)
+    log.timings["total"] = time.perf_counter() - log.t0
+    result = Result(problem=problem, partition=partition, abstraction=abstraction, dfa=dfa,
+                    synthesis=syn, class_names=classes, timings=dict(log.timings),
+                    parameters=_parameters(problem, abstraction), from_cache=from_cache)
+    if progress:
+        print(result.summary(), file=sys.stderr, flush=True)
+    return result
+
+
+def resynthesize(result: Result, *, formula: str | None = None, threshold: float | None = None,
+                 horizon="keep", progress: bool = True) -> Result:
+    """Solve a new formula / threshold / horizon on ``result``'s abstraction (no re-learning)."""
+    from robust_imdp.dfa import ltlf_to_dfa
+
+    changes = {}
+    if formula is not None:
+        changes["formula"] = formula
+    if threshold is not None:
+        changes["threshold"] = threshold
+    if horizon != "keep":
+        changes["horizon"] = horizon
+    problem = result.problem.replace(**changes)
+    log = _Log(progress)
+    with log.stage("specify"):
+        dfa = ltlf_to_dfa(problem.formula)
+        _check_atoms(dfa, problem)
+    syn, classes = _synthesize(problem, result.partition, result.abstraction, dfa, log)
+    log.timings["total"] = time.perf_counter() - log.t0
+    out = Result(problem=problem, partition=result.partition, abstraction=result.abstraction,
+                 dfa=dfa, synthesis=syn, class_names=classes, timings=dict(log.timings),
+                 parameters=result.parameters, from_cache=True)
+    if progress:
+        print(out.summary(), file=sys.stderr, flush=True)
+    return out
