@@ -1,0 +1,400 @@
+"""The refined switching controller for the continuous system (paper, eq. mapping-strategy).
+
+The strategy computed on the product is a table ``(cell, DFA state) -> mode`` (``(time, cell, DFA
+state) -> mode`` for a k-step horizon). On the real system the controller locates the cell of the
+current state, tracks the DFA state from the labels of the visited cells (standard product
+semantics: the first label is read at :meth:`Controller.reset`) and looks the mode up::
+
+    ctrl = result.controller(partition, mode_names=("a", "b"))
+    ctrl.reset(x0)
+    while (u := ctrl.act(x)) is not None:    # None once the spec is decided
+        x = system.step(x, u)
+    ctrl.status                                # "satisfied" or "violated"
+
+Deployment. This module needs only numpy (and the exception classes of
+:mod:`robust_imdp.errors`). :meth:`Controller.save` writes two files, and a re-implementation
+in any language needs nothing else:
+
+``<prefix>.json``
+    ``format`` ("robust_imdp.controller"), ``version`` (1), ``atoms`` (DFA atom order; bit ``i``
+    of a letter is ``atoms[i]``), ``dfa`` {``initial``, ``accepting`` (list of states),
+    ``delta`` (S lists of 2**len(atoms) successor states)}, ``modes`` (list of names or null),
+    ``n_modes``, ``threshold``, ``horizon`` (null = unbounded), ``dim``, ``shape`` (intervals per
+    dimension), ``metadata`` (free JSON, e.g. the formula).
+``<prefix>.npz`` (``numpy.savez``, no pickled objects)
+    ``strategy`` int64 (n_cells, S) or (k, n_cells, S); ``cell_letters`` int64 (n_cells,) letters
+    over ``atoms``; ``space_lower``, ``space_upper`` float64 (d,): the set X;
+    ``breakpoints_<j>`` float64 (shape[j] + 1,) for every dimension j; ``p_low``, ``p_up``,
+    ``p_up_star`` float64 (n_cells,) (NaN when unknown).
+
+Locating a point x: outside X (any coordinate outside ``[space_lower, space_upper]``) means
+leaving X. Otherwise ``i_j = min(searchsorted(breakpoints_j, x_j, side="right") - 1,
+shape[j] - 1)`` (half-open intervals, the last one closed at the upper end of X) and the cell is
+``ravel_multi_index(i, shape)`` (C order), as :meth:`robust_imdp.geometry.Partition.locate`.
+
+Run: ``s = delta[initial][cell_letters[q0]]``; while ``s`` is neither accepting (satisfied) nor
+a sink (violated) and ``t < k``, apply ``strategy[(t,) q, s]``, observe the next state, stop as
+violated if it left X, else ``s = delta[s][cell_letters[q]]``, ``t += 1``. For a k-step
+strategy, reaching time ``k`` without acceptance is a violation of the bounded specification.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from robust_imdp.errors import DimensionError, InvalidInputError, InvalidModelError, OutsideDomainError
+
+__all__ = ["Controller", "RUNNING", "SATISFIED", "VIOLATED"]
+
+RUNNING, SATISFIED, VIOLATED = "running", "satisfied", "violated"
+FORMAT = "robust_imdp.controller"
+
+
+def _sinks(delta: np.ndarray, accepting: np.ndarray) -> np.ndarray:
+    """(S,) bool: states from which no accepting state is reachable (backward fixed point)."""
+    good = accepting.copy()
+    while True:
+        new = good | good[delta].any(axis=1)
+        if (new == good).all():
+            return ~good
+        good = new
+
+
+class Controller:
+    """Refined switching controller: locate the cell, track the DFA, look the mode up.
+
+    Parameters
+    ----------
+    strategy : (n_cells, S) or (k, n_cells, S) int array
+        Mode index per (cell, DFA state) (per time step for a k-step horizon).
+    dfa_delta : (S, 2**len(atoms)) int array
+    dfa_initial : int
+    dfa_accepting : (S,) bool array
+    atoms : sequence of str
+        DFA atom order (bit ``i`` of a letter is ``atoms[i]``).
+    cell_letters : (n_cells,) int array
+        Letter of every cell over ``atoms``.
+    breakpoints : sequence of 1-D float arrays
+        Per dimension, the increasing cell boundaries; ``n_cells = prod(len(b) - 1)``.
+    space_lower, space_upper : (d,) float arrays
+        The compact set X.
+    modes : sequence of str, optional
+        Mode names returned by :meth:`act` (indices when omitted).
+    threshold : float, optional
+    p_low, p_up, p_up_star : (n_cells,) float arrays, optional
+        Bounds of the synthesis, kept for inspection and saving.
+    metadata : dict, optional
+        JSON-serialisable information (formula, ...).
+
+    Attributes
+    ----------
+    status : {"running", "satisfied", "violated"}
+    cell : int (-1 after leaving X)
+    dfa_state : int
+    time : int
+        Number of steps observed since :meth:`reset`.
+    """
+
+    def __init__(
+        self,
+        strategy: Any,
+        dfa_delta: Any,
+        dfa_initial: int,
+        dfa_accepting: Any,
+        atoms: Sequence[str],
+        cell_letters: Any,
+        breakpoints: Sequence[Any],
+        space_lower: Any,
+        space_upper: Any,
+        *,
+        modes: Sequence[str] | None = None,
+        threshold: float | None = None,
+        p_low: Any = None,
+        p_up: Any = None,
+        p_up_star: Any = None,
+        metadata: dict | None = None,
+    ):
+        self.atoms = tuple(atoms)
+        self.dfa_delta = np.array(dfa_delta, dtype=np.int64)
+        self.dfa_accepting = np.array(dfa_accepting, dtype=bool)
+        S = self.dfa_delta.shape[0] if self.dfa_delta.ndim == 2 else -1
+        if self.dfa_delta.ndim != 2 or self.dfa_delta.shape[1] != 2 ** len(self.atoms):
+            raise DimensionError(
+                f"dfa_delta must have shape (S, {2 ** len(self.atoms)}) for atoms {list(self.atoms)}; "
+                f"got {self.dfa_delta.shape}"
+            )
+        if self.dfa_delta.size and (self.dfa_delta.min() < 0 or self.dfa_delta.max() >= S):
+            raise InvalidModelError(f"dfa_delta targets must lie in [0, {S})")
+        if self.dfa_accepting.shape != (S,):
+            raise DimensionError(f"dfa_accepting must have shape ({S},); got {self.dfa_accepting.shape}")
+        if not 0 <= int(dfa_initial) < S:
+            raise InvalidModelError(f"dfa_initial must lie in [0, {S}); got {dfa_initial!r}")
+        self.dfa_initial = int(dfa_initial)
+        self.dfa_sink = _sinks(self.dfa_delta, self.dfa_accepting)
+
+        self.breakpoints = [np.array(b, dtype=np.float64) for b in breakpoints]
+        for j, b in enumerate(self.breakpoints):
+            if b.ndim != 1 or b.size < 2 or np.any(np.diff(b) <= 0):
+                raise InvalidModelError(f"breakpoints[{j}] must be a strictly increasing 1-D array of length >= 2")
+        self.shape = tuple(len(b) - 1 for b in self.breakpoints)
+        self.dim = len(self.shape)
+        self.n_cells = int(np.prod(self.shape))
+        self.space_lower = np.array(space_lower, dtype=np.float64).reshape(-1)
+        self.space_upper = np.array(space_upper, dtype=np.float64).reshape(-1)
+        if self.space_lower.shape != (self.dim,) or self.space_upper.shape != (self.dim,):
+            raise DimensionError(
+                f"space_lower and space_upper must have shape ({self.dim},); got "
+                f"{self.space_lower.shape} and {self.space_upper.shape}"
+            )
+        self.cell_letters = np.array(cell_letters, dtype=np.int64)
+        if self.cell_letters.shape != (self.n_cells,):
+            raise DimensionError(
+                f"cell_letters must have shape (n_cells,) = ({self.n_cells},); got {self.cell_letters.shape}"
+            )
+        if np.any((self.cell_letters < 0) | (self.cell_letters >= 2 ** len(self.atoms))):
+            raise InvalidModelError(f"cell_letters must be letters in [0, {2 ** len(self.atoms)})")
+        self.strategy = np.array(strategy, dtype=np.int64)
+        if self.strategy.ndim == 2:
+            self.horizon = None
+        elif self.strategy.ndim == 3:
+            self.horizon = int(self.strategy.shape[0])
+        else:
+            raise DimensionError(f"strategy must be (n_cells, S) or (k, n_cells, S); got {self.strategy.shape}")
+        if self.strategy.shape[-2:] != (self.n_cells, S):
+            raise DimensionError(
+                f"strategy must end with shape (n_cells, S) = ({self.n_cells}, {S}); got {self.strategy.shape}"
+            )
+        self.n_modes = int(self.strategy.max(initial=-1)) + 1
+        self.modes = None if modes is None else tuple(modes)
+        if self.modes is not None:
+            if isinstance(modes, str) or len(self.modes) < self.n_modes:
+                raise InvalidInputError(
+                    f"modes must name at least the {self.n_modes} modes used by the strategy; got {modes!r}"
+                )
+            self.n_modes = len(self.modes)
+        self.threshold = None if threshold is None else float(threshold)
+        nan = np.full(self.n_cells, np.nan)
+        self.p_low = nan.copy() if p_low is None else np.array(p_low, dtype=np.float64)
+        self.p_up = nan.copy() if p_up is None else np.array(p_up, dtype=np.float64)
+        self.p_up_star = nan.copy() if p_up_star is None else np.array(p_up_star, dtype=np.float64)
+        for name in ("p_low", "p_up", "p_up_star"):
+            if getattr(self, name).shape != (self.n_cells,):
+                raise DimensionError(f"{name} must have shape ({self.n_cells},); got {getattr(self, name).shape}")
+        self.metadata = dict(metadata or {})
+        self.status = RUNNING
+        self.cell = -1
+        self.dfa_state = self.dfa_initial
+        self.time = 0
+        self._started = False
+        self._pending = False
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_result(cls, result: Any, partition: Any, mode_names: Sequence[str] | None = None) -> "Controller":
+        """Controller of a :class:`~robust_imdp.synthesis.SynthesisResult` on ``partition``.
+
+        Raises
+        ------
+        DimensionError, InvalidInputError
+            If the partition's cells or labels do not match the result.
+        """
+        from robust_imdp.synthesis import remap_letters  # deployment never needs this path
+
+        if partition.n_cells != result.n_cells:
+            raise DimensionError(
+                f"partition must have the result's {result.n_cells} cells; got {partition.n_cells}"
+            )
+        letters = remap_letters(partition.labels, partition.atoms, result.dfa.atoms)
+        if not np.array_equal(letters, result.labels):
+            q = int(np.flatnonzero(letters != result.labels)[0])
+            raise InvalidInputError(
+                f"partition labels differ from those used for synthesis (first at cell {q}); "
+                "pass the partition the abstraction was built on"
+            )
+        dfa = result.dfa
+        meta = {"formula": dfa.formula, "horizon": result.horizon}
+        return cls(
+            result.strategy, dfa.delta, dfa.initial, dfa.accepting, dfa.atoms, result.labels,
+            partition.breakpoints, partition.space.lower, partition.space.upper,
+            modes=mode_names, threshold=result.threshold, p_low=result.p_low, p_up=result.p_up,
+            p_up_star=result.p_up_star, metadata=meta,
+        )
+
+    # ------------------------------------------------------------------ running
+    def locate(self, x: Any) -> np.ndarray:
+        """Cell of each point, ``-1`` outside X (same convention as ``Partition.locate``).
+
+        Parameters
+        ----------
+        x : (k, d) or (d,) float array
+
+        Returns
+        -------
+        (k,) int64 array
+        """
+        x = np.atleast_2d(np.asarray(x, dtype=np.float64))
+        if x.ndim != 2 or x.shape[1] != self.dim:
+            raise DimensionError(f"x must have shape (k, {self.dim}) or ({self.dim},); got {np.shape(x)}")
+        if np.any(np.isnan(x)):
+            raise InvalidInputError("x must not contain NaN")
+        inside = np.all((x >= self.space_lower) & (x <= self.space_upper), axis=1)
+        multi = np.empty(x.shape, dtype=np.int64)
+        for j, bp in enumerate(self.breakpoints):  # loop over dimensions, vectorised over points
+            multi[:, j] = np.clip(np.searchsorted(bp, x[:, j], side="right") - 1, 0, len(bp) - 2)
+        out = np.full(x.shape[0], -1, dtype=np.int64)
+        if np.any(inside):
+            out[inside] = np.ravel_multi_index(tuple(multi[inside].T), self.shape)
+        return out
+
+    def _locate_one(self, x: Any) -> int:
+        x = np.asarray(x, dtype=np.float64)
+        if x.shape != (self.dim,):
+            raise DimensionError(f"x must have shape ({self.dim},); got {x.shape}")
+        return int(self.locate(x)[0])
+
+    def _update_status(self) -> None:
+        if self.dfa_accepting[self.dfa_state]:
+            self.status = SATISFIED  # accepting product states are absorbing targets
+        elif self.dfa_sink[self.dfa_state]:
+            self.status = VIOLATED  # acceptance is no longer reachable
+        elif self.horizon is not None and self.time >= self.horizon:
+            self.status = VIOLATED  # k-step objective: not accepted within the horizon
+        else:
+            self.status = RUNNING
+
+    def reset(self, x0: Any) -> "Controller":
+        """Start a run in ``x0``: locate its cell and read its label (``s = delta(s0, L(q0))``).
+
+        Raises
+        ------
+        OutsideDomainError
+            If ``x0`` is outside X.
+        """
+        q = self._locate_one(x0)
+        if q < 0:
+            raise OutsideDomainError(
+                f"x0 must lie in X = [{self.space_lower.tolist()}, {self.space_upper.tolist()}]; "
+                f"got {np.asarray(x0).tolist()}"
+            )
+        self.cell = q
+        self.time = 0
+        self.dfa_state = int(self.dfa_delta[self.dfa_initial, self.cell_letters[q]])
+        self._started = True
+        self._pending = False
+        self._update_status()
+        return self
+
+    def act(self, x: Any):
+        """Observe the current state ``x`` and return the mode to apply, or ``None`` when done.
+
+        The first call after :meth:`reset` must be given the reset state (its cell is checked);
+        every later call is taken as the state reached by applying the previously returned mode,
+        so its cell's label advances the DFA. Leaving X makes the run "violated".
+
+        Returns
+        -------
+        int, str or None
+            Mode index (or name when ``modes`` were given); ``None`` once :attr:`status` is
+            "satisfied" or "violated".
+        """
+        if not self._started:
+            raise InvalidInputError("act(x) called before reset(x0)")
+        q = self._locate_one(x)
+        if self._pending:
+            self._pending = False
+            self.time += 1
+            if q < 0:
+                self.cell = -1
+                self.status = VIOLATED  # the outside-X state is absorbing and never accepting
+                return None
+            self.cell = q
+            self.dfa_state = int(self.dfa_delta[self.dfa_state, self.cell_letters[q]])
+            self._update_status()
+        elif self.status == RUNNING and q != self.cell:
+            raise InvalidInputError(
+                f"the first act(x) after reset must be given the reset state (cell {self.cell}); "
+                f"x lies in cell {q}"
+            )
+        if self.status != RUNNING:
+            return None
+        table = self.strategy if self.horizon is None else self.strategy[self.time]
+        mode = int(table[self.cell, self.dfa_state])
+        self._pending = True
+        return mode if self.modes is None else self.modes[mode]
+
+    # ------------------------------------------------------------------ files
+    def save(self, path_prefix: str | Path) -> tuple[Path, Path]:
+        """Write ``<prefix>.json`` and ``<prefix>.npz`` (format in the module docstring).
+
+        Returns
+        -------
+        (json_path, npz_path)
+        """
+        prefix = Path(path_prefix)
+        json_path, npz_path = prefix.with_name(prefix.name + ".json"), prefix.with_name(prefix.name + ".npz")
+        doc = {
+            "format": FORMAT,
+            "version": 1,
+            "atoms": list(self.atoms),
+            "dfa": {
+                "initial": self.dfa_initial,
+                "accepting": [int(s) for s in np.flatnonzero(self.dfa_accepting)],
+                "delta": self.dfa_delta.tolist(),
+            },
+            "modes": None if self.modes is None else list(self.modes),
+            "n_modes": self.n_modes,
+            "threshold": self.threshold,
+            "horizon": self.horizon,
+            "dim": self.dim,
+            "shape": list(self.shape),
+            "metadata": self.metadata,
+        }
+        arrays = {
+            "strategy": self.strategy,
+            "cell_letters": self.cell_letters,
+            "space_lower": self.space_lower,
+            "space_upper": self.space_upper,
+            "p_low": self.p_low,
+            "p_up": self.p_up,
+            "p_up_star": self.p_up_star,
+        }
+        for j, b in enumerate(self.breakpoints):
+            arrays[f"breakpoints_{j}"] = b
+        with open(npz_path, "wb") as fh:
+            np.savez(fh, **arrays)
+        json_path.write_text(json.dumps(doc, indent=1))
+        return json_path, npz_path
+
+    @classmethod
+    def load(cls, path_prefix: str | Path) -> "Controller":
+        """Read a controller written by :meth:`save` (no pickle: ``allow_pickle=False``)."""
+        prefix = Path(path_prefix)
+        json_path, npz_path = prefix.with_name(prefix.name + ".json"), prefix.with_name(prefix.name + ".npz")
+        doc = json.loads(json_path.read_text())
+        if doc.get("format") != FORMAT or doc.get("version") != 1:
+            raise InvalidInputError(
+                f"{json_path} must be a '{FORMAT}' version 1 file; got format={doc.get('format')!r}, "
+                f"version={doc.get('version')!r}"
+            )
+        with np.load(npz_path, allow_pickle=False) as z:
+            arr = {k: z[k] for k in z.files}
+        S = len(doc["dfa"]["delta"])
+        accepting = np.zeros(S, dtype=bool)
+        accepting[np.asarray(doc["dfa"]["accepting"], dtype=np.int64)] = True
+        bps = [arr[f"breakpoints_{j}"] for j in range(int(doc["dim"]))]
+        return cls(
+            arr["strategy"], np.asarray(doc["dfa"]["delta"], dtype=np.int64).reshape(S, -1),
+            doc["dfa"]["initial"], accepting, doc["atoms"], arr["cell_letters"], bps,
+            arr["space_lower"], arr["space_upper"], modes=doc["modes"], threshold=doc["threshold"],
+            p_low=arr["p_low"], p_up=arr["p_up"], p_up_star=arr["p_up_star"], metadata=doc["metadata"],
+        )
+
+    def __repr__(self) -> str:
+        return (
+            f"Controller(n_cells={self.n_cells}, dfa_states={self.dfa_delta.shape[0]}, "
+            f"modes={self.modes or self.n_modes}, horizon={self.horizon}, status={self.status!r})"
+        )

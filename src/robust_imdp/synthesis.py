@@ -1,0 +1,336 @@
+"""Robust strategy synthesis on the abstraction: IMDP + cell labels + DFA -> SynthesisResult.
+
+Implements the paper's Sec. 5 ("Strategy Synthesis") on the product of :mod:`robust_imdp.product`
+(standard label semantics: the initial product state of cell ``q`` is ``(q, delta(s0, L(q)))``):
+
+* the robust strategy ``pi = argmax_pi min_adversary P(reach accept)``          (eq. strategy-near-optimal)
+* ``p_low(q) = min_adversary P(... | pi)``                                        (eq. plow)
+* ``p_up(q)  = max_adversary P(... | pi)``                                        (eq. pup)
+* ``p_up_star(q) = max_pi max_adversary P(...)``                                  (eq. prob-upper-bound)
+* ``error = p_up_star - p_low`` (Thm. 2) and the classes ``Q_yes`` (``p_low >= threshold``),
+  ``Q_no`` (``p_up < threshold``), ``Q_?`` (otherwise).
+
+Soundness. Every solver call returns a sound bracket ``[lower, upper]`` of the value it
+approximates. We report
+
+* ``p_low``  = the LOWER end of the bracket of pi's value against the minimising adversary,
+* ``p_up``   = ``min(U1, U2)`` with ``U1`` the UPPER end of the bracket of pi's value against the
+  maximising adversary and ``U2 = p_up_star``; both are upper bounds of that value because
+  ``max_adv P(pi) <= max_pi max_adv P`` -- so the minimum is one too,
+* ``p_up_star`` = the UPPER end of the bracket of the optimistic (max, max) value.
+
+Hence ``p_low <= p_up <= p_up_star`` holds exactly: ``p_up <= p_up_star`` by the minimum, and
+``p_low <= true value <= p_up`` because both are sound bounds of ordered true values (checked; a
+violation raises :class:`~robust_imdp.errors.SoundnessError`). The classes can therefore never
+be both "yes" and "no". ``p_low`` is computed by *evaluating* the returned strategy (not read off
+the max-min iteration, whose lower bracket belongs to the optimal value, not to ``pi``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from numbers import Integral, Real
+from typing import Any, Sequence
+
+import numpy as np
+
+from robust_imdp.dfa import DFA
+from robust_imdp.errors import DimensionError, InvalidInputError, SoundnessError, UnknownAtomError
+from robust_imdp.imdp import IMDP
+
+__all__ = ["SolverRun", "SynthesisResult", "synthesize", "remap_letters"]
+
+CLASS_YES, CLASS_NO, CLASS_MAYBE = "yes", "no", "maybe"
+
+
+def _round_up(x: np.ndarray) -> np.ndarray:
+    """One ulp towards +inf: the outward rounding of upper bounds computed by a subtraction."""
+    return np.nextafter(x, np.inf)
+
+
+# --------------------------------------------------------------------------- results
+@dataclass(frozen=True)
+class SolverRun:
+    """Diagnostics of one product solve.
+
+    Attributes
+    ----------
+    name : str
+        ``"robust"`` (max-min, gives the strategy), ``"optimistic"`` (max-max, gives p_up_star),
+        ``"evaluate_pessimistic"`` / ``"evaluate_optimistic"`` (the strategy against both adversaries).
+    iterations : int
+    converged : bool
+    max_gap : float
+        Largest width ``upper - lower`` of the value bracket at the cells' initial states.
+    """
+
+    name: str
+    iterations: int
+    converged: bool
+    max_gap: float
+
+
+@dataclass(frozen=True, eq=False)
+class SynthesisResult:
+    """Robust strategy and satisfaction bounds for every cell (read fields by name).
+
+    Attributes
+    ----------
+    strategy : (n_cells, S) int array, or (k, n_cells, S) for a k-step horizon
+        Mode index to apply in cell ``q`` when the DFA is in state ``s`` (``strategy[t, q, s]`` at
+        time ``t``). Entries for accepting or sink DFA states are never used.
+    p_low : (n_cells,) float
+        LOWER end of the sound bracket of ``min_adv P(spec | pi)`` from the cell's initial product
+        state: a guaranteed lower bound of the satisfaction probability under ``pi``.
+    p_up : (n_cells,) float
+        An UPPER bound of ``max_adv P(spec | pi)`` (the smaller of the UPPER end of its bracket and
+        ``p_up_star``).
+    p_up_star : (n_cells,) float
+        UPPER end of the sound bracket of ``max_pi max_adv P(spec)``.
+    error : (n_cells,) float
+        ``p_up_star - p_low`` rounded up: bounds the distance to the optimal switching strategy.
+    classes : (n_cells,) str array of "yes" / "no" / "maybe"
+    initial_dfa_state : (n_cells,) int
+        ``delta(s0, L(q))``.
+    labels : (n_cells,) int
+        Cell letters w.r.t. ``dfa.atoms``.
+    dfa : DFA
+    threshold : float
+    horizon : int or None
+    n_modes : int
+    runs : tuple of SolverRun
+    precision : float
+    """
+
+    strategy: np.ndarray
+    p_low: np.ndarray
+    p_up: np.ndarray
+    p_up_star: np.ndarray
+    error: np.ndarray
+    classes: np.ndarray
+    initial_dfa_state: np.ndarray
+    labels: np.ndarray
+    dfa: DFA
+    threshold: float
+    horizon: int | None
+    n_modes: int
+    runs: tuple
+    precision: float
+
+    @property
+    def n_cells(self) -> int:
+        """Number of cells."""
+        return int(self.p_low.shape[0])
+
+    def class_counts(self) -> dict:
+        """``{"yes": n, "no": n, "maybe": n}``."""
+        return {c: int(np.count_nonzero(self.classes == c)) for c in (CLASS_YES, CLASS_NO, CLASS_MAYBE)}
+
+    def controller(self, partition: Any, mode_names: Sequence[str] | None = None):
+        """The refined switching controller (paper eq. mapping-strategy) on ``partition``.
+
+        Parameters
+        ----------
+        partition : geometry.Partition
+            The partition whose cells are this result's IMDP states (same cell order and labels).
+        mode_names : sequence of str, optional
+            Names returned by :meth:`Controller.act` instead of mode indices.
+        """
+        from robust_imdp.controller import Controller
+
+        return Controller.from_result(self, partition, mode_names=mode_names)
+
+
+# --------------------------------------------------------------------------- helpers
+def remap_letters(labels: Any, atoms: Sequence[str], dfa_atoms: Sequence[str]) -> np.ndarray:
+    """Re-express letters over ``atoms`` as letters over ``dfa_atoms`` (extra atoms are dropped).
+
+    Parameters
+    ----------
+    labels : (n,) int array
+        Bit ``i`` set iff ``atoms[i]`` holds.
+    atoms : sequence of str
+        Atom order of ``labels`` (e.g. the partition's region names).
+    dfa_atoms : sequence of str
+        Target order; every name must be in ``atoms``.
+
+    Returns
+    -------
+    (n,) int64 array, bit ``j`` set iff ``dfa_atoms[j]`` holds.
+
+    Raises
+    ------
+    UnknownAtomError
+        If a DFA atom is not among ``atoms`` (names them and lists the known labels).
+    """
+    atoms = tuple(atoms)
+    index = {a: i for i, a in enumerate(atoms)}
+    unknown = [a for a in dfa_atoms if a not in index]
+    if unknown:
+        raise UnknownAtomError(
+            f"the formula uses atoms {unknown} that no region defines; known labels are {list(atoms)}"
+        )
+    lab = np.asarray(labels, dtype=np.int64)
+    out = np.zeros(lab.shape, dtype=np.int64)
+    for j, a in enumerate(dfa_atoms):  # loop over atoms (a handful), vectorised over cells
+        out |= ((lab >> index[a]) & 1) << j
+    return out
+
+
+def _check_labels(labels: Any, atoms: Sequence[str]) -> np.ndarray:
+    lab = np.asarray(labels)
+    if lab.ndim != 1:
+        raise DimensionError(f"labels must be a 1-D (n_cells,) int array; got shape {lab.shape}")
+    if lab.size and not np.issubdtype(lab.dtype, np.integer):
+        raise InvalidInputError(f"labels must hold integer letters; got dtype {lab.dtype}")
+    lab = lab.astype(np.int64)
+    bad = np.flatnonzero((lab < 0) | (lab >= 2 ** len(atoms)))
+    if bad.size:
+        raise InvalidInputError(
+            f"labels must be letters in [0, 2**{len(atoms)}) over atoms {list(atoms)}; "
+            f"labels[{int(bad[0])}] = {int(lab[bad[0]])}"
+        )
+    return lab
+
+
+def _check_threshold(threshold: Any) -> float:
+    if isinstance(threshold, bool) or not isinstance(threshold, Real) or not 0.0 <= float(threshold) <= 1.0:
+        raise InvalidInputError(f"threshold must be a probability in [0, 1]; got {threshold!r}")
+    return float(threshold)
+
+
+def _check_horizon(horizon: Any) -> int | None:
+    if horizon is None:
+        return None
+    if isinstance(horizon, bool) or not isinstance(horizon, Integral) or horizon < 1:
+        raise InvalidInputError(f"horizon must be None (unbounded) or an int >= 1; got {horizon!r}")
+    return int(horizon)
+
+
+def _run(name: str, res: Any, n_cells: int) -> SolverRun:
+    gap = np.asarray(res.initial_upper)[:n_cells] - np.asarray(res.initial_lower)[:n_cells]
+    return SolverRun(name, int(res.iterations), bool(res.converged), float(gap.max(initial=0.0)))
+
+
+# --------------------------------------------------------------------------- synthesis
+def synthesize(
+    imdp: IMDP,
+    labels: Any,
+    atoms: Sequence[str],
+    dfa: DFA,
+    *,
+    threshold: float,
+    horizon: int | None = None,
+    outside_state: int | None = None,
+    precision: float = 1e-8,
+) -> SynthesisResult:
+    """Robust strategy, bounds ``p_low <= p_up <= p_up_star`` and classes for every cell.
+
+    Parameters
+    ----------
+    imdp : IMDP
+        Abstraction: states ``0 .. n_cells-1`` are cells, then (optionally) the outside-X state;
+        the choice index within a state is the mode index.
+    labels : (n_cells,) int array
+        Letter of each cell w.r.t. ``atoms`` (e.g. ``partition.labels``).
+    atoms : sequence of str
+        Atom order of ``labels`` (e.g. ``partition.atoms``); must contain ``dfa.atoms``.
+    dfa : DFA
+        Automaton of the specification (:func:`robust_imdp.dfa.ltlf_to_dfa`).
+    threshold : float in [0, 1]
+        Probability threshold of the classification.
+    horizon : int >= 1, optional
+        Number of steps for a k-step (bounded) objective; ``None`` for unbounded.
+    outside_state : int, optional
+        Index of the absorbing outside-X state, which must be ``n_cells`` (then
+        ``imdp.n_states == n_cells + 1``); it is never accepting. ``None`` when the IMDP has
+        no outside state (``imdp.n_states == n_cells``).
+    precision : float
+        Target width of the value brackets of the unbounded solves.
+
+    Returns
+    -------
+    SynthesisResult
+
+    Raises
+    ------
+    InvalidInputError, DimensionError, UnknownAtomError
+        Bad threshold/horizon, wrong label length, unknown atoms.
+    SoundnessError
+        If the solver's brackets contradict ``p_low <= p_up`` (a bug, never repaired).
+    """
+    from robust_imdp.product import evaluate_product_strategy, solve_product
+
+    if not isinstance(imdp, IMDP):
+        raise InvalidInputError(f"imdp must be an IMDP; got {type(imdp).__name__}")
+    if not isinstance(dfa, DFA):
+        raise InvalidInputError(f"dfa must be a DFA; got {type(dfa).__name__}")
+    threshold = _check_threshold(threshold)
+    horizon = _check_horizon(horizon)
+    if isinstance(atoms, str):
+        raise InvalidInputError(f"atoms must be a sequence of atom names; got the str {atoms!r}")
+    atoms = tuple(atoms)
+    lab = _check_labels(labels, atoms)
+    n_cells = int(lab.shape[0])
+    if outside_state is None:
+        if imdp.n_states != n_cells:
+            raise DimensionError(
+                f"labels must have one entry per IMDP state ({imdp.n_states}) when outside_state is "
+                f"None; got {n_cells} (pass outside_state=n_cells if the last state is outside X)"
+            )
+        avoid = None
+    else:
+        if outside_state != n_cells or imdp.n_states != n_cells + 1:
+            raise DimensionError(
+                f"outside_state must be n_cells = len(labels) = {n_cells} with imdp.n_states = "
+                f"n_cells + 1; got outside_state={outside_state!r}, imdp.n_states={imdp.n_states}"
+            )
+        avoid = np.array([n_cells], dtype=np.int64)
+    cell_letters = remap_letters(lab, atoms, dfa.atoms)
+    # the outside state's letter is never read: it is absorbing, never accepting (avoid)
+    letters = np.concatenate([cell_letters, np.zeros(imdp.n_states - n_cells, dtype=np.int64)])
+
+    kw = dict(avoid=avoid, horizon=horizon, precision=precision)
+    robust = solve_product(imdp, letters, dfa, adversary="pessimistic", **kw)
+    optimistic = solve_product(imdp, letters, dfa, adversary="optimistic", **kw)
+    pi = np.asarray(robust.strategy)
+    ev_low = evaluate_product_strategy(imdp, letters, dfa, pi, adversary="pessimistic", **kw)
+    ev_up = evaluate_product_strategy(imdp, letters, dfa, pi, adversary="optimistic", **kw)
+
+    p_low = np.array(ev_low.initial_lower, dtype=np.float64)[:n_cells]
+    p_up_star = np.array(optimistic.initial_upper, dtype=np.float64)[:n_cells]
+    # Both are upper bounds of max_adv P(pi): its own bracket's upper end, and p_up_star since
+    # max_adv P(pi) <= max_pi max_adv P. Their minimum is an upper bound too, and <= p_up_star.
+    p_up = np.minimum(np.array(ev_up.initial_upper, dtype=np.float64)[:n_cells], p_up_star)
+    bad = np.flatnonzero(~(p_low <= p_up))
+    if bad.size:
+        q = int(bad[0])
+        raise SoundnessError(
+            f"cell {q}: p_low = {float(p_low[q])!r} > p_up = {float(p_up[q])!r}; the solver brackets are not sound"
+        )
+    # error bounds |P(pi_x) - p_opt| <= p_up_star - p_low (Thm. 2); round the difference up.
+    # The clamp to 1 is safe: both are probabilities, so the true difference is at most 1.
+    error = np.minimum(_round_up(p_up_star - p_low), 1.0)
+    classes = np.where(p_low >= threshold, CLASS_YES, np.where(p_up < threshold, CLASS_NO, CLASS_MAYBE))
+
+    if horizon is None:
+        strategy = pi[:, :n_cells].T  # (S, n) -> (n_cells, S)
+    else:
+        strategy = np.transpose(pi[:, :, :n_cells], (0, 2, 1))  # (k, S, n) -> (k, n_cells, S)
+    strategy = np.ascontiguousarray(strategy, dtype=np.int64)
+    init = np.asarray(robust.initial_state, dtype=np.int64)[:n_cells].copy()
+    arrays = [strategy, p_low, p_up, p_up_star, error, classes, init, cell_letters]
+    for a in arrays:
+        a.setflags(write=False)
+    runs = (
+        _run("robust", robust, n_cells),
+        _run("optimistic", optimistic, n_cells),
+        _run("evaluate_pessimistic", ev_low, n_cells),
+        _run("evaluate_optimistic", ev_up, n_cells),
+    )
+    return SynthesisResult(
+        strategy=strategy, p_low=p_low, p_up=p_up, p_up_star=p_up_star, error=error,
+        classes=classes, initial_dfa_state=init, labels=cell_letters, dfa=dfa,
+        threshold=threshold, horizon=horizon, n_modes=int(imdp.n_choices_of().max()),
+        runs=runs, precision=float(precision),
+    )
