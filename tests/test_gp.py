@@ -265,6 +265,11 @@ def test_from_gp_refuses_other_noise_variances_and_rescales_B():
     assert triv.info_gain == trivial_info_gain(30, 4.0, gp.noise_variance_) >= eb.info_gain
     with pytest.raises(InvalidInputError, match="info_gain"):
         RKHSErrorBound.from_gp(gp, 10.0, 0.05, info_gain="max")
+    eb.check_gp(gp)
+    with pytest.raises(InvalidInputError, match="noise_variance_ = 1.0666"):
+        eb.check_gp(other)  # same m, other lambda: refused
+    with pytest.raises(InvalidInputError, match="m = 30 samples"):
+        eb.check_gp(GaussianProcess(0.8, 4.0, "chowdhury").fit(X[:20], y[:20]))
     with pytest.warns(AssumptionWarning, match="below the RKHS norm"):
         RKHSErrorBound.from_gp(gp, 1e-3, 0.05)
     with warnings.catch_warnings():

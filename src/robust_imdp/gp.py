@@ -527,7 +527,7 @@ class RKHSErrorBound:
     This is C&G's printed constant ``B + theta sqrt(2(gamma + 1 + ln 1/delta))`` with the
     noise term tightened by ``1/sqrt(lambda) < 1``.
 
-    **The paper's / issue's form is not used.** Jackson et al. (2021, Lemma 2) print
+    **The paper's / issue's form is not used.** Jackson et al. (2021, Lemma 1) print
     ``beta = (theta/sqrt(lambda)) (B + theta sqrt(2(gamma + 1 + ln 1/delta)))``. It is
     dimensionally inconsistent (``theta * B`` has the units of ``g`` squared) and unsound
     for ``theta < sqrt(lambda)``: with one training point far away, ``mu ~ 0`` and
@@ -638,7 +638,24 @@ class RKHSErrorBound:
                 AssumptionWarning,
                 stacklevel=2,
             )
-        return cls(B, float(sub_gaussian), required, gamma, m)
+        bound = cls(B, float(sub_gaussian), required, gamma, m)
+        bound.check_gp(gp)
+        return bound
+
+    def check_gp(self, gp: GaussianProcess) -> None:
+        """Raise unless ``gp``'s posterior is the one this bound is about (same lambda, m, no jitter).
+
+        Consumers that take a GP and a bound separately call this before pairing them.
+        """
+        if not hasattr(gp, "alpha_"):
+            raise InvalidInputError(f"gp must be a fitted GaussianProcess; got {gp!r}")
+        m = gp.X_train_.shape[0]
+        if m != self.n_samples or gp.noise_variance_ != self.regulariser or gp.jitter_ != 0.0:
+            raise InvalidInputError(
+                f"gp must have m = {self.n_samples} samples, noise_variance_ = {self.regulariser!r} and no jitter "
+                f"to use this error bound; got m = {m}, noise_variance_ = {gp.noise_variance_!r}, "
+                f"jitter_ = {gp.jitter_!r}"
+            )
 
     # ------------------------------------------------------------------ the bound
     @property
