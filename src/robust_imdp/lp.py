@@ -265,28 +265,48 @@ def _dense(imdp):
     return lo, up
 
 
-def _pick_strategy(lo, up, row_state, state_ptr, x, target, zero, nature_max: bool, ctrl_max: bool) -> np.ndarray:
+def _greedy_p(lo: np.ndarray, up: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """(R, n) ordering distributions: lower bounds, then the remaining mass in ``order``."""
+    gap = (up - lo)[:, order]
+    rem = 1.0 - lo.sum(axis=1, keepdims=True)
+    before = np.cumsum(gap, axis=1) - gap
+    p = lo.copy()
+    p[:, order] += np.clip(rem - before, 0.0, gap)
+    return p
+
+
+def _pick_strategy(lo, up, row_state, state_ptr, x, target, nature_max: bool, ctrl_max: bool) -> np.ndarray:
     """A memoryless strategy attaining ``x`` that is not trapped by end components.
 
     Optimal rows of a state are those whose inner value (reference ordering) is within
-    1e-7 of the best; among them a state takes one that gives positive mass to states
-    already assigned, in backward BFS layers from the target (ties broken toward progress).
-    States of value 0 (or never reached by the BFS) take their first optimal row.
+    1e-7 of the best.  States are assigned in backward layers from the target: a state takes
+    an optimal row under which an optimal distribution of nature gives positive mass to the
+    states already assigned.  When nature maximises, that distribution is the ordering one
+    at ``x`` with ties (values equal to 1e-9) broken toward assigned states, so the pair
+    (strategy, that distribution) is a Markov chain with fixed point ``x`` in which every
+    assigned state reaches the target with positive probability -- hence its reachability
+    value is ``x`` and the strategy attains ``x`` (the usual attractor argument for maximal
+    reachability, e.g. Baier & Katoen, Principles of Model Checking, Lemma 10.102).  When
+    nature minimises and the controller minimises too, any value-greedy row is optimal;
+    the layers only make the choice deterministic.  States never assigned (value 0) take
+    their first optimal row.
     """
     n = x.shape[0]
     q = ordering_inner_dense(lo, up, x, nature_max)
     best = np.full(n, -np.inf if ctrl_max else np.inf)
     (np.maximum if ctrl_max else np.minimum).at(best, row_state, q)
     optimal = np.abs(q - best[row_state]) <= 1e-7
-    done = target | zero
+    done = target.copy()
     choice = np.full(n, -1, dtype=np.int64)
+    xr = np.round(x, 9)
     while True:
         inS = done.astype(float)
         if nature_max:
-            pos = (up @ inS) > 0
+            order = np.lexsort((~done, -xr))  # value descending, assigned states first among ties
+            pos = (_greedy_p(lo, up, order) @ inS) > 0
         else:
             pos = np.maximum(lo @ inS, 1.0 - up @ (1.0 - inS)) > 1e-15
-        elig = optimal & pos & ~done[row_state]
+        elig = optimal & pos & ~done[row_state] & (x[row_state] > 0)
         rows = np.flatnonzero(elig)
         if rows.size == 0:
             break
@@ -403,7 +423,7 @@ def solve_reachability_lp(imdp, target, *, avoid=None, adversary="pessimistic", 
     if nat == ctrl:
         zero = _prob0(lo, up, imdp.row_state, n, tgt, avd, nat, ctrl) & ~tgt
         x, it = _game_lp(lo, up, imdp.row_state, n, tgt, zero | (avd & ~tgt), nat)
-        strat = _pick_strategy(lo, up, imdp.row_state, imdp.state_ptr, x, tgt, zero, nat, ctrl)
+        strat = _pick_strategy(lo, up, imdp.row_state, imdp.state_ptr, x, tgt, nat, ctrl)
         return _result(x, strat, it, tgt)
     # opposite directions: brute force over deterministic memoryless strategies
     k = np.diff(imdp.state_ptr)
