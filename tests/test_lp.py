@@ -252,3 +252,11 @@ def test_bad_input_messages():
         evaluate_strategy_lp(m, tgt, [2, 0, 0])
     with pytest.raises(InvalidInputError, match="max_strategies"):
         solve_reachability_lp(m, tgt, adversary="pessimistic", max_strategies=4)
+
+
+def test_target_avoid_checks():
+    m = tiny_example()
+    with pytest.raises(InvalidInputError, match="empty target"):
+        solve_reachability_lp(m, np.zeros(3, bool))
+    with pytest.raises(InvalidInputError, match="state 1 is in both"):
+        solve_reachability_lp(m, [1], avoid=[1, 2])

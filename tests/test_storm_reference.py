@@ -105,3 +105,16 @@ def test_solver_matches_storm():
             ours_k = solve.solve_reachability(m, tgt, adversary=adversary, horizon=5)
             storm_k = storm_reachability(m, tgt, adversary=adversary, horizon=5, precision=PREC)
             assert np.max(np.abs(ours_k.lower - storm_k)) <= TOL
+
+
+def test_to_stormpy_chunking_is_invisible():
+    # chunks of 5 entries cut the matrix at many state boundaries; the model must not change
+    m = random_imdp(np.random.default_rng(12), 9, 3, 3, positive_lower=True)
+    tgt = np.zeros(9, bool)
+    tgt[4] = True
+    a = to_stormpy(m, tgt, chunk=5)
+    b = to_stormpy(m, tgt)
+    assert (a.nr_states, a.nr_choices, a.nr_transitions) == (9, 27, m.nnz)
+    for s in range(9):
+        assert a.transition_matrix.get_row_group_start(s) == m.state_ptr[s]
+    np.testing.assert_array_equal(storm_reachability(a, tgt, precision=PREC), storm_reachability(b, tgt, precision=PREC))

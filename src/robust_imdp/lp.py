@@ -114,6 +114,18 @@ def _as_mask(x, n: int, name: str, *, allow_none: bool) -> np.ndarray:
     return mask
 
 
+def _target_avoid(n: int, target, avoid):
+    """Masks of target and avoid; the target must be non-empty and disjoint from avoid."""
+    tgt = _as_mask(target, n, "target", allow_none=False)
+    avd = _as_mask(avoid, n, "avoid", allow_none=True)
+    if not tgt.any():
+        raise InvalidInputError("target must contain at least one state; got an empty target")
+    both = np.flatnonzero(tgt & avd)
+    if both.size:
+        raise InvalidInputError(f"target and avoid must be disjoint; state {int(both[0])} is in both")
+    return tgt, avd
+
+
 def ordering_inner_dense(lo: np.ndarray, up: np.ndarray, v: np.ndarray, maximize: bool) -> np.ndarray:
     """Reference ordering solution of the inner problem for dense rows (tests and strategy ties).
 
@@ -371,8 +383,7 @@ def evaluate_strategy_lp(imdp, target, strategy, *, avoid=None, adversary="pessi
     ReachabilityResult
     """
     n = imdp.n_states
-    tgt = _as_mask(target, n, "target", allow_none=False)
-    avd = _as_mask(avoid, n, "avoid", allow_none=True)
+    tgt, avd = _target_avoid(n, target, avoid)
     st = _check_strategy(imdp, strategy)
     nat = nature_maximises(adversary, objective)
     rows = imdp.state_ptr[:-1] + st
@@ -391,7 +402,7 @@ def solve_reachability_lp(imdp, target, *, avoid=None, adversary="pessimistic", 
     Parameters
     ----------
     imdp : IMDP
-    target, avoid : (n,) bool masks or index arrays (a state in both counts as target)
+    target, avoid : (n,) bool masks or index arrays (non-empty target, disjoint from avoid)
     adversary : "pessimistic" | "optimistic"
     objective : "maximize" | "minimize"
     horizon : None
@@ -415,8 +426,7 @@ def solve_reachability_lp(imdp, target, *, avoid=None, adversary="pessimistic", 
     if horizon is not None:
         raise InvalidInputError(f"horizon must be None for solve_reachability_lp (unbounded reachability only); got {horizon!r}")
     n = imdp.n_states
-    tgt = _as_mask(target, n, "target", allow_none=False)
-    avd = _as_mask(avoid, n, "avoid", allow_none=True)
+    tgt, avd = _target_avoid(n, target, avoid)
     nat = nature_maximises(adversary, objective)
     ctrl = _normalise(objective, "objective", ("maximize", "minimize")) == "maximize"
     lo, up = _dense(imdp)
