@@ -1,0 +1,1035 @@
+"""Interval value iteration with sound lower and upper bounds (issue 2, items 3-4).
+
+Contract
+--------
+``solve_reachability(imdp, target, *, avoid, adversary, objective, horizon, precision)`` and
+``evaluate_strategy(imdp, target, strategy, ...)`` return a frozen :class:`ReachabilityResult`
+whose ``lower``/``upper`` bracket the true value of every state.
+
+Soundness (why every printed bound is on the safe side)
+-------------------------------------------------------
+Let B be the Bellman operator of the (controller, adversary) pair: targets fixed to 1, avoid
+states to 0, ``B(x)(s) = opt_a adv_{p in P(s,a)} p.x``.  B is monotone and the reachability
+value V* is its *least* fixed point (for every combination max/min x max/min).
+
+* **Lower**: ``l_0`` = indicator of the target <= V*; ``l_{k+1} = max(l_k, B_down(l_k))`` where
+  ``B_down`` is B evaluated in floating point minus a proven bound of its rounding error
+  (``ROW_ERR``, derivation below).  By monotonicity ``B_down(l) <= B(l) <= B(V*) = V*``.
+* **Upper**: (a) a graph pre-computation finds the nodes with V* = 0 (no admissible way to put
+  positive probability on the target; liberal in borderline cases, so it never zeroes a
+  positive value); (b) ``u_0 = 1`` elsewhere and ``u_{k+1} = min(u_k, B_up(u_k))``, sound since
+  ``u >= V*`` implies ``B_up(u) >= B(u) >= B(V*) = V*``.  End components make (b) stall at a
+  larger fixed point, so (d) every iteration also applies
+* **Lemma D (deflation)**.  Let C be any set of non-target nodes and u >= V*.  Call a row
+  (s, a), s in C, *stay-able* if some admissible p has support inside C.  Define the row bound
+  ``b(s, a)``: for a minimising adversary, -inf if the row is stay-able and ``B_a(u)(s)``
+  otherwise; for a maximising adversary, -inf if no admissible p leaves C, otherwise the
+  largest u of a possible successor outside C.  Let ``b(s)`` combine the rows as the controller
+  does (max, min, or its fixed row) and ``e = max_{s in C} b(s)``.  Then ``V* <= max(e, 0)`` on C.
+  *Proof.*  Put ``V' = min(V*, max(e, 0))`` on C and ``V' = V*`` elsewhere, so V' <= V* and
+  ``B(V') <= B(V*) = V*``.  For s in C and a row a: a stay-able row under a minimising
+  adversary gives ``B_a(V')(s) <= p_C.V' <= max_C V' <= max(e,0)``; a non-stay-able one
+  ``<= B_a(V*)(s) <= B_a(u)(s) <= e``; under a maximising adversary every p gives
+  ``p.V' <= p(C) max(e,0) + p(out) * (largest outside u) <= max(e,0)``.  Hence
+  ``B(V') <= V'``, V' is a pre-fixed point, and by Knaster-Tarski V* = lfp <= V'.  QED.
+  The lemma holds for *any* C; we apply it to the maximal end components of the stay-able
+  rows (Haddad & Monmege 2014; Baier et al. CAV 2017; the game version is Kelmendi et al.
+  CAV 2018), which is what makes the upper iterates converge in the usual cases.  When they
+  do not within ``max_iterations``, the result says ``converged=False`` and a
+  ``ConvergenceWarning`` is issued; the bracket is still sound.
+
+Strategy extraction: rows within ``_TIE_TOL`` of the best (w.r.t. the final lower values) are
+optimal; among them a backward attractor picks rows that make progress toward the target, so a
+maximising strategy is never trapped in an end component by a tie.
+
+Hot loop: numba (``@njit(cache=True)``), serial.  A numpy formulation needs a per-row sort
+(``np.lexsort`` over all nnz entries each iteration) and several nnz-sized temporaries; see
+``benchmarks/results/solver.md`` for the measured numbers behind the choice.
+
+Rounding-error bound of one row (ROW_ERR)
+-----------------------------------------
+ The same bound rounds lower results down and upper results up.  All
+quantities are in [0, 1] (probabilities, values, partial sums), so each rounded operation
+errs by at most u = 2**-53 in absolute value.  Per row with k listed entries: the base sum
+``sum(lower*w)`` costs 2k operations; ``rem = 1 - sum(lower)`` k; every greedy step (capacity,
+min, rem update, accumulate) 4; every floor block (double-double prefix difference, product,
+rem update) at most 8 plus the relative error of the double-double sums (< 4u of the block
+mass, whose total is <= 1).  The greedy allocation is 1-Lipschitz (in l1) in ``rem`` and the
+capacities, so perturbing them moves ``p.w`` by at most the l1 size of the perturbation.
+Summing, the error is below (2k + k + 4k + 8(k+1) + 4) u <= (15k + 12) u; we use
+``ROW_ERR(k) = (16 k + 64) u``, a safety margin above the derivation."""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+import scipy.sparse as sp
+from numba import njit
+from scipy.sparse import csgraph
+
+from robust_imdp.errors import ConvergenceWarning, DimensionError, InvalidInputError
+from robust_imdp.imdp import IMDP
+
+# =========================================================================== numba kernels
+U = 2.0 ** -53  # unit roundoff of float64
+
+
+@njit(cache=True, inline="always")
+def row_err(k):
+    return (16.0 * k + 64.0) * U
+
+
+@njit(cache=True, inline="always")
+def _sum_slack(n_terms, with_product):
+    """Bound of the rounding error of a float sum of ``n_terms`` values in [0, 1] (total <= 2),
+    plus one product and addition when ``with_product``: exact (0) for a single term."""
+    ops = n_terms - 1 if n_terms > 1 else 0
+    if with_product:
+        ops += 2
+    return ops * 4.0 * U
+
+
+@njit(cache=True)
+def dd_prefix(sv):
+    """Double-double prefix sums of ``sv``: ``hi[i] + lo[i] ~= sum(sv[:i])`` (TwoSum, Knuth)."""
+    n = sv.shape[0]
+    hi = np.empty(n + 1)
+    lo = np.empty(n + 1)
+    s = 0.0
+    c = 0.0
+    hi[0] = 0.0
+    lo[0] = 0.0
+    for i in range(n):
+        x = sv[i]
+        t = s + x
+        bp = t - s
+        err = (s - (t - bp)) + (x - bp)
+        s = t
+        c += err
+        hi[i + 1] = s
+        lo[i + 1] = c
+    return hi, lo
+
+
+@njit(cache=True, inline="always")
+def _block(hi, lo, a, b):
+    """sum(sv[a:b]) from the double-double prefix sums."""
+    return (hi[b] - hi[a]) + (lo[b] - lo[a])
+
+
+@njit(cache=True)
+def row_value(j0, j1, col, lower, upper, f, w, use_rank, rank, sv, hi, lo, adv_max, keys, idx):
+    """Optimal ``p.w`` of one row for the adversary; returns (value, mass left unassigned).
+
+    ``use_rank``: order the listed entries by ``rank`` (global adversary order), needed when
+    the row has floor mass; otherwise by ``w`` directly.  ``keys``/``idx``: scratch buffers.
+    """
+    n = w.shape[0]
+    val = 0.0
+    rem = 1.0
+    m = 0
+    floor_row = use_rank and f > 0.0 and (j1 - j0) < n
+    for j in range(j0, j1):
+        q = col[j]
+        val += lower[j] * w[q]
+        rem -= lower[j]
+        if floor_row or upper[j] > lower[j]:
+            if use_rank:
+                kk = float(rank[q])
+            elif adv_max:
+                kk = -w[q]
+            else:
+                kk = w[q]
+            # insertion sort by key (k is ~20: cheaper than a general sort)
+            i = m
+            while i > 0 and keys[i - 1] > kk:
+                keys[i] = keys[i - 1]
+                idx[i] = idx[i - 1]
+                i -= 1
+            keys[i] = kk
+            idx[i] = j
+            m += 1
+    if rem <= 0.0:
+        return val, 0.0  # sum(lower) >= 1 (within the model tolerance): p = lower
+    pos = 0
+    for t in range(m):
+        j = idx[t]
+        if floor_row:
+            p = rank[col[j]]
+            cnt = p - pos
+            if cnt > 0:
+                mass = cnt * f
+                if mass >= rem:
+                    kf = int(rem / f)
+                    if kf > cnt:
+                        kf = cnt
+                    part = rem - kf * f
+                    if part < 0.0:
+                        part = 0.0
+                    if part > f:
+                        part = f
+                    val += f * _block(hi, lo, pos, pos + kf)
+                    if kf < cnt:
+                        val += part * sv[pos + kf]
+                    return val, 0.0
+                val += f * _block(hi, lo, pos, p)
+                rem -= mass
+            pos = p + 1
+        cap = upper[j] - lower[j]
+        if cap > 0.0:
+            if cap >= rem:
+                val += rem * w[col[j]]
+                return val, 0.0
+            val += cap * w[col[j]]
+            rem -= cap
+    if floor_row and pos < n:
+        cnt = n - pos
+        mass = cnt * f
+        if mass >= rem:
+            kf = int(rem / f)
+            if kf > cnt:
+                kf = cnt
+            part = rem - kf * f
+            if part < 0.0:
+                part = 0.0
+            if part > f:
+                part = f
+            val += f * _block(hi, lo, pos, pos + kf)
+            if kf < cnt:
+                val += part * sv[pos + kf]
+            return val, 0.0
+        val += f * _block(hi, lo, pos, n)
+        rem -= mass
+    return val, rem
+
+
+@njit(cache=True)
+def bellman_layer(state_ptr, row_ptr, col, lower, upper, floor, w, active, adv_max, use_rank,
+                  rank, sv, hi, lo, ctrl, strat, direction, out_val, out_arg, out_rows, want_rows):
+    """One Bellman update of the states with ``active[q]``.
+
+    ctrl: 0 = controller maximises over rows, 1 = minimises, 2 = fixed row ``strat[q]``.
+    direction: -1 round down (sound lower), +1 round up (sound upper), 0 plain.
+    Writes ``out_val[q]`` (rounded, clamped to [0, 1]) and ``out_arg[q]`` (row index within q);
+    with ``want_rows`` also every evaluated row's rounded value into ``out_rows``.
+    """
+    n = state_ptr.shape[0] - 1
+    maxk = 1
+    for r in range(row_ptr.shape[0] - 1):
+        if row_ptr[r + 1] - row_ptr[r] > maxk:
+            maxk = row_ptr[r + 1] - row_ptr[r]
+    keys = np.empty(maxk)
+    idx = np.empty(maxk, dtype=np.int64)
+    for q in range(n):
+        if not active[q]:
+            continue
+        r0 = state_ptr[q]
+        r1 = state_ptr[q + 1]
+        if ctrl == 2:
+            r0 = r0 + strat[q]
+            r1 = r0 + 1
+        best = -1.0
+        barg = 0
+        for r in range(r0, r1):
+            j0 = row_ptr[r]
+            j1 = row_ptr[r + 1]
+            v, left = row_value(j0, j1, col, lower, upper, floor[r], w, use_rank, rank, sv, hi, lo,
+                                adv_max, keys, idx)
+            if direction < 0:
+                v = v - row_err(j1 - j0)
+                if v < 0.0:
+                    v = 0.0  # safe: every true value is >= 0
+            elif direction > 0:
+                # mass left unassigned (a row whose upper sum is below 1 within the model
+                # tolerance) is credited with the largest possible value 1: stays an upper bound
+                v = v + row_err(j1 - j0) + left
+                if v > 1.0:
+                    v = 1.0  # safe: every true value is <= 1
+            if want_rows:
+                out_rows[r] = v
+            if best < 0.0 or (ctrl == 0 and v > best) or (ctrl == 1 and v < best):
+                best = v
+                barg = r - state_ptr[q]
+        out_val[q] = best
+        out_arg[q] = barg
+
+
+@njit(cache=True)
+def positive_attractor(state_ptr, row_ptr, col, lower, upper, floor, nxt, init, blocked,
+                       ctrl, strat, adv_max):
+    """States (layer, q) from which the target is reached with positive probability.
+
+    Layered graph: node ``l*n + q``; listed successor ``q'`` of a row of ``q`` in layer ``l`` is
+    node ``(nxt[l, q'], q')``; a floor row also reaches every unlisted ``q'`` with capacity floor.
+    ``init`` (L*n,) bool: the target nodes; ``blocked``: nodes fixed to 0 (never added).
+    A row "hits" the set W if every admissible distribution puts positive mass on W
+    (minimising adversary, ``adv_max`` False) or some does (maximising adversary).
+    ctrl 0: some row of the state hits; 1: every row hits; 2: the row ``strat`` hits.
+    Liberal in borderline float cases (a node wrongly added only loosens upper bounds; a node
+    wrongly left out would fix a positive value to 0, so the tests err toward adding).
+    Returns the (L*n,) bool mask W (includes ``init``).
+    """
+    L = nxt.shape[0]
+    n = state_ptr.shape[0] - 1
+    W = init.copy()
+    changed = True
+    # per layer: number of q' whose successor node (nxt[l, q'], q') is in W
+    cntW = np.zeros(L, dtype=np.int64)
+    while changed:
+        changed = False
+        for l in range(L):
+            c = 0
+            for q2 in range(n):
+                if W[nxt[l, q2] * n + q2]:
+                    c += 1
+            cntW[l] = c
+        newW = W.copy()
+        for l in range(L):
+            for q in range(n):
+                node = l * n + q
+                if W[node] or blocked[node]:
+                    continue
+                r0 = state_ptr[q]
+                r1 = state_ptr[q + 1]
+                if ctrl == 2:
+                    r0 = r0 + strat[l * n + q]
+                    r1 = r0 + 1
+                any_hit = False
+                all_hit = True
+                for r in range(r0, r1):
+                    lowW = 0.0
+                    upOut = 0.0
+                    upW = 0.0
+                    listedW = 0
+                    nOut = 0
+                    for j in range(row_ptr[r], row_ptr[r + 1]):
+                        q2 = col[j]
+                        if W[nxt[l, q2] * n + q2]:
+                            lowW += lower[j]
+                            upW += upper[j]
+                            listedW += 1
+                        elif upper[j] > 0.0:
+                            upOut += upper[j]
+                            nOut += 1
+                    unlW = cntW[l] - listedW
+                    unlOut = (n - (row_ptr[r + 1] - row_ptr[r])) - unlW
+                    f = floor[r]
+                    if adv_max:
+                        hit = upW > 0.0 or (f > 0.0 and unlW > 0)
+                    else:
+                        # forced positive mass on W: lower mass on W, or the mass that can stay
+                        # outside W is below 1.  Liberal: the float sum of nOut terms may be
+                        # below the exact one by (nOut + 2) u, so compare with that slack.
+                        slack = (nOut + 2.0) * 2.0 * U if nOut > 1 or (f > 0.0 and unlOut > 0) else 0.0
+                        hit = lowW > 0.0 or (upOut + f * unlOut) < 1.0 + slack
+                    if hit:
+                        any_hit = True
+                    else:
+                        all_hit = False
+                if (ctrl == 1 and all_hit) or (ctrl != 1 and any_hit):
+                    newW[node] = True
+                    changed = True
+        W = newW
+    return W
+
+
+@njit(cache=True)
+def progress_strategy(state_ptr, row_ptr, col, lower, upper, floor, nxt, target, optimal, adv_max,
+                      fallback):
+    """Among optimal rows pick, per node, one that makes progress toward the target.
+
+    ``optimal`` (R*L,) bool: row r in layer l is optimal (index ``l*R + r``).  Backward
+    attractor over optimal rows (Haddad & Monmege 2014 / Baier et al. 2017 strategy
+    extraction): a node joins at round i+1 through an optimal row that puts positive mass on
+    the nodes of rounds <= i for every (minimising adversary) / some (maximising) admissible
+    distribution; the row is remembered.  Nodes never reached keep ``fallback``.
+    Here the tests are strict (no slack): a wrongly chosen row would break the strategy.
+    """
+    L = nxt.shape[0]
+    n = state_ptr.shape[0] - 1
+    R = row_ptr.shape[0] - 1
+    W = target.copy()
+    strat = fallback.copy()
+    cntW = np.zeros(L, dtype=np.int64)
+    changed = True
+    while changed:
+        changed = False
+        for l in range(L):
+            c = 0
+            for q2 in range(n):
+                if W[nxt[l, q2] * n + q2]:
+                    c += 1
+            cntW[l] = c
+        newW = W.copy()
+        for l in range(L):
+            for q in range(n):
+                node = l * n + q
+                if W[node]:
+                    continue
+                for r in range(state_ptr[q], state_ptr[q + 1]):
+                    if not optimal[l * R + r]:
+                        continue
+                    lowW = 0.0
+                    upW = 0.0
+                    upOut = 0.0
+                    listedW = 0
+                    for j in range(row_ptr[r], row_ptr[r + 1]):
+                        q2 = col[j]
+                        if W[nxt[l, q2] * n + q2]:
+                            lowW += lower[j]
+                            upW += upper[j]
+                            listedW += 1
+                        else:
+                            upOut += upper[j]
+                    unlW = cntW[l] - listedW
+                    unlOut = (n - (row_ptr[r + 1] - row_ptr[r])) - unlW
+                    f = floor[r]
+                    if adv_max:
+                        hit = upW > 0.0 or (f > 0.0 and unlW > 0)
+                    else:
+                        hit = lowW > 0.0 or (upOut + f * unlOut) * (1.0 + 1e-12) < 1.0
+                    if hit:
+                        newW[node] = True
+                        strat[node] = r - state_ptr[q]
+                        changed = True
+                        break
+        W = newW
+    return strat
+
+
+@njit(cache=True)
+def _exit_ratio(j0, j1, col, lower, upper, nxt, comp, c, l, n, u, f, unlIn, unlOut, bo, caps, vals):
+    """Upper bound of ``sup {p_out.u / p(out) : p admissible, p(out) > 0}`` for one row.
+
+    The exit mass m ranges over [m_min, m_max] with m_min = max(L_out, 1 - H_in); for a fixed m
+    the best numerator is the ordering solution on the outside entries, and the ratio grows
+    while the next entry's value exceeds it (a linear-fractional programme is optimal at a
+    vertex).  With m_min = 0 the supremum is the largest value reachable outside.  Unlisted
+    outside successors (floor mass) are one pseudo-entry of capacity f*unlOut valued ``bo``
+    (an upper bound of their values), which can only increase the ratio.  Rounding: numerator
+    and denominator are widened by a bound of their errors and the result is capped by the
+    largest outside value (a ratio is an average).
+    """
+    m = 0
+    lowIn = 0.0
+    capIn = 0.0
+    lowOut = 0.0
+    num = 0.0
+    vmax = -np.inf
+    for j in range(j0, j1):
+        q2 = col[j]
+        node2 = nxt[l, q2] * n + q2
+        if comp[node2] == c:
+            lowIn += lower[j]
+            capIn += upper[j]
+            continue
+        if upper[j] <= 0.0:
+            continue
+        v = u[node2]
+        lowOut += lower[j]
+        num += lower[j] * v
+        if v > vmax:
+            vmax = v
+        cap = upper[j] - lower[j]
+        i = m
+        while i > 0 and vals[i - 1] < v:
+            vals[i] = vals[i - 1]
+            caps[i] = caps[i - 1]
+            i -= 1
+        vals[i] = v
+        caps[i] = cap
+        m += 1
+    if f > 0.0 and unlOut > 0 and bo > -np.inf:
+        capIn += f * unlIn
+        if bo > vmax:
+            vmax = bo
+        i = m
+        while i > 0 and vals[i - 1] < bo:
+            vals[i] = vals[i - 1]
+            caps[i] = caps[i - 1]
+            i -= 1
+        vals[i] = bo
+        caps[i] = f * unlOut
+        m += 1
+    if m == 0:
+        return -np.inf
+    m_min = lowOut
+    if 1.0 - capIn > m_min:
+        m_min = 1.0 - capIn
+    if m_min <= 0.0:
+        return vmax  # leak an arbitrarily small mass to the best outside successor
+    # fill the extra m_min - lowOut greedily, then keep adding while it raises the ratio
+    need = m_min - lowOut
+    mass = lowOut
+    t = 0
+    while t < m and need > 0.0:
+        take = caps[t] if caps[t] < need else need
+        num += take * vals[t]
+        mass += take
+        need -= take
+        caps[t] -= take
+        if caps[t] <= 0.0:
+            t += 1
+    max_mass = 1.0 - lowIn
+    while t < m and mass < max_mass and vals[t] * mass > num:
+        take = caps[t] if caps[t] < max_mass - mass else max_mass - mass
+        num += take * vals[t]
+        mass += take
+        t += 1
+    err = (8.0 * (j1 - j0) + 32.0) * U
+    if mass - err <= 0.0:
+        return vmax
+    ratio = (num + err) / (mass - err)
+    return ratio if ratio < vmax else vmax
+
+
+@njit(cache=True)
+def stay_exit_bounds(state_ptr, row_ptr, col, lower, upper, floor, nxt, comp, comp_cnt,
+                     row_vals, u, best_out, best_out_comp, second_out, adv_max, ctrl, strat, out_state):
+    """Per node (l, q) in a component, the deflation bound of its rows (see solve.py, Lemma D).
+
+    comp (L*n,) int: component of each node (-1: none); comp_cnt (L, C): per layer l and
+    component c, the number of q' with comp[nxt[l,q'], q'] == c.
+    Minimising adversary: a row that can stay inside its component (some admissible p has
+    support inside) is bounded by -inf (it cannot beat the others); otherwise by its upper
+    Bellman value ``row_vals[l*R + r]``.  Maximising adversary: a row that cannot leave gives
+    -inf; otherwise the largest ``u`` of a possible successor outside the component (for
+    floor mass: the largest ``u`` outside the component, ``best_out``).
+    The controller combines rows by max (ctrl 0), min (1) or its fixed row (2).
+    """
+    L = nxt.shape[0]
+    n = state_ptr.shape[0] - 1
+    R = row_ptr.shape[0] - 1
+    maxk = 1
+    for r in range(R):
+        if row_ptr[r + 1] - row_ptr[r] > maxk:
+            maxk = row_ptr[r + 1] - row_ptr[r]
+    keys = np.empty(maxk + 1)
+    vals = np.empty(maxk + 1)
+    for l in range(L):
+        for q in range(n):
+            node = l * n + q
+            c = comp[node]
+            if c < 0:
+                continue
+            r0 = state_ptr[q]
+            r1 = state_ptr[q + 1]
+            if ctrl == 2:
+                r0 = r0 + strat[node]
+                r1 = r0 + 1
+            agg = -np.inf if ctrl != 1 else np.inf
+            for r in range(r0, r1):
+                lowOut = 0.0
+                upIn = 0.0
+                listedIn = 0
+                bestListedOut = -np.inf
+                anyOut = False
+                for j in range(row_ptr[r], row_ptr[r + 1]):
+                    q2 = col[j]
+                    if comp[nxt[l, q2] * n + q2] == c:
+                        upIn += upper[j]
+                        listedIn += 1
+                    else:
+                        lowOut += lower[j]
+                        if upper[j] > 0.0:
+                            anyOut = True
+                            v2 = u[nxt[l, q2] * n + q2]
+                            if v2 > bestListedOut:
+                                bestListedOut = v2
+                f = floor[r]
+                k = row_ptr[r + 1] - row_ptr[r]
+                unlIn = comp_cnt[l, c] - listedIn
+                unlOut = (n - k) - unlIn
+                if adv_max:
+                    b = -np.inf
+                    if anyOut or (f > 0.0 and unlOut > 0):
+                        bo = -np.inf
+                        if f > 0.0 and unlOut > 0:
+                            bo = best_out[l] if best_out_comp[l] != c else second_out[l]
+                        b = _exit_ratio(row_ptr[r], row_ptr[r + 1], col, lower, upper, nxt, comp, c, l, n, u,
+                                        f, unlIn, unlOut, bo, keys, vals)
+                else:
+                    # stay-able: no lower mass outside and enough capacity inside (conservative:
+                    # declared stay-able only with a relative margin covering the rounding)
+                    cap = upIn + f * unlIn
+                    stay = lowOut == 0.0 and cap - _sum_slack(listedIn, f > 0.0 and unlIn > 0) >= 1.0
+                    b = -np.inf if stay else row_vals[l * R + r]
+                if ctrl == 1:
+                    if b < agg:
+                        agg = b
+                else:
+                    if b > agg:
+                        agg = b
+            out_state[node] = agg
+
+
+@njit(cache=True)
+def stayable_rows(state_ptr, row_ptr, col, lower, upper, floor, nxt, comp, comp_cnt, rowmask):
+    """(L*R,) bool: row r in layer l (in ``rowmask``) has an admissible distribution supported
+    inside the component of its node (conservative, with a rounding margin)."""
+    L = nxt.shape[0]
+    n = state_ptr.shape[0] - 1
+    R = row_ptr.shape[0] - 1
+    out = np.zeros(L * R, dtype=np.bool_)
+    for l in range(L):
+        for q in range(n):
+            c = comp[l * n + q]
+            if c < 0:
+                continue
+            for r in range(state_ptr[q], state_ptr[q + 1]):
+                if not rowmask[l * R + r]:
+                    continue
+                lowOut = 0.0
+                upIn = 0.0
+                listedIn = 0
+                for j in range(row_ptr[r], row_ptr[r + 1]):
+                    q2 = col[j]
+                    if comp[nxt[l, q2] * n + q2] == c:
+                        upIn += upper[j]
+                        listedIn += 1
+                    else:
+                        lowOut += lower[j]
+                unlIn = comp_cnt[l, c] - listedIn
+                cap = upIn + floor[r] * unlIn
+                out[l * R + r] = lowOut == 0.0 and cap - _sum_slack(listedIn, floor[r] > 0.0 and unlIn > 0) >= 1.0
+    return out
+
+
+# =========================================================================== public API
+class Adversary(str, Enum):
+    """How the probabilities inside the intervals are resolved.
+
+    PESSIMISTIC works against the objective (the robust value), OPTIMISTIC with it.
+    """
+
+    PESSIMISTIC = "pessimistic"
+    OPTIMISTIC = "optimistic"
+
+
+class Objective(str, Enum):
+    """Whether the controller maximises or minimises the reachability probability."""
+
+    MAXIMIZE = "maximize"
+    MINIMIZE = "minimize"
+
+
+def _enum(cls, value, name):
+    try:
+        return cls(value.value if isinstance(value, Enum) else value)
+    except ValueError:
+        allowed = ", ".join(repr(m.value) for m in cls)
+        raise InvalidInputError(f"{name} must be one of {allowed}; got {value!r}") from None
+
+
+@dataclass(frozen=True)
+class ReachabilityResult:
+    """Sound bracket of a reachability value.
+
+    Attributes
+    ----------
+    lower, upper : (n,) float arrays
+        ``lower <= true value <= upper`` for every state (rounded outward).
+    strategy : (n,) int array, or (k, n) with a horizon
+        Choice index within each state (``strategy[t]`` is used at time t for k-step).
+    iterations : int
+    precision : float
+        Achieved ``max(upper - lower)``.
+    converged : bool
+        ``precision <= requested precision``.
+    """
+
+    lower: np.ndarray
+    upper: np.ndarray
+    strategy: np.ndarray
+    iterations: int
+    precision: float
+    converged: bool
+
+
+def adversary_maximises(adversary, objective) -> bool:
+    """True when the adversary picks the distribution maximising the reachability value."""
+    a = _enum(Adversary, adversary, "adversary")
+    o = _enum(Objective, objective, "objective")
+    return (a is Adversary.OPTIMISTIC) == (o is Objective.MAXIMIZE)
+
+
+def _as_mask(x, n, name, allow_none=False):
+    if x is None:
+        if allow_none:
+            return np.zeros(n, dtype=bool)
+        raise InvalidInputError(f"{name} must be a boolean mask of length {n} or an index array; got None")
+    a = np.asarray(x)
+    if a.dtype == bool:
+        if a.shape != (n,):
+            raise DimensionError(f"{name} as a boolean mask must have shape ({n},); got {a.shape}")
+        return a.copy()
+    if a.ndim != 1 or (a.size and not np.issubdtype(a.dtype, np.integer)):
+        raise InvalidInputError(f"{name} must be a boolean mask of length {n} or a 1-D integer index array; "
+                                f"got dtype {a.dtype}, shape {a.shape}")
+    bad = a[(a < 0) | (a >= n)]
+    if bad.size:
+        raise InvalidInputError(f"{name} holds index {int(bad[0])} outside [0, {n})")
+    m = np.zeros(n, dtype=bool)
+    m[a] = True
+    return m
+
+
+def check_strategy(imdp: IMDP, strategy, name="strategy") -> np.ndarray:
+    """Validate a stationary ``(n,)`` or time-varying ``(k, n)`` strategy of choice indices."""
+    s = np.asarray(strategy)
+    n = imdp.n_states
+    if s.ndim not in (1, 2) or s.shape[-1] != n:
+        raise DimensionError(f"{name} must have shape ({n},) or (k, {n}); got {s.shape}")
+    if s.size and not np.issubdtype(s.dtype, np.integer):
+        raise InvalidInputError(f"{name} must hold integer choice indices; got dtype {s.dtype}")
+    s = s.astype(np.int64)
+    nch = np.diff(imdp.state_ptr)
+    bad = np.argwhere((s < 0) | (s >= nch))
+    if bad.size:
+        idx = tuple(int(i) for i in bad[0])
+        q = idx[-1]
+        raise InvalidInputError(f"{name}{list(idx)} = {int(s[idx])} is not a choice of state {q} "
+                                f"(it has {int(nch[q])} choices)")
+    return s
+
+
+def solve_reachability(imdp: IMDP, target, *, avoid=None, adversary="pessimistic", objective="maximize",
+                       horizon=None, precision=1e-8, max_iterations=100_000, method="vi"):
+    """Sound bounds of the optimal probability to reach ``target`` while avoiding ``avoid``.
+
+    Parameters
+    ----------
+    imdp : IMDP
+    target, avoid : (n,) bool mask or 1-D int index array
+        Target states count as reached (value 1); avoid states are absorbing failures (0).
+    adversary : {"pessimistic", "optimistic"} or Adversary
+    objective : {"maximize", "minimize"} or Objective
+    horizon : int or None
+        ``k`` gives k-step bounded reachability; None unbounded.
+    precision : float
+        Stop when ``max(upper - lower) <= precision`` (unbounded only).
+    method : {"vi", "lp"}
+        "lp" dispatches to :func:`robust_imdp.lp.solve_reachability_lp` (small models).
+
+    Returns
+    -------
+    ReachabilityResult
+        ``lower``/``upper`` (n,) sound bracket, ``strategy`` (n,) or (k, n).
+
+    Warns
+    -----
+    ConvergenceWarning
+        When ``max_iterations`` is hit; the returned bracket is still sound.
+    """
+    if method == "lp":
+        from robust_imdp import lp  # lazy: cvxpy is imported only there
+
+        return lp.solve_reachability_lp(imdp, target, avoid=avoid, adversary=adversary, objective=objective)
+    if method != "vi":
+        raise InvalidInputError(f"method must be 'vi' or 'lp'; got {method!r}")
+    adv_max = adversary_maximises(adversary, objective)
+    ctrl = 0 if _enum(Objective, objective, "objective") is Objective.MAXIMIZE else 1
+    t, z = _target_avoid(imdp, target, avoid)
+    nxt = np.zeros((1, imdp.n_states), dtype=np.int64)
+    res = solve_layered(imdp, nxt, t[None, :], z[None, :], ctrl=ctrl, adv_max=adv_max, horizon=horizon,
+                        precision=precision, max_iterations=max_iterations)
+    return _single_layer(res)
+
+
+def evaluate_strategy(imdp: IMDP, target, strategy, *, avoid=None, adversary="pessimistic", horizon=None,
+                      precision=1e-8, max_iterations=100_000):
+    """Sound bounds of the reachability probability of a fixed strategy (an interval Markov chain).
+
+    ``adversary="pessimistic"`` minimises the probability (the strategy's guaranteed value),
+    ``"optimistic"`` maximises it.  ``strategy`` is (n,) or (k, n) (time-varying, with a horizon
+    of k steps).  Returns a :class:`ReachabilityResult` whose ``strategy`` is the input.
+    """
+    s = check_strategy(imdp, strategy)
+    adv_max = _enum(Adversary, adversary, "adversary") is Adversary.OPTIMISTIC
+    if s.ndim == 2 and (horizon is None or s.shape[0] != int(horizon)):
+        raise DimensionError(f"a time-varying strategy of shape {s.shape} needs horizon={s.shape[0]}; got {horizon}")
+    t, z = _target_avoid(imdp, target, avoid)
+    nxt = np.zeros((1, imdp.n_states), dtype=np.int64)
+    strat = s[:, None, :] if s.ndim == 2 else s[None, None, :]
+    res = solve_layered(imdp, nxt, t[None, :], z[None, :], ctrl=2, adv_max=adv_max, horizon=horizon,
+                        precision=precision, max_iterations=max_iterations, strategy=strat)
+    return _single_layer(res)
+
+
+def _target_avoid(imdp, target, avoid):
+    n = imdp.n_states
+    t = _as_mask(target, n, "target")
+    z = _as_mask(avoid, n, "avoid", allow_none=True)
+    if not t.any():
+        raise InvalidInputError("target must contain at least one state; got an empty target")
+    both = np.flatnonzero(t & z)
+    if both.size:
+        raise InvalidInputError(f"target and avoid must be disjoint; state {int(both[0])} is in both")
+    return t, z
+
+
+def _single_layer(res: ReachabilityResult) -> ReachabilityResult:
+    strat = res.strategy[:, 0, :] if res.strategy.ndim == 3 else res.strategy[0]
+    return ReachabilityResult(lower=res.lower[0], upper=res.upper[0], strategy=strat,
+                              iterations=res.iterations, precision=res.precision, converged=res.converged)
+
+
+# =========================================================================== layered engine
+class _Sweeper:
+    """Bellman sweeps over value arrays ``V`` (L, n) of a layered model (L = 1: plain IMDP).
+
+    Node (l, q) moves under a row of q to (nxt[l, q'], q') -- the lazy product's rule
+    (issue 3, standard semantics) -- so the successor values of layer l are the gather
+    ``w_l[q'] = V[nxt[l, q'], q']`` and the base rows are reused unchanged.
+    """
+
+    def __init__(self, imdp, nxt, active, ctrl, adv_max, strategy):
+        self.m = imdp
+        self.nxt = np.ascontiguousarray(nxt, dtype=np.int64)
+        self.L, self.n = self.nxt.shape
+        self.active = active
+        self.ctrl = ctrl
+        self.adv_max = adv_max
+        self.strategy = strategy
+        self.use_rank = imdp.has_floor
+        self.layers = [l for l in range(self.L) if active[l].any()]
+        self._ar = np.arange(self.n)
+        self._dummy_i = np.zeros(1, dtype=np.int64)
+        self._dummy_f = np.zeros(1)
+
+    def successor_values(self, V, l):
+        if self.L == 1:
+            return V[0]
+        return V[self.nxt[l], self._ar]
+
+    def sweep(self, V, direction, want_rows=False, strat_layer=None):
+        m = self.m
+        newV = V.copy()
+        arg = np.zeros((self.L, self.n), dtype=np.int64)
+        rows = np.full(self.L * m.n_choices if want_rows else 1, -np.inf)
+        for l in self.layers:
+            w = np.ascontiguousarray(self.successor_values(V, l))
+            if self.use_rank:
+                order = np.argsort(-w if self.adv_max else w, kind="stable")
+                rank = np.empty(self.n, dtype=np.int64)
+                rank[order] = self._ar
+                sv = w[order]
+                hi, lo = dd_prefix(sv)
+            else:
+                rank, sv, hi, lo = self._dummy_i, self._dummy_f, self._dummy_f, self._dummy_f
+            strat = self._dummy_i if self.strategy is None else self.strategy[
+                strat_layer if strat_layer is not None else 0][l]
+            out_rows = rows[l * m.n_choices:(l + 1) * m.n_choices] if want_rows else rows
+            bellman_layer(m.state_ptr, m.row_ptr, m.col, m.lower, m.upper, m.floor, w, self.active[l],
+                          self.adv_max, self.use_rank, rank, sv, hi, lo, self.ctrl, strat, direction,
+                          newV[l], arg[l], out_rows, want_rows)
+        return newV, arg, rows
+
+
+def solve_layered(imdp, nxt, target, zero, *, ctrl, adv_max, horizon=None, precision=1e-8,
+                  max_iterations=100_000, strategy=None) -> ReachabilityResult:
+    """Engine shared by :func:`solve_reachability`, :func:`evaluate_strategy` and the lazy product.
+
+    Parameters
+    ----------
+    nxt : (L, n) int
+        Layer of the successor q' when moving from layer l (``delta(s, L(q'))`` for the product).
+    target, zero : (L, n) bool
+        Nodes with value fixed to 1 / to 0 (``zero`` wins over ``target``).
+    ctrl : 0 maximise, 1 minimise, 2 fixed ``strategy`` ((1 or k, L, n) choice indices).
+    adv_max : bool
+        The adversary maximises the value (else minimises).
+
+    Returns a ReachabilityResult with (L, n) arrays and a (L, n) or (k, L, n) strategy.
+    """
+    if horizon is not None:
+        horizon = int(horizon)
+        if horizon < 0:
+            raise InvalidInputError(f"horizon must be a non-negative integer or None; got {horizon}")
+    if not (np.isfinite(precision) and precision > 0):
+        raise InvalidInputError(f"precision must be a positive number; got {precision!r}")
+    L, n = nxt.shape
+    target = target & ~zero
+    active = ~(target | zero)
+    V0 = target.astype(np.float64)
+    if strategy is not None:
+        strategy = np.ascontiguousarray(strategy, dtype=np.int64)
+    sw = _Sweeper(imdp, nxt, active, ctrl, adv_max, strategy)
+    if horizon is not None:
+        return _bounded(sw, V0, horizon, ctrl, strategy)
+    return _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, precision, max_iterations)
+
+
+def _bounded(sw, V0, k, ctrl, strategy):
+    """k-step values by k exact Bellman steps, rounded down (lower) and up (upper)."""
+    lo = V0.copy()
+    up = V0.copy()
+    strat = np.zeros((k,) + V0.shape, dtype=np.int64)
+    for t in range(1, k + 1):
+        # with t steps to go the decision is the one taken at time k - t
+        sl = None if strategy is None else (k - t if strategy.shape[0] == k else 0)
+        lo, arg, _ = sw.sweep(lo, -1, strat_layer=sl)
+        up, _, _ = sw.sweep(up, +1, strat_layer=sl)
+        strat[k - t] = arg
+    if ctrl == 2:
+        strat = np.broadcast_to(strategy, strat.shape).copy() if strategy.shape[0] == k else np.repeat(strategy, k, 0)
+    prec = float(np.max(up - lo)) if up.size else 0.0
+    return ReachabilityResult(lower=lo, upper=up, strategy=strat, iterations=k, precision=prec, converged=True)
+
+
+def _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, precision, max_iterations):
+    L, n = nxt.shape
+    flat_strat = strategy[0].reshape(-1) if strategy is not None else np.zeros(1, dtype=np.int64)
+    # (a) graph pre-computation: nodes that reach the target with positive probability
+    W = positive_attractor(imdp.state_ptr, imdp.row_ptr, imdp.col, imdp.lower, imdp.upper, imdp.floor,
+                           nxt, target.reshape(-1), zero.reshape(-1), ctrl, flat_strat, adv_max)
+    W = W.reshape(L, n)
+    zero_all = zero | (active & ~W)  # value exactly 0: the target cannot be reached
+    active2 = active & W
+    sw.active = active2
+    sw.layers = [l for l in range(L) if active2[l].any()]
+    lo = target.astype(np.float64)
+    up = np.where(zero_all, 0.0, 1.0)
+    comp, ncomp, comp_cnt = _end_components(imdp, nxt, active2, ctrl, flat_strat)
+    it = 0
+    gap = float(np.max(up - lo)) if up.size else 0.0
+    while gap > precision and it < max_iterations:
+        it += 1
+        newlo, _, _ = sw.sweep(lo, -1)
+        np.maximum(lo, newlo, out=lo)  # max of two lower bounds is a lower bound
+        newup, _, rows = sw.sweep(up, +1, want_rows=ncomp > 0)
+        np.minimum(up, newup, out=up)  # min of two upper bounds is an upper bound
+        if ncomp:
+            _deflate(imdp, nxt, up, rows, comp, ncomp, comp_cnt, adv_max, ctrl, flat_strat)
+        gap = float(np.max(up - lo))
+    converged = gap <= precision
+    if not converged:
+        warnings.warn(f"interval iteration stopped after {it} iterations with max(upper - lower) = {gap:.3g} > "
+                      f"precision {precision:g}; the returned bounds are sound but loose", ConvergenceWarning,
+                      stacklevel=3)
+    # strategy: optimal rows w.r.t. the final lower values, ties broken toward progress
+    _, arg, rows = sw.sweep(lo, -1, want_rows=(ctrl == 0))
+    if ctrl == 0:
+        R = imdp.n_choices
+        best = np.repeat(np.where(active2, lo, 0.0), np.diff(imdp.state_ptr), axis=1)  # (L, R)
+        rv = rows.reshape(L, R)
+        # best-row value of each node (computed with the same rounding) and a tie tolerance
+        rowbest = np.maximum.reduceat(np.where(np.isfinite(rv), rv, -1.0), imdp.state_ptr[:-1], axis=1)
+        optimal = rv >= np.repeat(rowbest, np.diff(imdp.state_ptr), axis=1) - _TIE_TOL
+        del best
+        strat = progress_strategy(imdp.state_ptr, imdp.row_ptr, imdp.col, imdp.lower, imdp.upper, imdp.floor,
+                                  nxt, target.reshape(-1), optimal.reshape(-1), adv_max, arg.reshape(-1))
+        strat = strat.reshape(L, n)
+    elif ctrl == 2:
+        strat = strategy[0].copy()
+    else:
+        strat = arg
+    return ReachabilityResult(lower=lo, upper=up, strategy=strat, iterations=it, precision=gap, converged=converged)
+
+
+#: Rows whose (rounded) value is within this of the best row count as optimal for strategy
+#: extraction; far below any precision a user asks for, far above the rounding error.
+_TIE_TOL = 1e-12
+
+
+def _end_components(imdp, nxt, active, ctrl, flat_strat):
+    """Components for the deflation step (Lemma D in the module docstring).
+
+    Any set works for soundness; tight sets make the iteration converge.  We use the
+    maximal end components of the graph of *stay-able* rows (rows with an admissible
+    distribution supported inside the component), found by the usual refinement: SCCs of the
+    listed positive-upper edges, drop rows that cannot stay, repeat.  Returns
+    (comp (L*n,) int with -1 for none, number of components, comp_cnt (L, C)).
+    """
+    L, n = nxt.shape
+    N = L * n
+    act = active.reshape(-1)
+    if not act.any():
+        return np.full(N, -1), 0, np.zeros((L, 0), dtype=np.int64)
+    R = imdp.n_choices
+    rowmask = np.ones(L * R, dtype=bool)
+    if ctrl == 2:
+        rowmask[:] = False
+        rsel = (imdp.state_ptr[:-1][None, :] + flat_strat.reshape(L, n)) + (np.arange(L) * R)[:, None]
+        rowmask[rsel.reshape(-1)] = True
+    comp = np.full(N, -1, dtype=np.int64)
+    ncomp = 0
+    for _ in range(8):
+        src, dst = _edges(imdp, nxt, rowmask, act)
+        g = sp.csr_matrix((np.ones(src.size, dtype=np.int8), (src, dst)), shape=(N, N))
+        nc, lab = csgraph.connected_components(g, directed=True, connection="strong")
+        lab = np.where(act, lab, -1)
+        cnt = np.zeros((L, nc), dtype=np.int64)
+        for l in range(L):
+            lab_succ = lab.reshape(L, n)[nxt[l], np.arange(n)]
+            ok = lab_succ >= 0
+            cnt[l] = np.bincount(lab_succ[ok], minlength=nc)
+        stay = stayable_rows(imdp.state_ptr, imdp.row_ptr, imdp.col, imdp.lower, imdp.upper, imdp.floor, nxt,
+                             lab, cnt, rowmask)
+        newmask = rowmask & stay
+        same = np.array_equal(lab, comp)
+        comp = lab
+        ncomp = nc
+        if np.array_equal(newmask, rowmask) and same:
+            break
+        rowmask = newmask
+    # keep only components with at least one stay-able row (others need no deflation)
+    has_stay = np.zeros(ncomp + 1, dtype=bool)
+    node_of_row = (np.arange(L)[:, None] * n + imdp.row_state[None, :]).reshape(-1)
+    c_of_row = comp[node_of_row]
+    has_stay[c_of_row[rowmask & (c_of_row >= 0)]] = True
+    keep = has_stay[:ncomp]
+    newid = np.cumsum(keep) - 1
+    comp = np.where((comp >= 0) & keep[np.maximum(comp, 0)], newid[np.maximum(comp, 0)], -1)
+    cnt = cnt[:, keep] if ncomp else cnt
+    return comp, int(keep.sum()), np.ascontiguousarray(cnt)
+
+
+def _edges(imdp, nxt, rowmask, act):
+    """Listed positive-upper edges of the rows in ``rowmask`` between active nodes."""
+    L, n = nxt.shape
+    R = imdp.n_choices
+    rl = np.diff(imdp.row_ptr)
+    srcs, dsts = [], []
+    for l in range(L):
+        rm = rowmask[l * R:(l + 1) * R]
+        emask = np.repeat(rm, rl) & (imdp.upper > 0)
+        s = l * n + np.repeat(imdp.row_state, rl)[emask]
+        d = nxt[l][imdp.col[emask]] * n + imdp.col[emask]
+        ok = act[s] & act[d]
+        srcs.append(s[ok])
+        dsts.append(d[ok])
+    return np.concatenate(srcs), np.concatenate(dsts)
+
+
+def _deflate(imdp, nxt, up, rows, comp, ncomp, comp_cnt, adv_max, ctrl, flat_strat):
+    """Lemma D: in each component C, ``V* <= max(0, e_C)``; apply ``up <- min(up, max(0, e_C))``."""
+    L, n = nxt.shape
+    uf = up.reshape(-1)
+    best_out = np.zeros(L)
+    best_out_comp = np.full(L, -2, dtype=np.int64)
+    second_out = np.zeros(L)
+    if adv_max and imdp.has_floor:
+        for l in range(L):
+            w = up[nxt[l], np.arange(n)]
+            cs = comp.reshape(L, n)[nxt[l], np.arange(n)]
+            i = int(np.argmax(w))
+            best_out[l] = w[i]
+            best_out_comp[l] = cs[i] if cs[i] >= 0 else -2
+            other = w[cs != cs[i]] if cs[i] >= 0 else w
+            second_out[l] = other.max() if other.size else 0.0
+    bound = np.full(L * n, -np.inf)
+    stay_exit_bounds(imdp.state_ptr, imdp.row_ptr, imdp.col, imdp.lower, imdp.upper, imdp.floor, nxt, comp,
+                     comp_cnt, rows, uf, best_out, best_out_comp, second_out, adv_max, ctrl, flat_strat, bound)
+    e = np.full(ncomp, -np.inf)
+    inc = comp >= 0
+    np.maximum.at(e, comp[inc], bound[inc])
+    cap = np.maximum(e, 0.0)  # Lemma D with e = -inf: every row stays, the value is 0
+    uf[inc] = np.minimum(uf[inc], cap[comp[inc]])
+
+
+__all__ = ["Adversary", "Objective", "ReachabilityResult", "solve_reachability", "evaluate_strategy",
+           "adversary_maximises", "check_strategy", "solve_layered"]
