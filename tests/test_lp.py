@@ -260,3 +260,47 @@ def test_target_avoid_checks():
         solve_reachability_lp(m, np.zeros(3, bool))
     with pytest.raises(InvalidInputError, match="state 1 is in both"):
         solve_reachability_lp(m, [1], avoid=[1, 2])
+
+
+def _probe_model(lo, up, floor, v):
+    """A model whose 2-step value at state 0 is the inner problem of one row against values v.
+
+    State 0 carries the row under test: listed successors 1..k with [lo, up], floor on every
+    other state (successors k+1..N, the target T = N+1, the sink N+2 and state 0 itself).
+    State j in 1..N moves to T with probability exactly v[j-1] and to the sink otherwise,
+    so its 1-step value is v[j-1]; T and the sink are absorbing.
+    """
+    N = v.size
+    k = lo.size
+    T, sink = N + 1, N + 2
+    cols = [list(range(1, k + 1))] + [[T, sink] for _ in range(N)] + [[T], [sink]]
+    lows = [list(lo)] + [[x, 1.0 - x] for x in v] + [[1.0], [1.0]]
+    ups = [list(up)] + [[x, 1.0 - x] for x in v] + [[1.0], [1.0]]
+    row_ptr = np.concatenate([[0], np.cumsum([len(c) for c in cols])])
+    floors = np.zeros(N + 3)
+    floors[0] = floor
+    m = IMDP.from_csr(np.arange(N + 4), row_ptr, np.concatenate(cols), np.concatenate(lows), np.concatenate(ups), floor=floors)
+    return m, T
+
+
+@settings(deadline=None, max_examples=15)
+@given(seed=st.integers(0, 2**32 - 1), k=st.integers(1, 5), extra=st.integers(0, 4),
+       with_floor=st.booleans(), adversary=st.sampled_from(["pessimistic", "optimistic"]))
+def test_solver_inner_problem_matches_lp_with_floors(seed, k, extra, with_floor, adversary):
+    """H1's ordering inner problem (through a 2-step query on a probe model) against the LP."""
+    solve = pytest.importorskip("robust_imdp.solve")
+    rng = np.random.default_rng(seed)
+    N = k + extra
+    m_unlisted = N - k + 3  # successors k+1..N, T, sink, state 0
+    lo, up, floor = random_row(rng, k, m_unlisted, with_floor)
+    v = rng.uniform(0, 1, size=N)
+    m, T = _probe_model(lo, up, floor, v)
+    nat = nature_maximises(adversary, "maximize")
+    dlo, dup = m.to_dense()
+    # 1-step values: state 0 from its row against the target indicator, j -> v_j, T -> 1, sink -> 0
+    v1 = np.concatenate([[0.0], v, [1.0, 0.0]])
+    v1[0] = inner_lp(dlo[0], dup[0], (np.arange(N + 3) == T).astype(float), maximize=nat)[0]
+    expected = inner_lp(dlo[0], dup[0], v1, maximize=nat)[0]
+    res = solve.solve_reachability(m, [T], adversary=adversary, horizon=2)
+    assert res.lower[0] <= expected + TOL and res.upper[0] >= expected - TOL  # the bracket holds the LP value
+    assert res.upper[0] - res.lower[0] <= TOL
