@@ -1,0 +1,226 @@
+"""IMDP x DFA product, solved lazily (issue 3, item 3).
+
+Semantics (the *standard* one; the paper's printed definition reads the first label twice):
+from product state (q, s) under choice u the system moves to (q', delta(s, L(q'))); the initial
+product state of cell q is (q, delta(s0, L(q))).  Accepting DFA states are absorbing targets;
+``avoid`` states (the outside-X state) are absorbing, never accepting, value 0 in every layer;
+DFA states that cannot reach acceptance are sinks with value 0.
+
+Lazy: values live in an (S, n) array (DFA state, base state).  Layer s reuses the base IMDP's
+rows with successor values ``w_s[q'] = V[delta(s, L(q')), q']`` (a gather), so no product row is
+materialised, memory stays that of the base IMDP plus O(S n) values, and a floor row stays a
+floor row: its unlisted base states are exactly the unlisted product successors reachable from
+layer s.  The soundness argument of :mod:`robust_imdp.solve` applies verbatim to the layered
+operator (it is the Bellman operator of the materialised product).
+
+A materialised product (:func:`materialize_product`) is provided for export and for checking
+the lazy solver.  There a base floor row cannot stay a floor row: the unlisted base state q'
+is one product state (delta(s, L(q')), q'), while every other product state of q' must get
+upper 0, which a uniform floor cannot express.  The floor mass is therefore listed explicitly
+([0, floor] on each such successor): O(n) per floor row, for small models only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from robust_imdp.errors import DimensionError, InvalidInputError, InvalidModelError
+from robust_imdp.imdp import IMDP
+from robust_imdp.solve import Adversary, _as_mask, _enum, check_strategy, solve_layered
+
+
+@dataclass(frozen=True)
+class ProductResult:
+    """Sound bounds on the lazy IMDP x DFA product.
+
+    Attributes
+    ----------
+    lower, upper : (S, n) float arrays
+        Bracket of the value of product state (DFA state s, base state q).
+    strategy : (S, n) int array, or (k, S, n) with a horizon
+        Choice index within base state q to use in DFA state s (at time t).
+    initial_state : (n,) int array
+        DFA state of q's initial product state, ``delta(dfa.initial, letters[q])``.
+    initial_lower, initial_upper : (n,) float arrays
+        ``lower``/``upper`` at the initial product state of every q.
+    iterations : int
+    precision : float
+        Achieved ``max(upper - lower)``.
+    converged : bool
+    """
+
+    lower: np.ndarray
+    upper: np.ndarray
+    strategy: np.ndarray
+    initial_state: np.ndarray
+    initial_lower: np.ndarray
+    initial_upper: np.ndarray
+    iterations: int
+    precision: float
+    converged: bool
+
+
+@dataclass(frozen=True)
+class MaterializedProduct:
+    """An explicit product IMDP (product state ``s * n + q``).
+
+    Attributes
+    ----------
+    imdp : IMDP
+        ``S * n`` states; state ``index[s, q]`` has the choices of base state q.
+    target, avoid : (S * n,) bool arrays
+        Accepting product states (value 1) and value-0 states (avoid states, DFA sinks).
+    index : (S, n) int array
+        Product state id of (s, q).
+    initial : (n,) int array
+        Product state id of q's initial product state.
+    """
+
+    imdp: IMDP
+    target: np.ndarray
+    avoid: np.ndarray
+    index: np.ndarray
+    initial: np.ndarray
+
+
+def _dfa_arrays(imdp: IMDP, letters, dfa, avoid):
+    n = imdp.n_states
+    for attr in ("n_states", "initial", "accepting", "delta"):
+        if not hasattr(dfa, attr):
+            raise InvalidModelError(f"dfa must have attribute {attr!r} (n_states, initial, accepting, delta); "
+                                    f"got {type(dfa).__name__}")
+    S = int(dfa.n_states)
+    delta = np.asarray(dfa.delta)
+    acc = np.asarray(dfa.accepting)
+    if delta.ndim != 2 or delta.shape[0] != S or not np.issubdtype(delta.dtype, np.integer):
+        raise InvalidModelError(f"dfa.delta must be an integer array of shape ({S}, 2**n_atoms); got "
+                                f"{delta.dtype} {delta.shape}")
+    if delta.size and (delta.min() < 0 or delta.max() >= S):
+        raise InvalidModelError(f"dfa.delta must hold DFA states in [0, {S}); got values in "
+                                f"[{int(delta.min())}, {int(delta.max())}]")
+    if acc.shape != (S,):
+        raise DimensionError(f"dfa.accepting must have shape ({S},); got {acc.shape}")
+    if not 0 <= int(dfa.initial) < S:
+        raise InvalidModelError(f"dfa.initial must be in [0, {S}); got {dfa.initial}")
+    let = np.asarray(letters)
+    if let.shape != (n,):
+        raise DimensionError(f"letters must have shape ({n},) (one letter per base state); got {let.shape}")
+    if let.size and not np.issubdtype(let.dtype, np.integer):
+        raise InvalidInputError(f"letters must hold integer bit masks; got dtype {let.dtype}")
+    bad = np.flatnonzero((let < 0) | (let >= delta.shape[1]))
+    if bad.size:
+        q = int(bad[0])
+        raise InvalidInputError(f"letters[{q}] = {int(let[q])} is not a letter of the DFA's alphabet "
+                                f"[0, {delta.shape[1]})")
+    let = let.astype(np.int64)
+    av = _as_mask(avoid, n, "avoid", allow_none=True)
+    acc = acc.astype(bool)
+    # DFA states that cannot reach acceptance (backward reachability over all letters)
+    good = acc.copy()
+    while True:
+        new = good | np.any(good[delta], axis=1)
+        if np.array_equal(new, good):
+            break
+        good = new
+    nxt = np.ascontiguousarray(delta[:, let], dtype=np.int64)  # (S, n): layer of successor q'
+    zero = av[None, :] | ~good[:, None]
+    target = acc[:, None] & ~zero
+    initial_state = delta[int(dfa.initial), let].astype(np.int64)
+    return nxt, target, zero, initial_state
+
+
+def _result(res, initial_state) -> ProductResult:
+    ar = np.arange(initial_state.shape[0])
+    return ProductResult(lower=res.lower, upper=res.upper, strategy=res.strategy, initial_state=initial_state,
+                         initial_lower=res.lower[initial_state, ar], initial_upper=res.upper[initial_state, ar],
+                         iterations=res.iterations, precision=res.precision, converged=res.converged)
+
+
+def solve_product(imdp: IMDP, letters, dfa, *, avoid=None, adversary="pessimistic", horizon=None,
+                  precision=1e-8, max_iterations=100_000) -> ProductResult:
+    """Maximal probability of reaching an accepting DFA state, on the lazy product.
+
+    Parameters
+    ----------
+    imdp : IMDP
+    letters : (n,) int array
+        Letter of every base state w.r.t. ``dfa.atoms`` (bit i set iff atoms[i] holds).
+    dfa : object with ``n_states``, ``initial``, ``accepting`` (S,) bool, ``delta`` (S, 2**k) int
+    avoid : (n,) bool mask or index array, optional
+        Absorbing, never-accepting base states (value 0 in every DFA state).
+    adversary : {"pessimistic", "optimistic"}
+        Pessimistic: the intervals resolve against the controller (robust value).
+    horizon : int or None
+        k-step bounded satisfaction; the strategy is then (k, S, n).
+    precision : float
+
+    Returns
+    -------
+    ProductResult
+    """
+    nxt, target, zero, init = _dfa_arrays(imdp, letters, dfa, avoid)
+    adv_max = _enum(Adversary, adversary, "adversary") is Adversary.OPTIMISTIC
+    res = solve_layered(imdp, nxt, target, zero, ctrl=0, adv_max=adv_max, horizon=horizon,
+                        precision=precision, max_iterations=max_iterations)
+    return _result(res, init)
+
+
+def evaluate_product_strategy(imdp: IMDP, letters, dfa, strategy, *, avoid=None, adversary="pessimistic",
+                              horizon=None, precision=1e-8, max_iterations=100_000) -> ProductResult:
+    """Bounds of the satisfaction probability of a fixed product strategy.
+
+    ``strategy`` is (S, n) (stationary) or (k, S, n) with ``horizon=k``: the choice index within
+    base state q used in DFA state s.  ``adversary="pessimistic"`` minimises the probability,
+    ``"optimistic"`` maximises it.
+    """
+    nxt, target, zero, init = _dfa_arrays(imdp, letters, dfa, avoid)
+    S, n = nxt.shape
+    st = np.asarray(strategy)
+    if st.ndim not in (2, 3) or st.shape[-2:] != (S, n):
+        raise DimensionError(f"strategy must have shape ({S}, {n}) or (k, {S}, {n}); got {st.shape}")
+    check_strategy(imdp, st.reshape(-1, n))
+    if st.ndim == 3 and (horizon is None or st.shape[0] != int(horizon)):
+        raise DimensionError(f"a time-varying strategy of shape {st.shape} needs horizon={st.shape[0]}; got {horizon}")
+    strat = st.astype(np.int64) if st.ndim == 3 else st.astype(np.int64)[None]
+    adv_max = _enum(Adversary, adversary, "adversary") is Adversary.OPTIMISTIC
+    res = solve_layered(imdp, nxt, target, zero, ctrl=2, adv_max=adv_max, horizon=horizon,
+                        precision=precision, max_iterations=max_iterations, strategy=strat)
+    return _result(res, init)
+
+
+def materialize_product(imdp: IMDP, letters, dfa, *, avoid=None) -> MaterializedProduct:
+    """The explicit product IMDP (S * n states); floor mass listed explicitly (small models).
+
+    Product state ``s * n + q`` has the rows of q; the listed successor q' of a row becomes
+    ``delta(s, L(q')) * n + q'``, and, for a floor row, every unlisted base state q' is listed
+    with [0, floor] at ``delta(s, L(q')) * n + q'`` (see the module docstring).
+    """
+    nxt, target, zero, init = _dfa_arrays(imdp, letters, dfa, avoid)
+    S, n = nxt.shape
+    lo, up = imdp.to_dense()  # (R, n), floor expanded
+    R = imdp.n_choices
+    listed = np.zeros((R, n), dtype=bool)
+    entry_row = np.repeat(np.arange(R), np.diff(imdp.row_ptr))
+    listed[entry_row, imdp.col] = True
+    keep = listed | (up > 0)  # drop unlisted [0, 0] entries only
+    rows_c, cols_c = np.nonzero(keep)
+    lo_e, up_e = lo[rows_c, cols_c], up[rows_c, cols_c]
+    per_row = np.bincount(rows_c, minlength=R)
+    # product rows: layer-major, then the base rows in order
+    col = (nxt[:, cols_c] * n + cols_c[None, :]).reshape(-1)
+    row_ptr = np.zeros(S * R + 1, dtype=np.int64)
+    np.cumsum(np.tile(per_row, S), out=row_ptr[1:])
+    nch = np.diff(imdp.state_ptr)
+    state_ptr = np.zeros(S * n + 1, dtype=np.int64)
+    np.cumsum(np.tile(nch, S), out=state_ptr[1:])
+    pm = IMDP.from_csr(state_ptr, row_ptr, col, np.tile(lo_e, S), np.tile(up_e, S),
+                       actions=np.tile(imdp.actions, S))
+    index = np.arange(S * n).reshape(S, n)
+    return MaterializedProduct(imdp=pm, target=target.reshape(-1), avoid=zero.reshape(-1), index=index,
+                               initial=index[init, np.arange(n)])
+
+
+__all__ = ["ProductResult", "MaterializedProduct", "solve_product", "evaluate_product_strategy",
+           "materialize_product"]
