@@ -304,3 +304,13 @@ def test_solver_inner_problem_matches_lp_with_floors(seed, k, extra, with_floor,
     res = solve.solve_reachability(m, [T], adversary=adversary, horizon=2)
     assert res.lower[0] <= expected + TOL and res.upper[0] >= expected - TOL  # the bracket holds the LP value
     assert res.upper[0] - res.lower[0] <= TOL
+
+
+def test_heavy_backends_are_imported_lazily():
+    import subprocess
+    import sys
+
+    code = ("import sys, robust_imdp.lp, robust_imdp.formats; "
+            "print(sorted(m for m in ('cvxpy', 'clarabel', 'stormpy') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"

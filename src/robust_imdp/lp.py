@@ -36,11 +36,10 @@ is "there is a dual witness with ``lam + u.a - l.b <= x_s``", which is linear in
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
 
 import numpy as np
 
-from robust_imdp.errors import ConvergenceError, DimensionError, InvalidInputError, InvalidModelError
+from robust_imdp.errors import ConvergenceError, DimensionError, InvalidInputError
 
 #: Clarabel tolerances used by every LP here (gap and feasibility).  Values of the whole
 #: problems come out accurate to ~1e-9 on models of <= 30 states with these settings.
