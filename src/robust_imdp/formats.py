@@ -7,7 +7,10 @@ So that users can check our IMDPs with other tools (issue 2, item 2):
   ``stormpy.build_model_from_drn[stormpy.Interval](path)``.
 * :func:`write_prism_explicit` / :func:`read_prism_explicit` -- PRISM explicit files
   ``.tra`` (``s a t [lo,up]``), ``.lab``, ``.sta`` and, with a target, ``.props``
-  (``Pmaxmin=?`` / ``Pmaxmax=?``, PRISM's robust / optimistic IMDP queries).
+  (``Pmaxmin=?`` / ``Pmaxmax=?``, PRISM's robust / optimistic IMDP queries, written as
+  IntervalMDP.jl writes them; PRISM itself was not available to test these files).  Like
+  Storm, PRISM wants positive lower bounds (constant support) for unbounded queries; entries
+  are written as they are, never clamped.
 * :func:`to_stormpy` / :func:`storm_reachability` -- a stormpy interval MDP built in memory
   and Storm's reachability values (stormpy is optional and imported lazily).
 
