@@ -11,7 +11,7 @@ from robust_imdp.errors import DimensionError, InvalidInputError, OutsideDomainE
 from robust_imdp.geometry import Box, Partition, Region
 from robust_imdp.synthesis import synthesize
 
-from test_synthesis import ATOMS, LABELS, SPEC, product_module, reach_avoid_imdp  # noqa: F401
+from test_synthesis import ATOMS, LABELS, SPEC, reach_avoid_imdp
 
 
 @pytest.fixture

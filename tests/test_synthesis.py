@@ -1,13 +1,11 @@
 """Tests of robust synthesis on hand-built IMDPs.
 
-``bruteforce_solve`` below is an independent, deliberately naive product solver (materialised
-dense product, loops, ordering-based inner problem): it is the oracle for the hand-derived
-numbers and a stand-in for ``robust_imdp.product`` when that module is absent.
+``bruteforce_solve`` below is an independent, deliberately naive product solver (dense
+intervals, Python loops, ordering-based inner problem, plain value iteration): an oracle for
+the numbers of ``robust_imdp.product`` on small random models, next to hand-derived cases.
 """
 
 import importlib
-import sys
-import types
 from types import SimpleNamespace
 
 import numpy as np
@@ -81,21 +79,8 @@ def bruteforce_evaluate(imdp, letters, dfa, strategy, **kw):
     return bruteforce_solve(imdp, letters, dfa, strategy=np.asarray(strategy), **kw)
 
 
-def _have_product():
-    try:
-        importlib.import_module("robust_imdp.product")
-        return True
-    except ImportError:
-        return False
-
-
-@pytest.fixture(autouse=True)
-def product_module(monkeypatch):
-    """The real product module when it exists, else the brute-force stand-in."""
-    if not _have_product():
-        mod = types.ModuleType("robust_imdp.product")
-        mod.solve_product, mod.evaluate_product_strategy = bruteforce_solve, bruteforce_evaluate
-        monkeypatch.setitem(sys.modules, "robust_imdp.product", mod)
+@pytest.fixture
+def product_module():
     return importlib.import_module("robust_imdp.product")
 
 

@@ -34,6 +34,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from robust_imdp import product as _product
 from robust_imdp.dfa import DFA
 from robust_imdp.errors import DimensionError, InvalidInputError, SoundnessError, UnknownAtomError
 from robust_imdp.imdp import IMDP
@@ -259,8 +260,6 @@ def synthesize(
     SoundnessError
         If the solver's brackets contradict ``p_low <= p_up`` (a bug, never repaired).
     """
-    from robust_imdp.product import evaluate_product_strategy, solve_product
-
     if not isinstance(imdp, IMDP):
         raise InvalidInputError(f"imdp must be an IMDP; got {type(imdp).__name__}")
     if not isinstance(dfa, DFA):
@@ -291,11 +290,11 @@ def synthesize(
     letters = np.concatenate([cell_letters, np.zeros(imdp.n_states - n_cells, dtype=np.int64)])
 
     kw = dict(avoid=avoid, horizon=horizon, precision=precision)
-    robust = solve_product(imdp, letters, dfa, adversary="pessimistic", **kw)
-    optimistic = solve_product(imdp, letters, dfa, adversary="optimistic", **kw)
+    robust = _product.solve_product(imdp, letters, dfa, adversary="pessimistic", **kw)
+    optimistic = _product.solve_product(imdp, letters, dfa, adversary="optimistic", **kw)
     pi = np.asarray(robust.strategy)
-    ev_low = evaluate_product_strategy(imdp, letters, dfa, pi, adversary="pessimistic", **kw)
-    ev_up = evaluate_product_strategy(imdp, letters, dfa, pi, adversary="optimistic", **kw)
+    ev_low = _product.evaluate_product_strategy(imdp, letters, dfa, pi, adversary="pessimistic", **kw)
+    ev_up = _product.evaluate_product_strategy(imdp, letters, dfa, pi, adversary="optimistic", **kw)
 
     p_low = np.array(ev_low.initial_lower, dtype=np.float64)[:n_cells]
     p_up_star = np.array(optimistic.initial_upper, dtype=np.float64)[:n_cells]
