@@ -32,7 +32,7 @@ def random_row(rng, k, m, with_floor):
     w = rng.uniform(0.0, 0.3, size=k)
     lo = np.clip(p[:k] - w, 0.0, 1.0)
     up = np.clip(p[:k] + w, 0.0, 1.0)
-    floor = float(p[k:].max() * rng.uniform(1.0, 2.0)) if (with_floor and m) else 0.0
+    floor = min(1.0, float(p[k:].max() * rng.uniform(1.0, 2.0))) if (with_floor and m) else 0.0
     if not (with_floor and m):  # no floor: the listed entries must carry all the mass
         lo = np.clip(p[:k] / p[:k].sum() - w, 0.0, 1.0)
         up = np.clip(p[:k] / p[:k].sum() + w, 0.0, 1.0)
