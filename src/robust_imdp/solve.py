@@ -669,6 +669,7 @@ def _as_mask(x, n, name, allow_none=False):
     if a.ndim != 1 or (a.size and not np.issubdtype(a.dtype, np.integer)):
         raise InvalidInputError(f"{name} must be a boolean mask of length {n} or a 1-D integer index array; "
                                 f"got dtype {a.dtype}, shape {a.shape}")
+    a = a.astype(np.int64)  # an empty list arrives as float
     bad = a[(a < 0) | (a >= n)]
     if bad.size:
         raise InvalidInputError(f"{name} holds index {int(bad[0])} outside [0, {n})")
