@@ -44,6 +44,7 @@ import time
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
+import numba
 import numpy as np
 from scipy.linalg import cho_solve, solve_triangular
 
@@ -148,6 +149,89 @@ def _pad(m: int, d: int, mag: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- relaxation
 
 
+@numba.njit(cache=True)
+def _relax_sums(X, inv_l2, W, lo, hi):  # pragma: no cover - compiled
+    """Per leaf, the sums of the tangent/chord relaxation terms (hot loop, O(N m d)).
+
+    For term i with weight w = W[n, i] (row 0 if W has one row), ``e(z_i) = exp(-z_i/2)`` is
+    replaced by ``p + q z_i``: the tangent at ``z_c`` (leaf centre) when ``w > 0`` (a lower
+    bound of the convex e), the chord on ``[z_L, z_U]`` when ``w < 0`` (an upper bound of e on
+    that interval).  Guard ``z_L == z_U``: the constant ``e(z_L)`` (the max of the decreasing e
+    on the interval, slope 0).  Returns, per leaf, ``sum w p``, ``sum w q``, ``sum w q x_ij``,
+    ``sum w q x_ij^2`` (per j) and the magnitudes used by :func:`_pad`.
+    """
+    N, d = lo.shape
+    m = X.shape[0]
+    shared = W.shape[0] == 1
+    cst = np.zeros(N)
+    Ah = np.zeros(N)
+    WX = np.zeros((N, d))
+    WX2 = np.zeros((N, d))
+    mag = np.zeros(N)
+    aW = np.zeros(N)
+    aWX = np.zeros((N, d))
+    aWX2 = np.zeros((N, d))
+    for n in range(N):
+        r = 0 if shared else n
+        for i in range(m):
+            w = W[r, i]
+            if w == 0.0:
+                continue
+            if w > 0.0:
+                zc = 0.0
+                for j in range(d):
+                    t = 0.5 * (lo[n, j] + hi[n, j]) - X[i, j]
+                    zc += t * t * inv_l2[j]
+                e0 = np.exp(-0.5 * zc)
+                p = e0 * (1.0 + 0.5 * zc)  # tangent: e(z) >= e0 (1 + zc/2) - (e0/2) z
+                q = -0.5 * e0
+            else:
+                zL = 0.0
+                zU = 0.0
+                for j in range(d):
+                    a = lo[n, j] - X[i, j]
+                    b = X[i, j] - hi[n, j]
+                    g = max(a, b, 0.0)  # distance of x_ij to [lo_j, hi_j]
+                    f = max(abs(a), abs(b))  # distance to the farthest face
+                    zL += g * g * inv_l2[j]
+                    zU += f * f * inv_l2[j]
+                eL = np.exp(-0.5 * zL)
+                if zU - zL > 1e-9 * (1.0 + zU):
+                    q = (np.exp(-0.5 * zU) - eL) / (zU - zL)  # chord slope
+                else:
+                    q = 0.0  # z_L == z_U guard: e <= e(z_L)
+                p = eL - q * zL
+            wq = w * q
+            cst[n] += w * p
+            Ah[n] += wq
+            awq = abs(wq)
+            aW[n] += awq
+            mag[n] += abs(w) * (1.0 + abs(p))
+            for j in range(d):
+                x = X[i, j]
+                WX[n, j] += wq * x
+                WX2[n, j] += wq * x * x
+                aWX[n, j] += awq * abs(x)
+                aWX2[n, j] += awq * x * x
+    return cst, Ah, WX, WX2, mag, aW, aWX, aWX2
+
+
+@numba.njit(cache=True)
+def _kvec(x, X, inv_l2, sf2):  # pragma: no cover - compiled
+    """(N, m) SE kernel matrix ``sf2 exp(-z/2)`` (achieved values and tangent points only)."""
+    N, d = x.shape
+    m = X.shape[0]
+    out = np.empty((N, m))
+    for n in range(N):
+        for i in range(m):
+            z = 0.0
+            for j in range(d):
+                t = x[n, j] - X[i, j]
+                z += t * t * inv_l2[j]
+            out[n, i] = sf2 * np.exp(-0.5 * z)
+    return out
+
+
 def _kernel_sum_lower(X, ls, W, lo, hi, lin, const):
     """Lower bound of ``F(x) = sum_i W_i exp(-z_i(x)/2) + lin . x + const`` over boxes.
 
@@ -177,43 +261,16 @@ def _kernel_sum_lower(X, ls, W, lo, hi, lin, const):
         Minimiser of the relaxation (a point of the box, good candidate for ``F``).
     """
     m, d = X.shape
-    N = lo.shape[0]
+    inv_l2 = 1.0 / ls**2
+    lo = np.ascontiguousarray(lo)
+    hi = np.ascontiguousarray(hi)
+    cst, Ah, WX, WX2, mag, aW, aWX, aWX2 = _relax_sums(
+        X, inv_l2, np.ascontiguousarray(W), lo, hi
+    )
     c = 0.5 * (lo + hi)
     h = 0.5 * (hi - lo)
-    inv_l2 = 1.0 / ls**2
-    zL = np.zeros((N, m))
-    zU = np.zeros((N, m))
-    zc = np.zeros((N, m))
-    for j in range(d):  # d <= a few; vectorised over leaves and training points
-        xj = X[None, :, j]
-        a = lo[:, j, None] - xj
-        b = xj - hi[:, j, None]
-        gap = np.maximum(np.maximum(a, b), 0.0)  # distance of x_ij to [lo_j, hi_j]
-        far = np.maximum(np.abs(a), np.abs(b))  # farthest corner distance
-        zL += gap * gap * inv_l2[j]
-        zU += far * far * inv_l2[j]
-        t = c[:, j, None] - xj
-        zc += t * t * inv_l2[j]
-    e0 = np.exp(-0.5 * zc)
-    eL = np.exp(-0.5 * zL)
-    eU = np.exp(-0.5 * zU)
-    pos = W > 0
-    # tangent at z_c (lower bound of e for positive weights): e(z) >= e0 (1 + zc/2) - e0/2 z
-    # chord on [zL, zU] (upper bound of e for negative weights); guard zL == zU: the constant
-    # e(zL) = max of e on [zL, zU] is then used (e is decreasing), slope 0.
-    dz = zU - zL
-    use_chord = dz > 1e-9 * (1.0 + zU)
-    slope = np.where(use_chord, (eU - eL) / np.where(use_chord, dz, 1.0), 0.0)
-    p = np.where(pos, e0 * (1.0 + 0.5 * zc), eL - slope * zL)
-    q = np.where(pos, -0.5 * e0, slope)
-    Wq = W * q  # (N, m): coefficient of z_i in the relaxation
-    Wp = W * p
-    const_tot = const + Wp.sum(axis=1)
-    # expanded per-coordinate quadratic in y = x - c, y in [-h, h]:
-    # sum_i Wq_i (y_j - d_ij)^2 / l_j^2 with d_ij = x_ij - c_j
-    Ah = Wq.sum(axis=1)  # (N,)
-    WX = Wq @ X  # (N, d)
-    WX2 = Wq @ (X * X)
+    # relaxation = cst + const + lin.x + sum_i Wq_i z_i(x); expanded per coordinate in
+    # y = x - c in [-h, h]: sum_i Wq_i (y_j - d_ij)^2 / l_j^2 with d_ij = x_ij - c_j
     A = Ah[:, None] * inv_l2[None, :]
     S = (WX - c * Ah[:, None]) * inv_l2
     C = (WX2 - 2.0 * c * WX + c * c * Ah[:, None]) * inv_l2
@@ -230,19 +287,12 @@ def _kernel_sum_lower(X, ls, W, lo, hi, lin, const):
     inside = Apos & (np.abs(v) <= h * (1.0 + 1e-9) + 1e-300)
     val = np.where(inside, C - B * B / (4.0 * Asafe), end_min)
     ystar = np.where(inside, np.clip(v, -h, h), y_end)
-    lb = const_tot + (lin * c).sum(axis=1) + val.sum(axis=1)
+    lb = cst + const + (lin * c).sum(axis=1) + val.sum(axis=1)
     # magnitude of everything summed (see _pad): |W|(1 + |p|) + |Wq| Zabs,
     # Zabs_i = sum_j (H_j + |x_ij|)^2 / l_j^2 >= every expanded z-term, H_j = max(|lo_j|, |hi_j|)
     H = np.maximum(np.abs(lo), np.abs(hi))
-    aWq = np.abs(Wq)
-    sWq = aWq.sum(axis=1)
-    zab = (H * H * sWq[:, None] + 2.0 * H * (aWq @ np.abs(X)) + aWq @ (X * X)) * inv_l2
-    mag = (
-        (np.abs(W) * (1.0 + np.abs(p))).sum(axis=1)
-        + zab.sum(axis=1)
-        + (np.abs(lin) * H).sum(axis=1)
-        + np.abs(const)
-    )
+    zab = (H * H * aW[:, None] + 2.0 * H * aWX + aWX2) * inv_l2
+    mag = mag + zab.sum(axis=1) + (np.abs(lin) * H).sum(axis=1) + np.abs(const)
     return _round_down(lb, _pad(m, d, mag)), c + ystar
 
 
@@ -278,11 +328,7 @@ class _GPTerms:
 
     def kvec(self, x):
         """(N, m) kernel vectors k(x, X)."""
-        z = np.zeros((x.shape[0], self.m))
-        for j in range(self.d):
-            t = (x[:, j, None] - self.X[None, :, j]) / self.ls[j]
-            z += t * t
-        return self.sf2 * np.exp(-0.5 * z)
+        return _kvec(np.ascontiguousarray(x, dtype=float), self.X, 1.0 / self.ls**2, self.sf2)
 
     def mean(self, x):
         return self.kvec(x) @ self.alpha
@@ -304,6 +350,11 @@ class _GPTerms:
         if self._Klam is None:
             self._Klam = self.kvec(self.X) + self.lam * np.eye(self.m)
         return self._Klam
+
+    @property
+    def Klam_rowsum(self):
+        """Max row sum of K + lambda' I (>= its largest eigenvalue; all entries >= 0)."""
+        return float(self.Klam.sum(axis=1).max())
 
 
 # --------------------------------------------------------------------------- branch and bound
@@ -535,8 +586,8 @@ def _bound_one(gpt: _GPTerms, lower, upper, lin, const, tol, max_boxes, local_so
             bvec = gpt.kvec(c) @ gpt.M  # tangent point; any b is sound (module docstring)
             bK = bvec @ gpt.Klam
             cq = (bK * bvec).sum(axis=1)  # b^T (K + lambda' I) b
-            ab = np.abs(bvec)
-            cmag = ((ab @ np.abs(gpt.Klam)) * ab).sum(axis=1)
+            # |b|^T (K + lambda' I) |b| <= rho |b|^2, rho = max row sum (entries >= 0)
+            cmag = gpt.Klam_rowsum * (bvec * bvec).sum(axis=1)
             cq_up = _round_up(cq, _pad(gpt.m, d, cmag))
             lbS, xs = _kernel_sum_lower(
                 gpt.X, gpt.ls, 2.0 * gpt.sf2 * bvec, lo, hi, np.zeros_like(lo), np.zeros(len(lo))
