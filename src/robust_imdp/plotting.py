@@ -16,6 +16,7 @@ from matplotlib.collections import LineCollection, PolyCollection
 from matplotlib.colors import ListedColormap, Normalize
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
+from matplotlib.patheffects import withStroke
 from scipy import ndimage
 
 from robust_imdp.errors import DimensionError
@@ -101,8 +102,13 @@ def _draw_regions(ax, res: ResultFile, *, fill: bool, label_text: bool = True, l
             has = np.array([atom in lab for lab in res.labels])
             ax.add_collection(PolyCollection(_rects(res)[has], facecolors=colour, alpha=0.35,
                                              edgecolors="none"))
-        ax.add_collection(LineCollection(_outline_segments(bx, by, ind), colors=colour,
-                                         linewidths=lw))
+        if fill:
+            ax.add_collection(LineCollection(_outline_segments(bx, by, ind), colors=colour,
+                                             linewidths=lw))
+        else:  # over coloured maps: a white line with a black halo reads on any colour
+            ax.add_collection(LineCollection(
+                _outline_segments(bx, by, ind), colors="white", linewidths=lw,
+                path_effects=[withStroke(linewidth=lw + 1.6, foreground="black")]))
         if label_text:
             comp, n_comp = ndimage.label(ind)
             for c in range(1, n_comp + 1):
@@ -125,8 +131,8 @@ def plot_partition(result, ax=None, *, title: str | None = None):
                                      linewidths=0.3))
     handles = _draw_regions(ax, res, fill=True)
     _frame(ax, res, title or f"Partition: {res.n_cells} cells, regions {', '.join(h.get_label() for h in handles)}")
-    ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8,
-              title="regions", title_fontsize=8, frameon=False)
+    ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.13),
+              ncol=min(4, len(handles)), fontsize=8, frameon=False)
     return ax
 
 
