@@ -314,3 +314,11 @@ def test_heavy_backends_are_imported_lazily():
             "print(sorted(m for m in ('cvxpy', 'clarabel', 'stormpy') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_solver_dispatches_method_lp():
+    solve = pytest.importorskip("robust_imdp.solve")
+    m = tiny_example()
+    res = solve.solve_reachability(m, [1], adversary="optimistic", method="lp")
+    assert isinstance(res, solve.ReachabilityResult)
+    np.testing.assert_allclose(mid(res), [18 / 19, 1, 0], atol=TOL)  # hand-solved above
