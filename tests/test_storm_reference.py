@@ -118,3 +118,17 @@ def test_to_stormpy_chunking_is_invisible():
     for s in range(9):
         assert a.transition_matrix.get_row_group_start(s) == m.state_ptr[s]
     np.testing.assert_array_equal(storm_reachability(a, tgt, precision=PREC), storm_reachability(b, tgt, precision=PREC))
+
+
+def test_read_drn_reads_storms_own_export(tmp_path):
+    from robust_imdp.formats import load_drn
+
+    m = random_imdp(np.random.default_rng(13), 5, 2, 3, positive_lower=True)
+    stormpy.io.export_to_drn(to_stormpy(m, [3]), str(tmp_path / "s.drn"))
+    f = load_drn(tmp_path / "s.drn")
+    for name in ("state_ptr", "row_ptr", "col", "actions"):
+        np.testing.assert_array_equal(getattr(f.imdp, name), getattr(m, name))
+    # Storm writes 10 significant digits, so the bounds come back to ~1e-10
+    np.testing.assert_allclose(f.imdp.lower, m.lower, atol=1e-9)
+    np.testing.assert_allclose(f.imdp.upper, m.upper, atol=1e-9)
+    np.testing.assert_array_equal(np.flatnonzero(f.labels["target"]), [3])
