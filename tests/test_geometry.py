@@ -133,3 +133,11 @@ def test_duplicate_region_names_rejected():
         Partition(Box([0], [1]), 0.5, [r, r])
     with pytest.raises(InvalidInputError, match="key must equal the name"):
         Partition(Box([0], [1]), 0.5, {"b": r})
+
+
+def test_partition_is_immutable():
+    P = Partition(Box([0], [1]), 0.5)
+    with pytest.raises(AttributeError, match="immutable"):
+        P.n_cells = 3
+    with pytest.raises(ValueError):
+        P.labels[0] = 1  # read-only array

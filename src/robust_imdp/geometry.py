@@ -266,6 +266,12 @@ class Partition:
         self.labels = labels
         for a in (self.cells_lower, self.cells_upper, self.labels):
             a.setflags(write=False)
+        self._frozen = True
+
+    def __setattr__(self, name, value):  # invalid objects cannot exist: no mutation after __init__
+        if getattr(self, "_frozen", False):
+            raise AttributeError(f"Partition is immutable; cannot set {name!r}")
+        object.__setattr__(self, name, value)
 
     # ------------------------------------------------------------------ construction
     def _axis_breakpoints(self, j: int) -> np.ndarray:
