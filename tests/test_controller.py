@@ -146,3 +146,33 @@ def test_constructor_validation(partition):
         Controller(*args[:5], res.labels[:2], *args[6:])
     with pytest.raises(DimensionError, match=r"dfa_delta must have shape \(S, 4\)"):
         Controller(res.strategy, d.delta[:, :2], *args[2:])
+
+
+def test_monte_carlo_satisfaction_lies_in_bounds(partition):
+    """A true system inside the IMDP's intervals, run under the controller, satisfies the spec
+    with a frequency inside [p_low, p_up] of its start cell (paper, Thm. 2).
+
+    True chain from cell 0 under mode 1 ("go"): stay 0.3, des 0.5, leave X 0.2 (inside the
+    intervals [0.2, 0.4], [0.4, 0.6], [0, 0.2]); satisfaction probability 0.5 / 0.7 = 0.714.
+    Under mode 0: des 0.6, obs 0.4. N = 4000 runs: standard error <= 0.008, we allow 5 SE.
+    """
+    res = make_result()
+    ctrl = res.controller(partition)
+    rng = np.random.default_rng(12345)
+    centres = {0: FREE, 2: DES, 1: OBS, -1: OUT}
+    moves = {1: ([0, 2, -1], [0.3, 0.5, 0.2]), 0: ([2, 1], [0.6, 0.4])}
+    n_runs, hits = 4000, 0
+    for _ in range(n_runs):
+        x = np.array(FREE)
+        ctrl.reset(x)
+        for _ in range(200):  # P(still running after 200 steps) = 0.3**200: negligible
+            u = ctrl.act(x)
+            if u is None:
+                break
+            cells, probs = moves[u]
+            x = np.array(centres[int(rng.choice(cells, p=probs))])
+        hits += ctrl.status == "satisfied"
+    freq = hits / n_runs
+    se = np.sqrt(0.714 * 0.286 / n_runs)
+    assert abs(freq - 0.5 / 0.7) < 5 * se
+    assert res.p_low[0] - 5 * se <= freq <= res.p_up[0] + 5 * se

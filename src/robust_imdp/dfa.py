@@ -136,7 +136,7 @@ class DFA:
         if d.size and not np.issubdtype(d.dtype, np.integer):
             raise InvalidModelError(f"delta must hold integer state indices; got dtype {d.dtype}")
         d = d.astype(np.int64)
-        acc = np.asarray(accepting)
+        acc = np.array(accepting)  # a copy: validation freezes it
         if acc.dtype != bool:
             idx = acc.astype(np.int64).ravel() if acc.size else np.zeros(0, dtype=np.int64)
             if acc.size and not np.issubdtype(acc.dtype, np.integer):
