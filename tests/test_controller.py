@@ -176,3 +176,43 @@ def test_monte_carlo_satisfaction_lies_in_bounds(partition):
     se = np.sqrt(0.714 * 0.286 / n_runs)
     assert abs(freq - 0.5 / 0.7) < 5 * se
     assert res.p_low[0] - 5 * se <= freq <= res.p_up[0] + 5 * se
+
+
+def test_end_to_end_abstraction_synthesis_controller_monte_carlo():
+    """Known contractive 1-D dynamics x' = a_u + 0.3 (x - a_u) + v, v ~ N(0, 0.35^2): abstraction
+    (exact image boxes), synthesis of G !obs & F des, then the controller on the true system.
+    The satisfaction frequency from uniform starts in a cell must lie in [p_low, p_up] up to
+    5 standard errors (N = 400 runs per cell, SE <= 0.025)."""
+    from robust_imdp.abstraction import CellBounds, abstract
+    from robust_imdp.noise import GaussianNoise
+
+    X = Box(np.array([0.0]), np.array([4.0]))
+    part = Partition(X, 0.5, [Region("des", Box([3.0], [4.0])), Region("obs", Box([1.0], [1.5]))])
+    targets, c = np.array([0.25, 2.25, 3.5]), 0.3
+
+    def f(x, u):
+        return targets[u] + c * (x - targets[u])
+
+    lo = np.stack([f(part.cells_lower, u) for u in range(3)])  # f is increasing: exact image box
+    hi = np.stack([f(part.cells_upper, u) for u in range(3)])
+    noise = GaussianNoise([0.35])
+    ab = abstract(part, CellBounds(lo, hi), noise)
+    res = synthesize(ab.imdp, part.labels, part.atoms, ltlf_to_dfa("G !obs & F des"), threshold=0.8,
+                     outside_state=part.outside_state)
+    assert np.all(res.p_low <= res.p_up) and np.all(res.p_up <= res.p_up_star)
+    assert res.classes[2] == "no" and res.classes[7] == "yes"  # starts in obs / in des
+    ctrl = res.controller(part)
+    rng = np.random.default_rng(7)
+    n_runs, se = 400, 0.5 / np.sqrt(400)
+    for q in (0, 3, 5):
+        hits = 0
+        for _ in range(n_runs):
+            x = rng.uniform(part.cells_lower[q], part.cells_upper[q])
+            ctrl.reset(x)
+            for _ in range(500):
+                u = ctrl.act(x)
+                if u is None:
+                    break
+                x = f(x, u) + noise.sample(1, rng)[0]
+            hits += ctrl.status == "satisfied"
+        assert res.p_low[q] - 5 * se <= hits / n_runs <= res.p_up[q] + 5 * se, (q, hits / n_runs)
