@@ -369,3 +369,14 @@ def test_learn_builds_guaranteed_gps_per_mode_and_dim():
         learn(_Data(x, u, xn, ("a", "b")), maps, rkhs_bound=1.0, noise_theta=0.0)
     with pytest.raises(DimensionError, match="known_maps"):
         learn(_Data(x, u, xn, ("a", "b")), maps[:1], rkhs_bound=1.0, noise_theta=0.01)
+
+
+def test_likelihood_on_a_seeded_subset_posterior_on_all_data():
+    X, y = _data(6, m=120)
+    kw = dict(optimize=True, n_restarts=2, max_fit_points=50, rng=3)
+    gp = GaussianProcess(1.0, 1.0, "chowdhury", **kw).fit(X, y)
+    again = GaussianProcess(1.0, 1.0, "chowdhury", **kw).fit(X, y)
+    np.testing.assert_array_equal(gp.lengthscale_, again.lengthscale_)  # seeded subset and starts
+    assert gp.L_.shape == (120, 120) and gp.noise_variance_ == chowdhury_regulariser(120)
+    with pytest.raises(InvalidInputError, match="max_fit_points"):
+        GaussianProcess(1.0, 1.0, "chowdhury", optimize=True, max_fit_points=0).fit(X, y)

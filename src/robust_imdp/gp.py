@@ -153,8 +153,11 @@ class GaussianProcess:
         :class:`RKHSErrorBound`.)
     n_restarts : int, default 5
         Number of starts of the likelihood optimisation (the first is the given values).
+    max_fit_points : int or None, default 400
+        The likelihood is maximised on a seeded random subset of at most this many points
+        (its cost is O(m^3) per evaluation); the posterior always uses all the data.
     rng : seed or Generator, optional
-        Randomness of the restart points.
+        Randomness of the restart points and of the subset.
 
     Attributes
     ----------
@@ -185,6 +188,7 @@ class GaussianProcess:
         *,
         optimize: bool = False,
         n_restarts: int = 5,
+        max_fit_points: int | None = 400,
         rng: Any = None,
     ) -> None:
         self.lengthscale = lengthscale
@@ -192,6 +196,7 @@ class GaussianProcess:
         self.noise_variance = noise_variance
         self.optimize = optimize
         self.n_restarts = n_restarts
+        self.max_fit_points = max_fit_points
         self.rng = rng
 
     # ------------------------------------------------------------------ public API
@@ -258,8 +263,16 @@ class GaussianProcess:
         self.y_train_ = y
         s2 = lam
         if self.optimize:
-            ls, sf2, s2, lml = _fit_hyperparameters(X, y, ls, sf2, s2, fit_noise=chowdhury,
-                                                     n_restarts=n_restarts, rng=self.rng)
+            gen = np.random.default_rng(self.rng)
+            sub = np.arange(m)
+            if self.max_fit_points is not None:
+                k = int(self.max_fit_points)
+                if k < 1:
+                    raise InvalidInputError(f"max_fit_points must be a positive integer or None; got {k!r}")
+                if m > k:
+                    sub = np.sort(gen.choice(m, size=k, replace=False))
+            ls, sf2, s2, lml = _fit_hyperparameters(X[sub], y[sub], ls, sf2, s2, fit_noise=chowdhury,
+                                                     n_restarts=n_restarts, rng=gen)
             if chowdhury:
                 # Same ratio lambda/sf2 as the likelihood fit => identical posterior mean
                 # (the mean depends on (sf2, lambda) only through their ratio).
@@ -391,7 +404,11 @@ def _nll_and_grad(theta: np.ndarray, X: np.ndarray, y: np.ndarray, fixed_noise: 
         return 1e25, np.zeros_like(theta)
     a = scipy.linalg.cho_solve((L, True), y, check_finite=False)
     nll = 0.5 * y @ a + np.sum(np.log(np.diag(L))) + 0.5 * m * math.log(2 * math.pi)
-    Ainv = scipy.linalg.cho_solve((L, True), np.eye(m), check_finite=False)
+    # A^{-1} from the Cholesky factor (LAPACK potri fills the lower triangle only).
+    Ainv, info = scipy.linalg.lapack.dpotri(L, lower=1)
+    if info != 0:  # pragma: no cover - L is a valid factor here
+        return 1e25, np.zeros_like(theta)
+    Ainv = np.tril(Ainv) + np.tril(Ainv, -1).T
     W = np.outer(a, a) - Ainv
     grad = np.empty_like(theta)
     WK = W * Kf
@@ -802,7 +819,7 @@ class LearnedModel:
 
 def learn(dataset: Any, known_maps: Sequence[Callable], *, rkhs_bound: Any, noise_theta: Any,
           lengthscale: Any = 1.0, signal_variance: float = 1.0, optimize: bool = False,
-          info_gain: str = "data", n_restarts: int = 5, rng: Any = None,
+          info_gain: str = "data", n_restarts: int = 5, max_fit_points: int | None = 400, rng: Any = None,
           progress: Callable[[str], None] | None = None) -> LearnedModel:
     """Fit one GP per mode and output dimension on the residuals ``y = x_next - f_u(x)``.
 
@@ -824,6 +841,8 @@ def learn(dataset: Any, known_maps: Sequence[Callable], *, rkhs_bound: Any, nois
     optimize : bool
     info_gain : {"data", "trivial"}
     n_restarts : int
+    max_fit_points : int or None
+        See :class:`GaussianProcess`.
     rng : seed or Generator
     progress : callable(str), optional
         Receives one line per fitted GP (also logged at INFO level).
@@ -857,7 +876,7 @@ def learn(dataset: Any, known_maps: Sequence[Callable], *, rkhs_bound: Any, nois
         row_gp, row_eb = [], []
         for i in range(n):
             gp = GaussianProcess(lengthscale, signal_variance, CHOWDHURY, optimize=optimize,
-                                 n_restarts=n_restarts, rng=gen).fit(x, y[:, i])
+                                 n_restarts=n_restarts, max_fit_points=max_fit_points, rng=gen).fit(x, y[:, i])
             eb = RKHSErrorBound.from_gp(gp, float(B[u, i]), float(theta[i]), info_gain=info_gain)
             line = (f"learn: mode {dataset.mode_names[u]} dim {i}: m={x.shape[0]} "
                     f"lengthscale={np.array2string(gp.lengthscale_, precision=3)} sf2={gp.signal_variance_:.4g} "
