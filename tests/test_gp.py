@@ -363,6 +363,11 @@ def test_learn_builds_guaranteed_gps_per_mode_and_dim():
             assert gp.noise_variance_ == chowdhury_regulariser(25)
             np.testing.assert_array_equal(gp.y_train_, xnm[:, i] - maps[mode](xm)[:, i])
             assert eb.rkhs_bound >= [[1.0, 2.0], [3.0, 4.0]][mode][i]
+    xs = rng.uniform(-1, 1, (7, 2))
+    np.testing.assert_allclose(model.predict(1, xs), 0.5 * xs + np.stack(
+        [model.gps[1][0].predict(xs), model.gps[1][1].predict(xs)], axis=1))
+    with pytest.raises(InvalidInputError, match="mode must be an index"):
+        model.predict(2, xs)
     with pytest.raises(DimensionError, match="rkhs_bound"):
         learn(_Data(x, u, xn, ("a", "b")), maps, rkhs_bound=[1.0, 2.0, 3.0], noise_theta=0.01)
     with pytest.raises(InvalidInputError, match="noise_theta"):

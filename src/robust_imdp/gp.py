@@ -563,6 +563,12 @@ class RKHSErrorBound:
     the gain of ANY m-point set by Hadamard's inequality (hence also of C&G's
     ``gamma_m``). ``"data"`` is never larger than ``"trivial"`` (we take the minimum).
 
+    **Several GPs.** Each bound is for one (mode, output dimension). The event is uniform
+    in x, so one event serves every cell of that GP. For several output dimensions (or
+    modes) at once, combine by the union bound ``1 - sum_i delta_i``; a product of the
+    probabilities needs independence of the events (true for inputs sampled independently
+    of the noise with independent noise components, false for trajectory data).
+
     **Assumptions that remain the user's.** ``||g||_k <= B`` (not checkable from data;
     :func:`rkhs_norm_of_mean` is only a diagnostic, and ``sup|g| / sqrt(min k)`` is NOT a
     bound of the RKHS norm); the noise is conditionally theta-sub-Gaussian and the
@@ -730,7 +736,7 @@ class RKHSErrorBound:
             t = _round_down(ratio - self.rkhs_bound)
             t = _round_down(t / self._noise_factor_up)
             q = _round_down(_round_down(t * t) * 0.5)
-            expo = _round_down(q - self.info_gain - 1.0)
+            expo = _round_down(_round_down(q - self.info_gain) - 1.0)
             # exp has a few ulps of error: (1 + 8 eps) and one more ulp make it an upper bound.
             dl = _round_up(np.exp(-expo) * (1 + 8 * _EPS))
         # Clamp to [0, 1]: delta >= 1 (no delta in (0,1) works, incl. eps/s <= B) means the
@@ -815,6 +821,24 @@ class LearnedModel:
     @property
     def dim(self) -> int:
         return len(self.gps[0])
+
+    def predict(self, mode: int, x: Any) -> np.ndarray:
+        """Learned one-step map ``f_u(x) + mu_u(x)`` (a float estimate, not a bound).
+
+        Parameters
+        ----------
+        mode : int
+        x : (k, n) float array
+
+        Returns
+        -------
+        (k, n) float array
+        """
+        if not (isinstance(mode, (int, np.integer)) and 0 <= int(mode) < self.n_modes):
+            raise InvalidInputError(f"mode must be an index in [0, {self.n_modes}); got {mode!r}")
+        x = _as_matrix("x", x, self.dim)
+        mu = np.stack([gp.predict(x) for gp in self.gps[int(mode)]], axis=1)
+        return np.asarray(self.known_maps[int(mode)](x), dtype=np.float64) + mu
 
 
 def learn(dataset: Any, known_maps: Sequence[Callable], *, rkhs_bound: Any, noise_theta: Any,
