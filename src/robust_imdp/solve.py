@@ -337,6 +337,122 @@ def positive_attractor(state_ptr, row_ptr, col, lower, upper, floor, nxt, init, 
 
 
 @njit(cache=True)
+def almost_sure(state_ptr, row_ptr, col, lower, upper, floor, nxt, target, W, ctrl, strat, adv_max):
+    """Nodes from which the controller reaches the target with probability 1 (ctrl 0 or 2).
+
+    Nested fixed point (almost-sure reachability of turn-based stochastic games):
+    ``Y = nu Y. mu X. target  U  {node in Y : some row (ctrl 0) / the fixed row (ctrl 2) is
+    good}``; a row is good when, for a minimising adversary, every admissible p keeps its
+    support inside Y (every possible successor is in Y) and puts positive mass on X; for a
+    maximising adversary, some admissible p has support inside Y and positive mass on X.
+    Playing good rows, every step reaches X with probability >= delta > 0 (compactness of the
+    interval polytopes) without leaving Y, hence the target almost surely.  All tests are
+    *conservative* (a node wrongly added would be given the value 1): sums are compared with
+    a margin covering their rounding.  Starts from ``W`` (the positive-probability nodes).
+    """
+    L = nxt.shape[0]
+    n = state_ptr.shape[0] - 1
+    Y = W.copy()
+    cntX = np.zeros(L, dtype=np.int64)
+    cntY = np.zeros(L, dtype=np.int64)
+    while True:
+        for l in range(L):
+            c = 0
+            for q2 in range(n):
+                if Y[nxt[l, q2] * n + q2]:
+                    c += 1
+            cntY[l] = c
+        X = target.copy()
+        changed = True
+        while changed:
+            changed = False
+            for l in range(L):
+                c = 0
+                for q2 in range(n):
+                    if X[nxt[l, q2] * n + q2]:
+                        c += 1
+                cntX[l] = c
+            newX = X.copy()
+            for l in range(L):
+                for q in range(n):
+                    node = l * n + q
+                    if X[node] or not Y[node]:
+                        continue
+                    r0 = state_ptr[q]
+                    r1 = state_ptr[q + 1]
+                    if ctrl == 2:
+                        r0 = r0 + strat[node]
+                        r1 = r0 + 1
+                    for r in range(r0, r1):
+                        k = row_ptr[r + 1] - row_ptr[r]
+                        f = floor[r]
+                        outY = False
+                        lowOutY = 0.0
+                        capY = 0.0
+                        nY = 0
+                        lowX = 0.0
+                        capX = 0.0
+                        lowYnX = 0.0
+                        upNotX = 0.0
+                        nNotX = 0
+                        listedX = 0
+                        listedY = 0
+                        for j in range(row_ptr[r], row_ptr[r + 1]):
+                            q2 = col[j]
+                            node2 = nxt[l, q2] * n + q2
+                            inY = Y[node2]
+                            inX = X[node2]
+                            if inY:
+                                listedY += 1
+                                capY += upper[j]
+                                nY += 1
+                            else:
+                                lowOutY += lower[j]
+                                if upper[j] > 0.0:
+                                    outY = True
+                            if inX:
+                                listedX += 1
+                                lowX += lower[j]
+                                capX += upper[j]
+                            else:
+                                if upper[j] > 0.0:
+                                    upNotX += upper[j]
+                                    nNotX += 1
+                                if inY:
+                                    lowYnX += lower[j]
+                        unlY = cntY[l] - listedY
+                        unlX = cntX[l] - listedX
+                        unlNotY = (n - k) - unlY
+                        unlNotX = (n - k) - unlX
+                        fl = f > 0.0
+                        if adv_max:
+                            capYt = capY + (f * unlY if fl else 0.0)
+                            good = (lowOutY == 0.0
+                                    and capYt - _sum_slack(nY, fl and unlY > 0) >= 1.0
+                                    and (capX > 0.0 or (fl and unlX > 0))
+                                    and lowYnX + _sum_slack(k, False) < 1.0)
+                        else:
+                            if outY or (fl and unlNotY > 0):
+                                good = False
+                            else:
+                                rest = upNotX + (f * unlNotX if fl else 0.0)
+                                good = lowX > 0.0 or rest + _sum_slack(nNotX, fl and unlNotX > 0) < 1.0
+                        if good:
+                            newX[node] = True
+                            changed = True
+                            break
+            X = newX
+        same = True
+        for i in range(Y.shape[0]):
+            if Y[i] != X[i]:
+                same = False
+                break
+        if same:
+            return X
+        Y = X
+
+
+@njit(cache=True)
 def progress_strategy(state_ptr, row_ptr, col, lower, upper, floor, nxt, target, optimal, adv_max,
                       fallback):
     """Among optimal rows pick, per node, one that makes progress toward the target.
@@ -887,12 +1003,19 @@ def _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, pre
     # (a) graph pre-computation: nodes that reach the target with positive probability
     W = positive_attractor(imdp.state_ptr, imdp.row_ptr, imdp.col, imdp.lower, imdp.upper, imdp.floor,
                            nxt, target.reshape(-1), zero.reshape(-1), ctrl, flat_strat, adv_max)
+    one = np.zeros(L * n, dtype=bool)
+    if ctrl != 1:
+        # value exactly 1 (almost-sure reachability); not computed for a minimising controller
+        one = almost_sure(imdp.state_ptr, imdp.row_ptr, imdp.col, imdp.lower, imdp.upper, imdp.floor, nxt,
+                          target.reshape(-1), W, ctrl, flat_strat, adv_max)
     W = W.reshape(L, n)
+    one = one.reshape(L, n) & ~target
     zero_all = zero | (active & ~W)  # value exactly 0: the target cannot be reached
-    active2 = active & W
+    fixed1 = target | one  # value exactly 1: fixed like targets (lower = upper = 1 is sound)
+    active2 = active & W & ~one
     sw.active = active2
     sw.layers = [l for l in range(L) if active2[l].any()]
-    lo = target.astype(np.float64)
+    lo = fixed1.astype(np.float64)
     up = np.where(zero_all, 0.0, 1.0)
     comp, ncomp, comp_cnt = _end_components(imdp, nxt, active2, ctrl, flat_strat)
     it = 0
@@ -901,9 +1024,11 @@ def _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, pre
         it += 1
         newlo, _, _ = sw.sweep(lo, -1)
         np.maximum(lo, newlo, out=lo)  # max of two lower bounds is a lower bound
-        newup, _, rows = sw.sweep(up, +1, want_rows=ncomp > 0)
+        # deflation is an optional tightening (sound whenever applied): every 4th iteration
+        deflate = ncomp > 0 and (it <= 3 or it % 4 == 0)
+        newup, _, rows = sw.sweep(up, +1, want_rows=deflate)
         np.minimum(up, newup, out=up)  # min of two upper bounds is an upper bound
-        if ncomp:
+        if deflate:
             _deflate(imdp, nxt, up, rows, comp, ncomp, comp_cnt, adv_max, ctrl, flat_strat)
         gap = float(np.max(up - lo))
     converged = gap <= precision
@@ -911,16 +1036,17 @@ def _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, pre
         warnings.warn(f"interval iteration stopped after {it} iterations with max(upper - lower) = {gap:.3g} > "
                       f"precision {precision:g}; the returned bounds are sound but loose", ConvergenceWarning,
                       stacklevel=3)
-    # strategy: optimal rows w.r.t. the final lower values, ties broken toward progress
+    # strategy: optimal rows w.r.t. the final lower values (value-1 nodes included), ties
+    # broken toward progress to the *original* target
+    sw.active = active2 | one
+    sw.layers = [l for l in range(L) if sw.active[l].any()]
     _, arg, rows = sw.sweep(lo, -1, want_rows=(ctrl == 0))
     if ctrl == 0:
         R = imdp.n_choices
-        best = np.repeat(np.where(active2, lo, 0.0), np.diff(imdp.state_ptr), axis=1)  # (L, R)
         rv = rows.reshape(L, R)
         # best-row value of each node (computed with the same rounding) and a tie tolerance
         rowbest = np.maximum.reduceat(np.where(np.isfinite(rv), rv, -1.0), imdp.state_ptr[:-1], axis=1)
         optimal = rv >= np.repeat(rowbest, np.diff(imdp.state_ptr), axis=1) - _TIE_TOL
-        del best
         strat = progress_strategy(imdp.state_ptr, imdp.row_ptr, imdp.col, imdp.lower, imdp.upper, imdp.floor,
                                   nxt, target.reshape(-1), optimal.reshape(-1), adv_max, arg.reshape(-1))
         strat = strat.reshape(L, n)
@@ -959,8 +1085,7 @@ def _end_components(imdp, nxt, active, ctrl, flat_strat):
     comp = np.full(N, -1, dtype=np.int64)
     ncomp = 0
     for _ in range(8):
-        src, dst = _edges(imdp, nxt, rowmask, act)
-        g = sp.csr_matrix((np.ones(src.size, dtype=np.int8), (src, dst)), shape=(N, N))
+        g = _edge_graph(imdp, nxt, rowmask, act)
         nc, lab = csgraph.connected_components(g, directed=True, connection="strong")
         lab = np.where(act, lab, -1)
         cnt = np.zeros((L, nc), dtype=np.int64)
@@ -989,21 +1114,37 @@ def _end_components(imdp, nxt, active, ctrl, flat_strat):
     return comp, int(keep.sum()), np.ascontiguousarray(cnt)
 
 
-def _edges(imdp, nxt, rowmask, act):
-    """Listed positive-upper edges of the rows in ``rowmask`` between active nodes."""
+def _edge_graph(imdp, nxt, rowmask, act):
+    """CSR graph (node -> node) of the listed positive-upper entries of the rows in ``rowmask``,
+    between active nodes.  Built per layer directly in CSR order (rows are grouped by state),
+    with int32 indices, so it costs ~6 bytes per stored entry instead of a COO triple."""
     L, n = nxt.shape
+    N = L * n
     R = imdp.n_choices
+    itype = np.int32 if N < 2**31 - 1 else np.int64
     rl = np.diff(imdp.row_ptr)
-    srcs, dsts = [], []
+    ent_start = imdp.row_ptr[imdp.state_ptr[:-1]]
+    ent_end = imdp.row_ptr[imdp.state_ptr[1:]]
+    pos = imdp.upper > 0
+    indptrs, indices = [], []
+    offset = 0
     for l in range(L):
-        rm = rowmask[l * R:(l + 1) * R]
-        emask = np.repeat(rm, rl) & (imdp.upper > 0)
-        s = l * n + np.repeat(imdp.row_state, rl)[emask]
-        d = nxt[l][imdp.col[emask]] * n + imdp.col[emask]
-        ok = act[s] & act[d]
-        srcs.append(s[ok])
-        dsts.append(d[ok])
-    return np.concatenate(srcs), np.concatenate(dsts)
+        emask = np.repeat(rowmask[l * R:(l + 1) * R], rl)
+        emask &= pos
+        dst = imdp.col.astype(itype) if L == 1 else (nxt[l][imdp.col] * n + imdp.col).astype(itype)
+        emask &= act[dst]
+        emask &= np.repeat(act[l * n:(l + 1) * n], ent_end - ent_start)
+        cs = np.zeros(imdp.nnz + 1, dtype=np.int64 if imdp.nnz >= 2**31 - 1 else np.int32)
+        np.cumsum(emask, out=cs[1:])
+        counts = cs[ent_end] - cs[ent_start]
+        del cs
+        indptrs.append(offset + np.cumsum(counts))
+        offset += int(counts.sum())
+        indices.append(dst[emask])
+        del dst, emask
+    indptr = np.concatenate([[0]] + indptrs).astype(np.int64 if offset >= 2**31 - 1 else np.int32)
+    ind = np.concatenate(indices) if L > 1 else indices[0]
+    return sp.csr_matrix((np.ones(ind.size, dtype=np.int8), ind, indptr), shape=(N, N))
 
 
 def _deflate(imdp, nxt, up, rows, comp, ncomp, comp_cnt, adv_max, ctrl, flat_strat):
