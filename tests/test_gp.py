@@ -22,6 +22,8 @@ from robust_imdp.gp import (
     rkhs_norm_of_mean,
     se_kernel,
     trivial_info_gain,
+    tune_signal_variance,
+    SF2_CANDIDATES,
 )
 
 
@@ -385,3 +387,26 @@ def test_likelihood_on_a_seeded_subset_posterior_on_all_data():
     assert gp.L_.shape == (120, 120) and gp.noise_variance_ == chowdhury_regulariser(120)
     with pytest.raises(InvalidInputError, match="max_fit_points"):
         GaussianProcess(1.0, 1.0, "chowdhury", optimize=True, max_fit_points=0).fit(X, y)
+
+
+def test_tune_signal_variance_is_the_argmin_and_ignores_y():
+    rng = np.random.default_rng(8)
+    X = rng.uniform(-2, 2, (80, 2))
+    probes = np.random.default_rng(1).uniform(X.min(axis=0), X.max(axis=0), size=(256, 2))
+
+    def score(sf2):  # independent recomputation of the objective: mean eps at the probes
+        gp = GaussianProcess(0.8, sf2, "chowdhury").fit(X, np.zeros(80))
+        return float(np.mean(RKHSErrorBound.from_gp(gp, 1.0, 0.01).eps_for_prob(0.99, gp.predict(probes, True)[1])))
+
+    cands = [1.0, 10.0, 100.0, 1000.0]
+    best = tune_signal_variance(X, 0.8, 1.0, 0.01, candidates=cands, rng=1)
+    assert score(best) == min(score(c) for c in cands)
+    assert best > 1.0  # theta = 0.01 << B0 = 1: weaker regularisation than lambda/1 pays
+    # y plays no role: two data sets with the same inputs get the same kernel
+    d1 = _Data(np.vstack([X, X]), np.repeat([0, 1], 80), np.vstack([X, X]) + 1e-3 * rng.normal(size=(160, 2)), ("a", "b"))
+    model = learn(d1, (lambda z: z, lambda z: z), rkhs_bound=1.0, noise_theta=0.01, lengthscale=0.8,
+                  signal_variance="tune", rng=0)
+    sf2s = {gp.signal_variance_ for row in model.gps for gp in row}
+    assert len(sf2s) == 1 and sf2s <= set(SF2_CANDIDATES)
+    with pytest.raises(InvalidInputError, match="signal_variance must be a positive float or 'tune'"):
+        learn(d1, (lambda z: z, lambda z: z), rkhs_bound=1.0, noise_theta=0.01, signal_variance="auto")

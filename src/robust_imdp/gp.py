@@ -841,8 +841,64 @@ class LearnedModel:
         return np.asarray(self.known_maps[int(mode)](x), dtype=np.float64) + mu
 
 
+#: Default candidates of :func:`tune_signal_variance` (factor sqrt(10) apart).
+SF2_CANDIDATES = tuple(float(v) for v in np.logspace(-1, 5, 13))
+
+
+def tune_signal_variance(X: Any, lengthscale: Any, rkhs_bound: float, sub_gaussian: float, *,
+                         prob: float = 0.99, candidates: Sequence[float] = SF2_CANDIDATES,
+                         n_probe: int = 256, info_gain: str = "data", rng: Any = None) -> float:
+    """The ``sf2`` (from ``candidates``) that minimises the mean ``eps_for_prob(prob, sigma)``.
+
+    The guaranteed error ``beta * sigma`` depends on the inputs ``X``, ``B0``, ``theta`` and
+    the kernel, **not on the outputs y**: each candidate GP is fitted to ``y = 0``. So the
+    choice is a function of the design only and, for inputs drawn independently of the
+    noise, the kernel is fixed before the noise is seen, as Chowdhury & Gopalan's theorem
+    requires (unlike a likelihood fit). ``B0`` bounds the norm for the unit-amplitude kernel
+    and is the same assumption for every ``sf2`` (``||g||_{sf2 k0} = ||g||_{k0}/sqrt(sf2)``).
+    Larger ``sf2`` means weaker regularisation ``lambda/sf2``: smaller posterior std but
+    larger ``gamma`` and noise term; the minimum is usually interior.
+
+    Parameters
+    ----------
+    X : (m, d) float array
+        Training inputs.
+    lengthscale : float or (d,) float array
+    rkhs_bound : float
+        ``B0`` for the unit-amplitude kernel.
+    sub_gaussian : float
+    prob : float
+        Probability level of the scored ``eps`` (the paper's 0.99).
+    candidates : sequence of float > 0
+    n_probe : int
+        Seeded uniform probe points in the bounding box of ``X`` where ``eps`` is averaged.
+    info_gain : {"data", "trivial"}
+    rng : seed or Generator
+
+    Returns
+    -------
+    float
+    """
+    X = _as_matrix("X", X)
+    cands = np.asarray(candidates, dtype=np.float64).ravel()
+    if cands.size == 0 or not np.all(np.isfinite(cands) & (cands > 0)):
+        raise InvalidInputError(f"candidates must be positive finite floats; got {cands}")
+    probes = np.random.default_rng(rng).uniform(X.min(axis=0), X.max(axis=0), size=(int(n_probe), X.shape[1]))
+    zeros = np.zeros(X.shape[0])
+    scores = []
+    for sf2 in cands:
+        gp = GaussianProcess(lengthscale, float(sf2), CHOWDHURY).fit(X, zeros)
+        eb = RKHSErrorBound.from_gp(gp, rkhs_bound, sub_gaussian, info_gain=info_gain)
+        _, sd = gp.predict(probes, return_std=True)
+        scores.append(float(np.mean(eb.eps_for_prob(prob, sd))))
+    best = int(np.argmin(scores))
+    log.info("tune_signal_variance: sf2=%.4g (mean eps %.4g; candidates %s)", cands[best], scores[best],
+             np.array2string(np.asarray(scores), precision=3))
+    return float(cands[best])
+
+
 def learn(dataset: Any, known_maps: Sequence[Callable], *, rkhs_bound: Any, noise_theta: Any,
-          lengthscale: Any = 1.0, signal_variance: float = 1.0, optimize: bool = False,
+          lengthscale: Any = 1.0, signal_variance: float | str = 1.0, optimize: bool = False,
           info_gain: str = "data", n_restarts: int = 5, max_fit_points: int | None = 400, rng: Any = None,
           progress: Callable[[str], None] | None = None) -> LearnedModel:
     """Fit one GP per mode and output dimension on the residuals ``y = x_next - f_u(x)``.
@@ -861,7 +917,10 @@ def learn(dataset: Any, known_maps: Sequence[Callable], *, rkhs_bound: Any, nois
     noise_theta : float or (n,) float array
         Sub-Gaussian parameter of the noise per output dimension.
     lengthscale : float or (n,) array
-    signal_variance : float
+    signal_variance : float or "tune"
+        ``"tune"``: per GP, :func:`tune_signal_variance` (a function of the inputs only,
+        so it keeps the theorem's premise); with ``optimize=True`` the lengthscales come
+        from the likelihood fit first.
     optimize : bool
     info_gain : {"data", "trivial"}
     n_restarts : int
@@ -892,6 +951,9 @@ def learn(dataset: Any, known_maps: Sequence[Callable], *, rkhs_bound: Any, nois
         raise DimensionError(f"noise_theta must be a float or have shape ({n},); got {theta.shape}") from None
     if not np.all(np.isfinite(theta) & (theta > 0)):
         raise InvalidInputError(f"noise_theta must be positive and finite; got {np.asarray(noise_theta)!r}")
+    tune = isinstance(signal_variance, str)
+    if tune and signal_variance != "tune":
+        raise InvalidInputError(f"signal_variance must be a positive float or 'tune'; got {signal_variance!r}")
     gen = np.random.default_rng(rng)
     gps, bounds = [], []
     for u in range(n_modes):
@@ -899,8 +961,16 @@ def learn(dataset: Any, known_maps: Sequence[Callable], *, rkhs_bound: Any, nois
         y = xn - known_maps[u](x)
         row_gp, row_eb = [], []
         for i in range(n):
-            gp = GaussianProcess(lengthscale, signal_variance, CHOWDHURY, optimize=optimize,
-                                 n_restarts=n_restarts, max_fit_points=max_fit_points, rng=gen).fit(x, y[:, i])
+            if tune:
+                ls = lengthscale
+                if optimize:
+                    ls = GaussianProcess(lengthscale, 1.0, CHOWDHURY, optimize=True, n_restarts=n_restarts,
+                                         max_fit_points=max_fit_points, rng=gen).fit(x, y[:, i]).lengthscale_
+                sf2 = tune_signal_variance(x, ls, float(B[u, i]), float(theta[i]), info_gain=info_gain, rng=gen)
+                gp = GaussianProcess(ls, sf2, CHOWDHURY).fit(x, y[:, i])
+            else:
+                gp = GaussianProcess(lengthscale, signal_variance, CHOWDHURY, optimize=optimize,
+                                     n_restarts=n_restarts, max_fit_points=max_fit_points, rng=gen).fit(x, y[:, i])
             eb = RKHSErrorBound.from_gp(gp, float(B[u, i]), float(theta[i]), info_gain=info_gain)
             line = (f"learn: mode {dataset.mode_names[u]} dim {i}: m={x.shape[0]} "
                     f"lengthscale={np.array2string(gp.lengthscale_, precision=3)} sf2={gp.signal_variance_:.4g} "
