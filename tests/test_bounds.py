@@ -237,6 +237,10 @@ def test_bad_input_messages():
         bound_posterior(gp, lo, lo + 1, local_solver="ipopt")
     with pytest.raises(InvalidInputError, match="gp must be a fitted GaussianProcess"):
         bound_posterior(GaussianProcess(), lo, lo + 1)
+    stale = random_gp(2, 0)[0]
+    stale.noise_variance_ = 0.0  # L_ was computed with lambda = 1 + 2/m
+    with pytest.raises(InvalidInputError, match="L_ must be the Cholesky factor"):
+        bound_posterior(stale, lo, lo + 1)
     with pytest.raises(DimensionError, match=r"A must have shape \(n, d\) = \(1, 2\)"):
         bound_image([gp], np.zeros((2, 2)), np.zeros(1), lo, lo + 1)
     with pytest.raises(DimensionError, match=r"b must have shape"):

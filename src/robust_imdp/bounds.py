@@ -296,7 +296,8 @@ def _kernel_sum_lower(X, ls, W, lo, hi, lin, const):
     H = np.maximum(np.abs(lo), np.abs(hi))
     zab = (H * H * aW[:, None] + 2.0 * H * aWX + aWX2) * inv_l2
     mag = mag + zab.sum(axis=1) + (np.abs(lin) * H).sum(axis=1) + np.abs(const)
-    return _round_down(lb, _pad(m, d, mag)), c + ystar
+    # c + y can leave [lo, hi] by an ulp: clip (xstar is only a candidate point)
+    return _round_down(lb, _pad(m, d, mag)), np.clip(c + ystar, lo, hi)
 
 
 # --------------------------------------------------------------------------- GP adapter
@@ -306,25 +307,44 @@ class _GPTerms:
     """Arrays of a fitted GP needed by the bounds (read once, validated)."""
 
     def __init__(self, gp, name: str = "gp"):
-        for attr in ("X_train_", "alpha_", "L_", "lengthscale_", "signal_variance_"):
+        attrs = ("X_train_", "alpha_", "L_", "lengthscale_", "signal_variance_",
+                 "noise_variance_", "jitter_")
+        for attr in attrs:
             if not hasattr(gp, attr):
                 raise InvalidInputError(
                     f"{name} must be a fitted GaussianProcess with attribute {attr!r}; "
                     f"got {type(gp).__name__} without it (call fit first)"
                 )
         self.X = np.ascontiguousarray(np.asarray(gp.X_train_, float))
+        if self.X.ndim != 2:
+            raise DimensionError(f"{name}.X_train_ must have shape (m, d); got {self.X.shape}")
         m, d = self.X.shape
         self.m, self.d = m, d
         self.alpha = np.asarray(gp.alpha_, float).reshape(m)
         self.L = np.asarray(gp.L_, float)
         self.ls = np.broadcast_to(np.asarray(gp.lengthscale_, float), (d,)).copy()
         self.sf2 = float(gp.signal_variance_)
-        lam = float(getattr(gp, "noise_variance_", 0.0)) + float(getattr(gp, "jitter_", 0.0))
+        # lambda' = noise + jitter: the matrix whose Cholesky factor is L_ (the variance bound is
+        # for sigma^2 with exactly this regulariser; a smaller one would bound a smaller function)
+        lam = float(gp.noise_variance_) + float(gp.jitter_)
         self.lam = lam
         if not (np.all(self.ls > 0) and self.sf2 > 0 and lam >= 0):
             raise InvalidInputError(
                 f"{name} hyperparameters must be positive; got lengthscale {self.ls}, "
                 f"signal_variance {self.sf2}, noise+jitter {lam}"
+            )
+        finite = all(np.all(np.isfinite(a)) for a in (self.X, self.alpha, self.L))
+        if self.L.shape != (m, m) or not finite:
+            raise InvalidInputError(
+                f"{name}.L_ must be a finite (m, m) = ({m}, {m}) Cholesky factor and X_train_, "
+                f"alpha_ finite; got L_ of shape {self.L.shape}"
+            )
+        # diag(L L^T) must be sf2 + lambda' (K_ii = sf2): catches an L_ of another regulariser
+        diag = (self.L * self.L).sum(axis=1)
+        if not np.allclose(diag, self.sf2 + lam, rtol=1e-8, atol=0.0):
+            raise InvalidInputError(
+                f"{name}.L_ must be the Cholesky factor of K + (noise_variance_ + jitter_) I with "
+                f"diagonal {self.sf2 + lam}; got diagonal in [{diag.min()}, {diag.max()}]"
             )
         self._M = None
         self._Klam = None
