@@ -183,6 +183,23 @@ def test_relaxation_alone_never_crosses_the_optimum(seed, d, width):
     assert np.all((xstar >= lo) & (xstar <= hi))
 
 
+@settings(deadline=None, max_examples=15)
+@given(seed=st.integers(0, 10_000), width=st.floats(0.0, 4.0))
+def test_root_relaxation_of_mean_and_std_never_crosses(seed, width):
+    # max_boxes=1: no branching, the bounds are the relaxations of the root box alone
+    rng = np.random.default_rng(seed)
+    m = int(rng.integers(1, 10))
+    gp = StandInGP(rng.uniform(-2, 2, (m, 1)), rng.normal(0, 2, m), rng.uniform(0.3, 2.0),
+                   rng.uniform(0.5, 2.0), rng.uniform(0.01, 2.0))
+    lo = rng.uniform(-2, 2, (1, 1))
+    hi = lo + width
+    r = bound_posterior(gp, lo, hi, max_boxes=1)
+    x = np.linspace(lo[0, 0], hi[0, 0], 4001)[:, None]  # exhaustive 1-D grid incl. ends
+    mu, sd = gp.predict(x, return_std=True)
+    assert r.mean_lower[0] <= mu.min() and mu.max() <= r.mean_upper[0]
+    assert sd.max() <= r.std_upper[0]
+
+
 def test_root_only_is_looser_but_sound():
     gp, rng = random_gp(2, 9)
     lo, hi = random_boxes(rng, 5, 2)
