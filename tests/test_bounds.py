@@ -250,6 +250,8 @@ def test_bad_input_messages():
         bound_posterior(gp, lo, lo + 1, tol=0.0)
     with pytest.raises(InvalidInputError, match="max_boxes must be a positive integer"):
         bound_posterior(gp, lo, lo + 1, max_boxes=0)
+    with pytest.raises(InvalidInputError, match="per_iter must be a positive integer"):
+        bound_posterior(gp, lo, lo + 1, per_iter=0)
     with pytest.raises(InvalidInputError, match="local_solver must be"):
         bound_posterior(gp, lo, lo + 1, local_solver="ipopt")
     with pytest.raises(InvalidInputError, match="gp must be a fitted GaussianProcess"):

@@ -566,7 +566,9 @@ def _check_boxes(lower, upper, d: int):
     return lower, upper
 
 
-def _check_options(tol, max_boxes):
+def _check_options(tol, max_boxes, per_iter):
+    if int(per_iter) != per_iter or per_iter < 1:
+        raise InvalidInputError(f"per_iter must be a positive integer; got {per_iter!r}")
     if not (np.isfinite(tol) and tol > 0):
         raise InvalidInputError(f"tol must be a positive finite float; got {tol!r}")
     if int(max_boxes) != max_boxes or max_boxes < 1:
@@ -707,7 +709,7 @@ def bound_posterior(
     """
     gpt = _GPTerms(gp)
     lower, upper = _check_boxes(lower, upper, gpt.d)
-    _check_options(tol, max_boxes)
+    _check_options(tol, max_boxes, per_iter)
     _check_local_solver(local_solver)
     k = lower.shape[0]
     r = _bound_one(
@@ -766,7 +768,7 @@ def bound_image(
     if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
         raise InvalidInputError("A and b must contain only finite values; got NaN or inf")
     lower, upper = _check_boxes(lower, upper, d)
-    _check_options(tol, max_boxes)
+    _check_options(tol, max_boxes, per_iter)
     _check_local_solver(local_solver)
     k = lower.shape[0]
     cols = []
