@@ -402,8 +402,11 @@ def test_tune_signal_variance_is_the_argmin_and_ignores_y():
         return float(np.mean(RKHSErrorBound.from_gp(gp, 1.0, 0.01).eps_for_prob(0.99, gp.predict(probes, True)[1])))
 
     cands = [1.0, 10.0, 100.0, 1000.0]
-    best = tune_signal_variance(X, 0.8, 1.0, 0.01, candidates=cands, rng=1)
+    best = tune_signal_variance(X, 0.8, 1.0, 0.01, candidates=cands, rel_slack=0.0, rng=1)
     assert score(best) == min(score(c) for c in cands)
+    near = tune_signal_variance(X, 0.8, 1.0, 0.01, candidates=cands, rel_slack=0.5, rng=1)
+    assert near <= best and score(near) <= 1.5 * score(best)
+    assert near == min(c for c in cands if score(c) <= 1.5 * score(best))
     assert best > 1.0  # theta = 0.01 << B0 = 1: weaker regularisation than lambda/1 pays
     # y plays no role: two data sets with the same inputs get the same kernel
     d1 = _Data(np.vstack([X, X]), np.repeat([0, 1], 80), np.vstack([X, X]) + 1e-3 * rng.normal(size=(160, 2)), ("a", "b"))
