@@ -13,7 +13,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from robust_imdp.bounds import ImageBounds, PosteriorBounds, _kernel_sum_lower, bound_image, bound_posterior
+from robust_imdp.bounds import (
+    ImageBounds,
+    PosteriorBounds,
+    _kernel_sum_lower,
+    bound_image,
+    bound_posterior,
+)
 from robust_imdp.errors import DimensionError, InvalidInputError
 from robust_imdp.gp import GaussianProcess
 
@@ -124,7 +130,8 @@ def test_one_point_gp_closed_form():
     s_far = np.sqrt(sf2 - k_far**2 / (sf2 + lam))
     assert s_far <= r.std_upper[0] <= s_far + 1e-6 + 1e-12
     # negative weight: extrema swap
-    r = bound_posterior(StandInGP([[0.0, 0.0]], [-a], l, sf2, lam), lo, hi, tol=1e-6, local_solver=None)
+    neg = StandInGP([[0.0, 0.0]], [-a], l, sf2, lam)
+    r = bound_posterior(neg, lo, hi, tol=1e-6, local_solver=None)
     assert -a * k_near - 1e-6 - 1e-12 <= r.mean_lower[0] <= -a * k_near
 
 
@@ -215,7 +222,10 @@ def test_image_bound_is_joint_and_sound():
     # sum of separate bounds of -x and mu(x).
     rng = np.random.default_rng(0)
     X = np.linspace(-2, 2, 30)[:, None]
-    gps = [GaussianProcess(1.0, 1.0, 0.01).fit(X, X[:, 0]), GaussianProcess(0.7, 1.0, 0.5).fit(X, np.cos(X[:, 0]))]
+    gps = [
+        GaussianProcess(1.0, 1.0, 0.01).fit(X, X[:, 0]),
+        GaussianProcess(0.7, 1.0, 0.5).fit(X, np.cos(X[:, 0])),
+    ]
     A = np.array([[-1.0], [0.5]])
     b = np.array([0.3, -0.2])
     lo = np.array([[-1.0], [0.2]])

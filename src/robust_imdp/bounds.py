@@ -43,7 +43,6 @@ Floating point
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
