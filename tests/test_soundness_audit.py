@@ -164,3 +164,137 @@ def test_any_regulariser_bound_holds_but_is_refused():
     assert failures < 10
     with pytest.raises(ValueError, match="regulariser"):
         RKHSErrorBound(1.0, theta, lam, 1.0, m)
+
+
+# ============================================================================ 3. abstraction.py
+
+
+class UniformShiftModel:
+    """Truthful stand-in GP error model: g - mu = s * xi with xi ~ U[-1, 1] per dimension.
+
+    P[sup_cell |g_i - mu_i| <= eps] = min(eps / s, 1) exactly (1 when s = 0); rounded down.
+    Independent across dimensions, so the product combination is justified.
+    """
+
+    def prob_within(self, eps, std_upper):
+        eps, s = np.broadcast_arrays(np.asarray(eps, float), np.asarray(std_upper, float))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            p = np.where(s > 0, np.minimum(eps / s, 1.0), 1.0)
+        return np.maximum(np.where(p < 1.0, np.nextafter(p, -np.inf), 1.0), 0.0)
+
+    def eps_for_prob(self, p, std_upper):
+        return np.nextafter(np.asarray(p, float) * np.asarray(std_upper, float), np.inf)
+
+
+def _G(u):
+    """Antiderivative of the standard normal cdf: u Phi(u) + phi(u)."""
+    return u * special.ndtr(u) + np.exp(-0.5 * u * u) / np.sqrt(2 * np.pi)
+
+
+def _p_interval(a, b, c, s, sigma):
+    """P[a <= c + s xi + v <= b], xi ~ U[-1, 1], v ~ N(0, sigma^2) (closed form; s = 0 allowed)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        conv = sigma / (2 * s) * (_G((b - c + s) / sigma) - _G((b - c - s) / sigma)
+                                  - _G((a - c + s) / sigma) + _G((a - c - s) / sigma))
+    point = special.ndtr((b - c) / sigma) - special.ndtr((a - c) / sigma)
+    return np.where(s > 0, conv, point)
+
+
+_MAPS = [(np.array([[0.4, 0.1], [-0.05, 0.3]]), np.array([0.1, -0.05])),
+         (np.array([[0.3, 0.0], [0.1, 0.35]]), np.array([-0.3, 0.2]))]
+
+
+def _affine_setup(seed=0):
+    part = Partition(Box([-1.0, -1.0], [1.0, 1.0]), 0.25)
+    rng = np.random.default_rng(seed)
+    c, h = 0.5 * (part.cells_lower + part.cells_upper), 0.5 * (part.cells_upper - part.cells_lower)
+    lo, hi = [], []
+    for A, b in _MAPS:  # exact image box: centre A c + b, radius |A| h; widened by 1e-12 (float error)
+        cc, rr = c @ A.T + b, h @ np.abs(A).T
+        lo.append(cc - rr - 1e-12)
+        hi.append(cc + rr + 1e-12)
+    s = rng.uniform(0.002, 0.03, (2, part.n_cells, 2))
+    s[:, ::5] = 0.0  # some cells with exactly known dynamics
+    return part, CellBounds(np.stack(lo), np.stack(hi), s), s
+
+
+def _exact_T(part, s, sigma, mode, cell, x):
+    """(k, n_cells + 1) exact E_xi T(q'|x) for points x (k, 2) of ``cell`` under ``mode``."""
+    A, b = _MAPS[mode]
+    c = x @ A.T + b
+    per_dim = []
+    for j in range(2):
+        bp = part.breakpoints[j]
+        per_dim.append(_p_interval(bp[None, :-1], bp[None, 1:], c[:, j, None], s[mode, cell, j], sigma[j]))
+    T = np.einsum("ka,kb->kab", per_dim[0], per_dim[1]).reshape(len(x), -1)  # C order = partition order
+    inside = np.prod([_p_interval(part.space.lower[j], part.space.upper[j], c[:, j], s[mode, cell, j], sigma[j])
+                      for j in range(2)], axis=0)
+    return np.column_stack([T, 1.0 - inside])
+
+
+def _dense(ab):
+    lo, up = ab.imdp.to_dense()
+    M, N = ab.n_modes, ab.partition.n_cells
+    return (lo[: N * M].reshape(N, M, N + 1).transpose(1, 0, 2),
+            up[: N * M].reshape(N, M, N + 1).transpose(1, 0, 2))
+
+
+@pytest.mark.parametrize("rule", ["optimized", "paper"])
+@pytest.mark.parametrize("combine", ["product", "union"])
+@pytest.mark.parametrize("eta", [None, 0.02])
+def test_abstraction_encloses_closed_form_for_every_target(rule, combine, eta):
+    """Every interval (listed entries, the floor of every unlisted cell, outside) encloses the
+    exact transition probability at 9 points (corners, centre, 4 random) of every cell.
+
+    Tolerance 1e-10: the closed form is evaluated in float64 with at most ~1e-13 error.
+    """
+    sigma = np.array([0.005, 0.008])
+    part, cb, s = _affine_setup()
+    ab = abstract(part, cb, GaussianNoise(sigma), [[UniformShiftModel()] * 2] * 2,
+                  eta=eta, eps_rule=rule, combine=combine)
+    L, U = _dense(ab)
+    rng = np.random.default_rng(1)
+    worst_low, worst_up, informative = np.inf, np.inf, 0
+    for q in range(part.n_cells):
+        lo, hi = part.cells_lower[q], part.cells_upper[q]
+        pts = np.vstack([[lo, hi, [lo[0], hi[1]], [hi[0], lo[1]], 0.5 * (lo + hi)],
+                         lo + rng.random((4, 2)) * (hi - lo)])
+        for u in range(2):
+            T = _exact_T(part, s, sigma, u, q, pts)
+            worst_low = min(worst_low, np.min(T - L[u, q]))
+            worst_up = min(worst_up, np.min(U[u, q] - T))
+            informative += int(np.sum(L[u, q] > 0.5))
+    assert worst_low >= -1e-10 and worst_up >= -1e-10, (worst_low, worst_up)
+    if rule == "optimized" and combine == "product":
+        assert informative > 10  # the test is not vacuous: some lower bounds are large
+
+
+@pytest.mark.parametrize("rule", ["optimized", "paper"])
+def test_chosen_eps_eta_respect_the_strict_gap(rule):
+    """Recorded pairs: lower_eps + lower_eta < margin of the containing cell; every UNLISTED
+    target is separated from Im(q) by more than floor_eps + floor_eta on some axis."""
+    sigma = np.array([0.005, 0.008])
+    part, cb, s = _affine_setup(seed=3)
+    ab = abstract(part, cb, GaussianNoise(sigma), [[UniformShiftModel()] * 2] * 2, eps_rule=rule)
+    cc = ab.containing_cell
+    assert np.sum(cc >= 0) > 5
+    for u in range(2):
+        rows = np.flatnonzero(cc[u] >= 0)
+        a, b = cb.image_lower[u, rows], cb.image_upper[u, rows]
+        clo, chi = part.cells_lower[cc[u, rows]], part.cells_upper[cc[u, rows]]
+        margin = np.minimum(a - clo, chi - b)
+        assert np.all(ab.lower_eps[u, rows] >= 0)
+        assert np.all(ab.lower_eps[u, rows] + ab.lower_eta[u, rows] < margin)
+    lo_d, up_d = ab.imdp.to_dense()
+    N, M = part.n_cells, 2
+    for q in range(N):
+        for u in range(M):
+            r = q * M + u
+            listed = set(ab.imdp.col[ab.imdp.row_ptr[r]:ab.imdp.row_ptr[r + 1]].tolist())
+            unl = np.array([t for t in range(N) if t not in listed], dtype=int)
+            if unl.size == 0:
+                continue
+            e = ab.floor_eps[u, q] + ab.floor_eta[u, q]
+            a, b = cb.image_lower[u, q], cb.image_upper[u, q]
+            gap = np.maximum(part.cells_lower[unl] - b, a - part.cells_upper[unl])
+            assert np.all(np.any(gap > e, axis=1)), (q, u)
