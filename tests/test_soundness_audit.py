@@ -298,3 +298,113 @@ def test_chosen_eps_eta_respect_the_strict_gap(rule):
             a, b = cb.image_lower[u, q], cb.image_upper[u, q]
             gap = np.maximum(part.cells_lower[unl] - b, a - part.cells_upper[unl])
             assert np.all(np.any(gap > e, axis=1)), (q, u)
+
+
+# ============================================================================ 2. bounds.py
+
+
+def _estimate_extrema(f, lo, hi, rng, extra=None, n=10_000, starts=8):
+    """(min, max) estimates of f over the box [lo, hi]: samples, corners, extra points, L-BFGS-B.
+
+    Estimates lie inside the true range (every value is f at a point of the box), so a sound
+    lower (upper) bound must be <= min (>= max) estimate.
+    """
+    d = lo.size
+    corners = np.array(np.meshgrid(*[[lo[j], hi[j]] for j in range(d)])).reshape(d, -1).T
+    pts = [lo + rng.random((n, d)) * (hi - lo), corners, 0.5 * (lo + hi)[None]]
+    if extra is not None and len(extra):
+        pts.append(extra)
+    P = np.vstack(pts)
+    v = f(P)
+    out = []
+    for sign in (1.0, -1.0):
+        best = np.min(sign * v)
+        for k in np.argsort(sign * v)[:starts]:
+            res = scipy.optimize.minimize(lambda z: sign * f(z[None])[0], P[k], method="L-BFGS-B",
+                                          bounds=list(zip(lo, hi)), options={"maxiter": 60})
+            z = np.clip(res.x, lo, hi)
+            best = min(best, sign * f(z[None])[0])
+        out.append(sign * best)
+    return out[0], out[1]
+
+
+def _check_posterior(gp, lower, upper, rng, **kw):
+    """Assert bound_posterior's mean/std bounds contain the estimated extrema of every box."""
+    pb = bound_posterior(gp, lower, upper, **kw)
+    slack = []
+    mag = 1e-12 * (1.0 + gp.signal_variance_ * np.sum(np.abs(gp.alpha_)))  # float error of mu(x)
+    for k in range(lower.shape[0]):
+        lo, hi = lower[k], upper[k]
+        inside = gp.X_train_[np.all((gp.X_train_ >= lo) & (gp.X_train_ <= hi), axis=1)]
+        mn, mx = _estimate_extrema(gp.predict, lo, hi, rng, inside)
+        _, sd_max = _estimate_extrema(lambda Z: gp.predict(Z, return_std=True)[1], lo, hi, rng, inside)
+        assert pb.mean_lower[k] <= mn + mag, (k, pb.mean_lower[k], mn)
+        assert pb.mean_upper[k] >= mx - mag, (k, pb.mean_upper[k], mx)
+        assert pb.std_upper[k] >= sd_max - 1e-9, (k, pb.std_upper[k], sd_max)
+        slack.append(min(mn - pb.mean_lower[k], pb.mean_upper[k] - mx, pb.std_upper[k] - sd_max))
+    return pb, np.array(slack)
+
+
+def test_bounds_tiny_lengthscale_large_mixed_alphas_1d():
+    """ls = 0.02, |alpha| ~ 1e5 of mixed sign; boxes: whole range, boxes holding training points,
+    a box of width 1e-3 at a training point and a zero-width box."""
+    rng = np.random.default_rng(0)
+    X = np.sort(rng.uniform(0, 1, 30))[:, None]
+    y = 50.0 * rng.choice([-1.0, 1.0], 30) * rng.uniform(0.5, 1.0, 30)
+    gp = GaussianProcess(0.02, 1.0, 1e-4).fit(X, y)
+    assert np.max(np.abs(gp.alpha_)) > 1e4 and np.any(gp.alpha_ > 0) and np.any(gp.alpha_ < 0)
+    x0 = X[7, 0]
+    lower = np.array([[0.0], [0.3], [x0], [x0], [X[3, 0] - 0.05]])
+    upper = np.array([[1.0], [0.35], [x0 + 1e-3], [x0], [X[5, 0] + 0.01]])
+    _check_posterior(gp, lower, upper, rng, max_boxes=400)
+
+
+def test_bounds_2d_mixed_alphas_degenerate_and_training_point_boxes():
+    rng = np.random.default_rng(1)
+    X = rng.uniform(-1, 1, (40, 2))
+    y = 100.0 * np.where(np.arange(40) % 2, 1.0, -1.0)
+    gp = GaussianProcess([0.1, 0.3], 2.0, 1e-3).fit(X, y)
+    p = X[4]
+    lower = np.array([p - 0.05, [p[0], -1.0], [-1.0, -1.0], [p[0] - 0.2, p[1]]])
+    upper = np.array([p + 0.05, [p[0], 1.0], [1.0, 1.0], [p[0] + 0.2, p[1]]])  # rows 2, 4: zero width
+    _check_posterior(gp, lower, upper, rng, max_boxes=300)
+
+
+def test_bounds_3d():
+    rng = np.random.default_rng(2)
+    X = rng.uniform(-1, 1, (50, 3))
+    y = np.sin(3 * X[:, 0]) * np.cos(2 * X[:, 1]) + X[:, 2] ** 2 + 0.1 * rng.normal(size=50)
+    gp = GaussianProcess([0.3, 0.5, 0.4], 1.5, 1e-3).fit(X, y)
+    lower = np.array([[-0.2, -0.2, -0.2], X[0] - 0.1, [-1.0, -1.0, 0.3]])
+    upper = np.array([[0.3, 0.3, 0.3], X[0] + 0.1, [1.0, 1.0, 0.3]])
+    _check_posterior(gp, lower, upper, rng, max_boxes=300)
+
+
+def test_std_bound_near_zero_and_near_sf():
+    """sigma ~ 0 at a training point (noise 1e-10) and sigma ~ sf = 2 far from the data."""
+    rng = np.random.default_rng(3)
+    X = rng.uniform(0, 1, (15, 1))
+    gp = GaussianProcess(0.3, 4.0, 1e-10).fit(X, np.cos(5 * X[:, 0]))
+    x0 = X[2, 0]
+    lower = np.array([[x0 - 1e-4], [x0], [5.0], [1.05]])
+    upper = np.array([[x0 + 1e-4], [x0], [6.0], [1.3]])
+    pb, _ = _check_posterior(gp, lower, upper, rng)
+    assert pb.std_upper[1] < 1e-3  # near zero, and still an upper bound (checked above)
+    assert 2.0 <= pb.std_upper[2] <= 2.0 * (1 + 1e-9)  # sigma <= sf exactly; bound close to sf
+
+
+def test_image_bound_with_nonzero_A_contains_extrema():
+    rng = np.random.default_rng(4)
+    X = rng.uniform(-1, 1, (40, 2))
+    gps = [GaussianProcess(0.2, 1.0, 1e-3).fit(X, 20 * rng.normal(size=40)) for _ in range(2)]
+    A = np.array([[3.0, -2.0], [0.5, 4.0]])
+    b = np.array([1.0, -2.0])
+    lower = np.array([[-0.3, -0.3], [X[1, 0] - 0.1, X[1, 1]], [-1.0, -1.0]])
+    upper = np.array([[0.2, 0.1], [X[1, 0] + 0.1, X[1, 1]], [1.0, 1.0]])
+    ib = bound_image(gps, A, b, lower, upper, max_boxes=300)
+    for i, gp in enumerate(gps):
+        f = lambda Z, i=i, gp=gp: Z @ A[i] + b[i] + gp.predict(Z)  # noqa: E731
+        tol = 1e-12 * (1.0 + np.sum(np.abs(gp.alpha_)))
+        for k in range(3):
+            mn, mx = _estimate_extrema(f, lower[k], upper[k], rng)
+            assert ib.lower[k, i] <= mn + tol and ib.upper[k, i] >= mx - tol, (i, k)
