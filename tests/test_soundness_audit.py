@@ -408,3 +408,103 @@ def test_image_bound_with_nonzero_A_contains_extrema():
         for k in range(3):
             mn, mx = _estimate_extrema(f, lower[k], upper[k], rng)
             assert ib.lower[k, i] <= mn + tol and ib.upper[k, i] >= mx - tol, (i, k)
+
+
+# ============================================================================ 4. end to end
+
+_Z999 = 3.2905267314918945  # two-sided 99.9 % normal quantile
+
+
+def _wilson(k, n, z=_Z999):
+    """Wilson score interval for k successes in n trials."""
+    p = k / n
+    den = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / den
+    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
+    return centre - half, centre + half
+
+
+def _pipeline_one_step(step, x, u, x_next, noise, part, theta):
+    """learn -> bound_image -> abstract through the public functions (as pipeline.py does)."""
+    from robust_imdp.casestudies import get_case_study
+
+    names = get_case_study("four_mode_nonlinear").system.mode_names
+    ds = Dataset(x, u, x_next, modes=names)
+    maps = [AffineMap.identity(2)] * 4
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # an AssumptionWarning (B below the mean's norm) fails the test
+        lm = learn(ds, maps, rkhs_bound=4.0, noise_theta=theta, lengthscale=2.0, signal_variance=1.0)
+    # tol / budget only trade tightness for time: the bounds are sound for any budget
+    ims = [bound_image(lm.gps[m], maps[m].A, maps[m].b, part.cells_lower, part.cells_upper, tol=1e-2,
+                       max_boxes=4, local_solver=None) for m in range(4)]
+    cb = CellBounds(np.stack([i.lower for i in ims]), np.stack([i.upper for i in ims]),
+                    np.stack([i.std_upper for i in ims]))
+    return abstract(part, cb, noise, lm.error_bounds)
+
+
+def _monte_carlo_failures(ab, part, step, rng, n_pairs=20, n_points=5, n_steps=2000):
+    """Count (point, target) checks whose 99.9 % Wilson interval misses [lower, upper]."""
+    L, U = _dense(ab)
+    N = part.n_cells
+    cells = rng.integers(0, N, n_pairs)
+    modes = rng.integers(0, 4, n_pairs)
+    failures = checks = 0
+    for q, u in zip(cells, modes):
+        lo, hi = part.cells_lower[q], part.cells_upper[q]
+        for x in lo + rng.random((n_points, 2)) * (hi - lo):
+            nxt = step(np.repeat(x[None], n_steps, axis=0), np.full(n_steps, u), rng)
+            idx = part.locate(nxt)
+            counts = np.bincount(np.where(idx < 0, N, idx), minlength=N + 1)
+            wl, wh = _wilson(counts, n_steps)
+            failures += int(np.sum((wh < L[u, q]) | (wl > U[u, q])))
+            checks += N + 1
+    return failures, checks
+
+
+def _expected_bound(checks):
+    """At most 0.1 % of checks fail by chance (fewer: most truths are far from a bound);
+    mean + 3 standard deviations of Binomial(checks, 0.001)."""
+    lam = 1e-3 * checks
+    return lam + 3 * np.sqrt(lam)
+
+
+def test_end_to_end_four_mode_nonlinear_truncated_noise():
+    """Paper's four-mode system, 300 points per mode (data seed 0), 0.5 grid on [-2, 2]^2.
+
+    The GP lemma holds with probability >= 1 - delta over the DATA; the data seed is fixed, so
+    this checks one data set (for which max |g - mu| / sigma ~ 0.03 on a grid, far inside beta).
+    20 (cell, mode) pairs x 5 points x 2000 steps, 65 targets each: 6500 checks, chance
+    failures <= 6.5 + 3 sqrt(6.5) ~ 14.
+    """
+    from robust_imdp.casestudies import get_case_study
+
+    case = get_case_study("four_mode_nonlinear")
+    sysm = case.system
+    x, u, xn = sysm.sample_dataset(case.n_per_mode, case.lower, case.upper, 0)
+    part = Partition(Box(case.lower, case.upper), 0.5)
+    noise = sysm.noise_model()
+    ab = _pipeline_one_step(sysm.step, x, u, xn, noise, part, noise.sub_gaussian_parameter())
+    failures, checks = _monte_carlo_failures(ab, part, sysm.step, np.random.default_rng(7))
+    assert checks == 6500
+    assert failures < _expected_bound(checks), failures
+
+
+def test_end_to_end_four_mode_nonlinear_gaussian_noise():
+    """Same with untruncated Gaussian noise N(0, 0.05^2 I) (true system and model)."""
+    from robust_imdp.casestudies import get_case_study
+
+    case = get_case_study("four_mode_nonlinear")
+    g, sigma = case.system.g, 0.05
+
+    def step(x, modes, rng):
+        return x + g(x, modes) + sigma * np.random.default_rng(rng).standard_normal(x.shape)
+
+    rng = np.random.default_rng(11)
+    u = np.repeat(np.arange(4), case.n_per_mode)
+    x = rng.uniform(-2, 2, (u.size, 2))
+    xn = step(x, u, rng)
+    part = Partition(Box(case.lower, case.upper), 0.5)
+    noise = GaussianNoise([sigma, sigma])
+    ab = _pipeline_one_step(step, x, u, xn, noise, part, noise.sub_gaussian_parameter())
+    failures, checks = _monte_carlo_failures(ab, part, step, np.random.default_rng(8))
+    assert failures < _expected_bound(checks), failures
