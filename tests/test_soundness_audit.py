@@ -34,7 +34,7 @@ from robust_imdp.abstraction import CellBounds, abstract
 from robust_imdp.bounds import bound_image, bound_posterior
 from robust_imdp.gp import GaussianProcess, RKHSErrorBound, chowdhury_regulariser, learn, se_kernel
 from robust_imdp.geometry import Box, Partition
-from robust_imdp.noise import GaussianNoise
+from robust_imdp.noise import GaussianNoise, TruncatedGaussianNoise
 from robust_imdp.system import AffineMap, Dataset
 
 # ============================================================================ 1. gp.py
@@ -191,12 +191,34 @@ def _G(u):
     return u * special.ndtr(u) + np.exp(-0.5 * u * u) / np.sqrt(2 * np.pi)
 
 
-def _p_interval(a, b, c, s, sigma):
-    """P[a <= c + s xi + v <= b], xi ~ U[-1, 1], v ~ N(0, sigma^2) (closed form; s = 0 allowed)."""
+def _cdf_and_antiderivative(sigma, bound):
+    """(F, H): cdf of v and its antiderivative (H(-inf) = 0) for N(0, sigma^2), optionally
+    truncated to [-bound, bound] (bound=None: untruncated)."""
+    if bound is None:
+        return (lambda u: special.ndtr(u / sigma)), (lambda u: sigma * _G(u / sigma))
+    lo = special.ndtr(-bound / sigma)
+    Z = 1.0 - 2.0 * lo
+
+    def F(u):
+        return np.clip((special.ndtr(np.clip(u, -bound, bound) / sigma) - lo) / Z, 0.0, 1.0)
+
+    def H(u):
+        w = np.clip(u, -bound, bound)
+        inner = (sigma * (_G(w / sigma) - _G(-bound / sigma)) - lo * (w + bound)) / Z
+        return inner + np.maximum(u - bound, 0.0)
+
+    return F, H
+
+
+def _p_interval(a, b, c, s, sigma, bound=None):
+    """P[a <= c + s xi + v <= b], xi ~ U[-1, 1], v ~ N(0, sigma^2) (truncated to +-bound if given).
+
+    Closed form: (1/2s) int_{-s}^{s} [F(b - c - t) - F(a - c - t)] dt with H' = F; s = 0 allowed.
+    """
+    F, H = _cdf_and_antiderivative(sigma, bound)
     with np.errstate(divide="ignore", invalid="ignore"):
-        conv = sigma / (2 * s) * (_G((b - c + s) / sigma) - _G((b - c - s) / sigma)
-                                  - _G((a - c + s) / sigma) + _G((a - c - s) / sigma))
-    point = special.ndtr((b - c) / sigma) - special.ndtr((a - c) / sigma)
+        conv = (H(b - c + s) - H(b - c - s) - H(a - c + s) + H(a - c - s)) / (2 * s)
+    point = F(b - c) - F(a - c)
     return np.where(s > 0, conv, point)
 
 
@@ -218,16 +240,17 @@ def _affine_setup(seed=0):
     return part, CellBounds(np.stack(lo), np.stack(hi), s), s
 
 
-def _exact_T(part, s, sigma, mode, cell, x):
+def _exact_T(part, s, sigma, mode, cell, x, bound=(None, None)):
     """(k, n_cells + 1) exact E_xi T(q'|x) for points x (k, 2) of ``cell`` under ``mode``."""
     A, b = _MAPS[mode]
     c = x @ A.T + b
     per_dim = []
     for j in range(2):
         bp = part.breakpoints[j]
-        per_dim.append(_p_interval(bp[None, :-1], bp[None, 1:], c[:, j, None], s[mode, cell, j], sigma[j]))
+        per_dim.append(_p_interval(bp[None, :-1], bp[None, 1:], c[:, j, None], s[mode, cell, j], sigma[j], bound[j]))
     T = np.einsum("ka,kb->kab", per_dim[0], per_dim[1]).reshape(len(x), -1)  # C order = partition order
-    inside = np.prod([_p_interval(part.space.lower[j], part.space.upper[j], c[:, j], s[mode, cell, j], sigma[j])
+    inside = np.prod([_p_interval(part.space.lower[j], part.space.upper[j], c[:, j], s[mode, cell, j], sigma[j],
+                                  bound[j])
                       for j in range(2)], axis=0)
     return np.column_stack([T, 1.0 - inside])
 
@@ -242,15 +265,20 @@ def _dense(ab):
 @pytest.mark.parametrize("rule", ["optimized", "paper"])
 @pytest.mark.parametrize("combine", ["product", "union"])
 @pytest.mark.parametrize("eta", [None, 0.02])
-def test_abstraction_encloses_closed_form_for_every_target(rule, combine, eta):
+@pytest.mark.parametrize("truncated", [False, True])
+def test_abstraction_encloses_closed_form_for_every_target(rule, combine, eta, truncated):
     """Every interval (listed entries, the floor of every unlisted cell, outside) encloses the
-    exact transition probability at 9 points (corners, centre, 4 random) of every cell.
+    exact transition probability at 9 points (corners, centre, 4 random) of every cell, for
+    Gaussian and truncated Gaussian noise.
 
     Tolerance 1e-10: the closed form is evaluated in float64 with at most ~1e-13 error.
     """
     sigma = np.array([0.005, 0.008])
+    bound = np.array([0.008, 0.01])
     part, cb, s = _affine_setup()
-    ab = abstract(part, cb, GaussianNoise(sigma), [[UniformShiftModel()] * 2] * 2,
+    noise = TruncatedGaussianNoise(sigma, bound) if truncated else GaussianNoise(sigma)
+    bnd = tuple(bound) if truncated else (None, None)
+    ab = abstract(part, cb, noise, [[UniformShiftModel()] * 2] * 2,
                   eta=eta, eps_rule=rule, combine=combine)
     L, U = _dense(ab)
     rng = np.random.default_rng(1)
@@ -260,7 +288,7 @@ def test_abstraction_encloses_closed_form_for_every_target(rule, combine, eta):
         pts = np.vstack([[lo, hi, [lo[0], hi[1]], [hi[0], lo[1]], 0.5 * (lo + hi)],
                          lo + rng.random((4, 2)) * (hi - lo)])
         for u in range(2):
-            T = _exact_T(part, s, sigma, u, q, pts)
+            T = _exact_T(part, s, sigma, u, q, pts, bnd)
             worst_low = min(worst_low, np.min(T - L[u, q]))
             worst_up = min(worst_up, np.min(U[u, q] - T))
             informative += int(np.sum(L[u, q] > 0.5))
