@@ -536,3 +536,33 @@ def test_end_to_end_four_mode_nonlinear_gaussian_noise():
     ab = _pipeline_one_step(step, x, u, xn, noise, part, noise.sub_gaussian_parameter())
     failures, checks = _monte_carlo_failures(ab, part, step, np.random.default_rng(8))
     assert failures < _expected_bound(checks), failures
+
+
+def test_semantics_intervals_are_per_entry_confidence_statements():
+    """Finding F2 (semantics of Thm 1, not a code bug): the GP factor P_g is a probability over
+    the DATA, so for one fixed learned model an interval may be wrong with probability up to
+    1 - P_g of that entry (the optimised rule uses levels down to 0.5).
+
+    Same affine set-up, but the "GP error" is the fixed worst case g - mu = +s (xi = 1) while
+    the error model states P[|g - mu| <= eps] = eps / s (true on average over xi, the analogue
+    of the lemma's average over data sets). Some printed lower bound then exceeds the fixed
+    system's true probability by a wide margin.
+    """
+    sigma = np.array([0.005, 0.008])
+    part, cb, s = _affine_setup()
+    ab = abstract(part, cb, GaussianNoise(sigma), [[UniformShiftModel()] * 2] * 2)
+    L, _ = _dense(ab)
+    worst = 0.0
+    signs = np.array([[1, 1], [1, -1], [-1, 1], [-1, -1]], dtype=float)
+    for q in range(part.n_cells):
+        lo, hi = part.cells_lower[q], part.cells_upper[q]
+        pts = np.array([lo, hi, [lo[0], hi[1]], [hi[0], lo[1]]])
+        for u in range(2):
+            A, b = _MAPS[u]
+            for sg in signs:  # fixed shifts g - mu = +-s per dimension: no randomness left in g
+                c = pts @ A.T + b + sg * s[u, q]
+                per = [_p_interval(part.breakpoints[j][None, :-1], part.breakpoints[j][None, 1:],
+                                   c[:, j, None], 0.0, sigma[j]) for j in range(2)]
+                T = np.einsum("ka,kb->kab", per[0], per[1]).reshape(len(pts), -1)
+                worst = max(worst, np.max(L[u, q, :-1] - T))
+    assert worst > 0.05, worst
