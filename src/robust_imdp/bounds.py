@@ -25,6 +25,10 @@ Guaranteed side (Blaas et al., AISTATS 2020; Cardelli et al., 2019)
     Both relaxations run inside a best-first branch-and-bound that returns the minimum over
     *all* leaves (open or pruned), so the result is sound even when the budget runs out.
 
+    Limitation: ``b = M k(c)`` grows like ``1/lambda'``, so with a tiny regulariser the
+    variance relaxation is loose (more leaves); with ``lambda = 1 + 2/m`` (the error lemma's
+    regulariser) it is tight.
+
 Achieved side
     The objective at the relaxation's minimiser and at the centre of every leaf, and, on
     request (``local_solver='casadi'``), for problems still open after a few iterations, a
