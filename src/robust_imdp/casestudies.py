@@ -113,6 +113,7 @@ class CaseStudy:
     lower: tuple = (-2.0, -2.0)
     upper: tuple = (2.0, 2.0)
     cell_size: tuple = (0.125, 0.125)
+    gp: tuple = (("lengthscale", 4.0), ("signal_variance", 10.0))
 
 
 _SIGMA = np.array([0.01, 0.01])
@@ -193,6 +194,8 @@ def problem_toml(case: CaseStudy, formula: str, data_path: str, *, rkhs_bound: f
                   f"b = {_toml_list(sysm.known_b[i])}"]
     lines += ["", "[noise]", 'kind = "truncated_gaussian"', f"sigma = {_toml_list(sysm.sigma)}",
               f"bound = {_toml_list(sysm.bound)}", "", "[gp]", f"rkhs_bound = {float(rkhs_bound)!r}"]
+    for key, value in case.gp:
+        lines.append(f"{key} = {value!r}" if not isinstance(value, str) else f'{key} = "{value}"')
     if eta is not None:
         lines += ["", "[abstraction]", f"eta = {_toml_list(np.broadcast_to(eta, sysm.sigma.shape))}"]
     return "\n".join(lines) + "\n"

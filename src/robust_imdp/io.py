@@ -8,7 +8,8 @@ Problem file contract (keys in ``[brackets]`` are tables; ``?`` marks optional k
     [data]          path                             (.csv or .npz, relative to the problem file)
     [modes.NAME]    A (n x n), b (n)                 (known affine part f_u(x) = A x + b)
     [noise]         kind = "truncated_gaussian" (sigma, bound) | "gaussian" (sigma) | "uniform" (bound)
-    [gp]            rkhs_bound, lengthscale?, signal_variance?, optimize?, info_gain?, bound_tol?
+    [gp]            rkhs_bound, lengthscale?, signal_variance? (number or "tune"), optimize?,
+                    info_gain? ("data" | "trivial"), bound_tol? (1e-3), bound_max_boxes? (2000)
     [abstraction]?  eta?, eps_rule?, combine?
 
 Data files: ``.csv`` with header ``x_1..x_n,u,x_next_1..x_next_n`` (``u`` holds mode names), or
@@ -60,7 +61,8 @@ _SCHEMA: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "spec": (("formula", "threshold"), ("horizon",)),
     "data": (("path",), ()),
     "noise": (("kind",), ("sigma", "bound")),
-    "gp": (("rkhs_bound",), ("lengthscale", "signal_variance", "optimize", "info_gain", "bound_tol")),
+    "gp": (("rkhs_bound",), ("lengthscale", "signal_variance", "optimize", "info_gain", "bound_tol",
+                      "bound_max_boxes")),
     "abstraction": ((), ("eta", "eps_rule", "combine")),
 }
 _TOP_REQUIRED = ("space", "regions", "spec", "data", "modes", "noise", "gp")
@@ -259,9 +261,15 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
     if "lengthscale" in gp_in:
         gp["lengthscale"] = _positive_vector(gp_in["lengthscale"], "[gp].lengthscale", where, n)
     if "signal_variance" in gp_in:
-        gp["signal_variance"] = float(
-            _number(gp_in["signal_variance"], "[gp].signal_variance", where, lo=1e-300)
-        )
+        if gp_in["signal_variance"] == "tune":
+            gp["signal_variance"] = "tune"
+        else:
+            gp["signal_variance"] = float(
+                _number(gp_in["signal_variance"], "[gp].signal_variance", where, lo=1e-300)
+            )
+    if "bound_max_boxes" in gp_in:
+        gp["bound_max_boxes"] = _number(gp_in["bound_max_boxes"], "[gp].bound_max_boxes", where,
+                                        lo=1, integer=True)
     if "optimize" in gp_in:
         if not isinstance(gp_in["optimize"], bool):
             raise ProblemFileError(f"{where}: [gp].optimize must be true or false; got {gp_in['optimize']!r}")
@@ -350,6 +358,7 @@ def load_problem(path):
     gp = dict(spec["gp"])
     rkhs_bound = gp.pop("rkhs_bound")
     bound_tol = gp.pop("bound_tol", 1e-3)
+    bound_max_boxes = gp.pop("bound_max_boxes", 2000)
     ab = spec["abstraction"]
     return Problem(
         space_lower=spec["lower"], space_upper=spec["upper"], cell_size=spec["cell_size"],
@@ -357,7 +366,7 @@ def load_problem(path):
         horizon=spec["horizon"], data=Dataset(x, u, x_next, modes=tuple(names)),
         mode_names=tuple(names), maps=tuple(AffineMap(A, b) for A, b in spec["modes"].values()),
         noise=make_noise(spec["noise"]), rkhs_bound=rkhs_bound, gp_options=gp,
-        bound_tol=bound_tol, eta=ab["eta"], eps_rule=ab["eps_rule"], combine=ab["combine"],
+        bound_tol=bound_tol, bound_max_boxes=bound_max_boxes, eta=ab["eta"], eps_rule=ab["eps_rule"], combine=ab["combine"],
     )
 
 
@@ -557,6 +566,9 @@ def result_to_dict(result) -> dict[str, Any]:
         list of accepting states.
     strategy : list (cells) of list (DFA states) of str
         ``strategy[q][s]``: the mode to apply in cell q when the DFA is in state s.
+    strategy_by_time : list (steps) of such tables, or null
+        For k-step results only: ``strategy_by_time[t][q][s]`` is the mode at step t
+        (``strategy`` is then step 0).
     p_low, p_up, p_up_star, error : list of float
         Per cell, bounds for the cell's initial product state (q, delta(initial, L(q))).
     classes : list of str
@@ -576,9 +588,17 @@ def result_to_dict(result) -> dict[str, Any]:
     part_atoms = list(part.atoms)
     labels_int = np.asarray(part.labels, dtype=np.int64)
     labels = [[a for i, a in enumerate(part_atoms) if (int(v) >> i) & 1] for v in labels_int]
-    strategy = np.asarray(syn.strategy, dtype=np.int64)
     names = np.asarray(modes, dtype=object)
-    strategy_named = np.where(strategy >= 0, names[np.clip(strategy, 0, len(modes) - 1)], None)
+
+    def named(table):
+        table = np.asarray(table, dtype=np.int64)
+        return np.where(table >= 0, names[np.clip(table, 0, len(modes) - 1)], None).tolist()
+
+    strategy = np.asarray(syn.strategy, dtype=np.int64)
+    by_time = None
+    if strategy.ndim == 3:  # k-step: strategy[t, q, s]; "strategy" is the time-0 table
+        by_time, strategy = named(strategy), strategy[0]
+    strategy_named = np.asarray(named(strategy), dtype=object)
     accepting = np.flatnonzero(np.asarray(dfa.accepting, dtype=bool)).tolist()
     return _jsonable({
         "format": RESULT_FORMAT,
@@ -593,6 +613,7 @@ def result_to_dict(result) -> dict[str, Any]:
             "delta": np.asarray(dfa.delta, dtype=np.int64),
         },
         "strategy": strategy_named.tolist(),
+        "strategy_by_time": by_time,
         "p_low": np.asarray(syn.p_low, dtype=float),
         "p_up": np.asarray(syn.p_up, dtype=float),
         "p_up_star": np.asarray(syn.p_up_star, dtype=float),
@@ -623,7 +644,7 @@ def save_result(result, out_dir) -> Path:
     arrays = {
         "cells_lower": np.asarray(doc["cells"]["lower"], dtype=float),
         "cells_upper": np.asarray(doc["cells"]["upper"], dtype=float),
-        "strategy": np.asarray(result.synthesis.strategy, dtype=np.int64),
+        "strategy": np.asarray(result.synthesis.strategy, dtype=np.int64),  # (k, C, S) if k-step
         "dfa_delta": np.asarray(doc["dfa"]["delta"], dtype=np.int64),
         "p_low": np.asarray(doc["p_low"], dtype=float),
         "p_up": np.asarray(doc["p_up"], dtype=float),

@@ -65,7 +65,9 @@ class Problem:
         Passed to ``gp.learn`` (e.g. ``lengthscale``, ``signal_variance``, ``optimize``,
         ``info_gain``).
     bound_tol : float
-        Certified gap of the image / std bounds.
+        Target certified gap of the image / std bounds.
+    bound_max_boxes : int
+        Branch-and-bound budget per cell and problem (bounds stay sound, only looser).
     eta : (n,) float array or None
         Noise threshold of Thm 1; None = the noise model's default.
     eps_rule : {"optimized", "paper"}
@@ -86,6 +88,7 @@ class Problem:
     rkhs_bound: float
     gp_options: dict = field(default_factory=dict)
     bound_tol: float = 1e-3
+    bound_max_boxes: int = 2000
     eta: Any = None
     eps_rule: str = "optimized"
     combine: str = "product"
@@ -252,7 +255,7 @@ def abstraction_key(problem: Problem) -> str:
          for k, v in problem.regions.items()},
         np.asarray(d.x, float), np.asarray(d.u), np.asarray(d.x_next, float),
         list(problem.mode_names), [(np.asarray(m.A, float), np.asarray(m.b, float)) for m in problem.maps],
-        problem.noise, float(problem.rkhs_bound), problem.gp_options, float(problem.bound_tol),
+        problem.noise, float(problem.rkhs_bound), problem.gp_options, float(problem.bound_tol), int(problem.bound_max_boxes),
         None if problem.eta is None else np.asarray(problem.eta, float), problem.eps_rule,
         problem.combine,
     ])
@@ -268,6 +271,7 @@ def _parameters(problem: Problem, abstraction) -> dict:
         "rkhs_bound": float(problem.rkhs_bound),
         "gp_options": {k: v for k, v in problem.gp_options.items()},
         "bound_tol": float(problem.bound_tol),
+        "bound_max_boxes": int(problem.bound_max_boxes),
         "noise": {"kind": type(noise).__name__,
                   **{k: v for k, v in vars(noise).items() if not k.startswith("_")}}
         if hasattr(noise, "__dict__") else repr(noise),
@@ -311,7 +315,8 @@ def _build_abstraction(problem: Problem, partition, log: _Log):
     lo, up = partition.cells_lower, partition.cells_upper
     with log.stage("bound"):
         images = [bound_image(learned.gps[u], problem.maps[u].A, problem.maps[u].b, lo, up,
-                              tol=problem.bound_tol) for u in range(n_modes)]
+                              tol=problem.bound_tol, max_boxes=problem.bound_max_boxes)
+                  for u in range(n_modes)]
     log.info(f"bounded images of {partition.n_cells} cells x {n_modes} modes")
     cell_bounds = CellBounds(
         image_lower=np.stack([im.lower for im in images]),
@@ -401,8 +406,6 @@ def synthesize_from_data(problem: Problem, *, progress: bool = True,
     result = Result(problem=problem, partition=partition, abstraction=abstraction, dfa=dfa,
                     synthesis=syn, class_names=classes, timings=dict(log.timings),
                     parameters=_parameters(problem, abstraction), from_cache=from_cache)
-    if progress:
-        print(result.summary(), file=sys.stderr, flush=True)
     return result
 
 
@@ -428,6 +431,4 @@ def resynthesize(result: Result, *, formula: str | None = None, threshold: float
     out = Result(problem=problem, partition=result.partition, abstraction=result.abstraction,
                  dfa=dfa, synthesis=syn, class_names=classes, timings=dict(log.timings),
                  parameters=result.parameters, from_cache=True)
-    if progress:
-        print(out.summary(), file=sys.stderr, flush=True)
     return out

@@ -91,6 +91,7 @@ class ResultFile:
     dfa_accepting : (S,) bool array
     dfa_delta : (S, 2**len(dfa_atoms)) int array
     strategy : (n_cells, S) int array of mode indices (-1 where undefined)
+    strategy_by_time : (k, n_cells, S) int array or None (k-step results: mode at step t)
     p_low, p_up, p_up_star, error : (n_cells,) float arrays
     classes : (n_cells,) str array ("yes" / "no" / "maybe")
     formula : str
@@ -121,6 +122,7 @@ class ResultFile:
     horizon: int | None
     parameters: dict = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
+    strategy_by_time: np.ndarray | None = None
 
     @property
     def n_cells(self) -> int:
@@ -140,10 +142,13 @@ class ResultFile:
             accepting = np.zeros(n_states, dtype=bool)
             accepting[np.asarray(dfa["accepting"], dtype=np.int64)] = True
             index = {m: i for i, m in enumerate(modes)}
-            strategy = np.array(
-                [[index[m] if m is not None else -1 for m in row] for row in doc["strategy"]],
-                dtype=np.int64,
-            )
+            def table(rows):
+                return np.array([[index[m] if m is not None else -1 for m in row] for row in rows],
+                                dtype=np.int64)
+
+            strategy = table(doc["strategy"])
+            by_time = doc.get("strategy_by_time")
+            by_time = None if by_time is None else np.stack([table(t) for t in by_time])
             labels = tuple(tuple(lab) for lab in doc["labels"])
             bit = {a: 1 << i for i, a in enumerate(atoms)}
             letters = np.array([sum(bit.get(a, 0) for a in lab) for lab in labels], dtype=np.int64)
@@ -162,6 +167,7 @@ class ResultFile:
                 horizon=doc.get("horizon"),
                 parameters=dict(doc.get("parameters") or {}),
                 timings=dict(doc.get("timings") or {}),
+                strategy_by_time=by_time,
             )
         except (KeyError, TypeError, IndexError, ValueError) as exc:
             raise InvalidInputError(
@@ -288,11 +294,14 @@ def simulate(result, true_system, x0, *, max_steps: int = 100, rng=None, record:
     status = np.where(res.dfa_accepting[s], SATISFIED, np.where(sink[s], VIOLATED, RUNNING))
     steps = np.zeros(len(x), dtype=np.int64)
     hist = [x.copy()] if record else None
-    for _ in range(max_steps):
+    for t in range(max_steps):
         run = np.flatnonzero(status == RUNNING)
         if run.size == 0:
             break
-        modes = res.strategy[q[run], s[run]]
+        table = res.strategy
+        if res.strategy_by_time is not None:  # k-step: time-varying strategy
+            table = res.strategy_by_time[min(t, len(res.strategy_by_time) - 1)]
+        modes = table[q[run], s[run]]
         if np.any(modes < 0):
             raise InvalidInputError("result strategy is undefined (-1) for a reachable (cell, DFA state)")
         x_new = true_system.step(x[run], to_sys[modes], rng)
