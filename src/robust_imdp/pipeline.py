@@ -14,9 +14,10 @@
    ``error`` and the classes Q_yes / Q_no / Q_? (``synthesis.synthesize``).
 
 Stages 3-5 depend only on the data, modes, noise, grid, regions and GP / abstraction options;
-with ``abstraction_cache=DIR`` their result is saved under a hash of exactly those inputs and
-reused when only the formula, threshold or horizon changes (:func:`resynthesize` does the same
-in memory).
+with ``abstraction_cache=DIR`` the learned cell bounds (stages 3-4) and the abstraction (5) are
+saved under hashes of exactly their inputs: the abstraction is reused when only the formula,
+threshold or horizon changes (:func:`resynthesize` does the same in memory), the cell bounds
+also when only eta, the eps rule or the combination rule change.
 """
 
 from __future__ import annotations
@@ -32,7 +33,8 @@ import numpy as np
 
 from robust_imdp.errors import InvalidInputError, UnknownAtomError
 
-__all__ = ["Problem", "Result", "synthesize_from_data", "resynthesize", "abstraction_key"]
+__all__ = ["Problem", "Result", "synthesize_from_data", "resynthesize", "abstraction_key",
+           "bounds_key"]
 
 CLASS_NAMES = ("yes", "no", "maybe")
 
@@ -243,8 +245,8 @@ def _fingerprint(h, obj) -> None:
         h.update(repr(obj).encode())
 
 
-def abstraction_key(problem: Problem) -> str:
-    """Hash of everything the abstraction depends on (not the formula, threshold, horizon)."""
+def bounds_key(problem: Problem) -> str:
+    """Hash of everything the learned cell bounds depend on (data, modes, noise, grid, GP)."""
     import robust_imdp
 
     h = hashlib.sha256()
@@ -255,11 +257,45 @@ def abstraction_key(problem: Problem) -> str:
          for k, v in problem.regions.items()},
         np.asarray(d.x, float), np.asarray(d.u), np.asarray(d.x_next, float),
         list(problem.mode_names), [(np.asarray(m.A, float), np.asarray(m.b, float)) for m in problem.maps],
-        problem.noise, float(problem.rkhs_bound), problem.gp_options, float(problem.bound_tol), int(problem.bound_max_boxes),
-        None if problem.eta is None else np.asarray(problem.eta, float), problem.eps_rule,
-        problem.combine,
+        problem.noise, float(problem.rkhs_bound), problem.gp_options, float(problem.bound_tol),
+        int(problem.bound_max_boxes),
     ])
     return h.hexdigest()[:20]
+
+
+def abstraction_key(problem: Problem) -> str:
+    """Hash of everything the abstraction depends on (not the formula, threshold, horizon)."""
+    h = hashlib.sha256(bounds_key(problem).encode())
+    _fingerprint(h, [None if problem.eta is None else np.asarray(problem.eta, float),
+                     problem.eps_rule, problem.combine])
+    return h.hexdigest()[:20]
+
+
+_EB_FIELDS = ("rkhs_bound", "sub_gaussian", "regulariser", "info_gain", "n_samples")
+
+
+def _save_bounds(path: Path, cell_bounds, error_models) -> None:
+    arrays = {k: np.asarray(getattr(cell_bounds, k)) for k in ("image_lower", "image_upper", "std_upper")}
+    for f in _EB_FIELDS:
+        arrays[f"eb_{f}"] = np.array([[getattr(e, f) for e in row] for row in error_models])
+    tmp = path.with_name(path.name + ".part")
+    with open(tmp, "wb") as fh:
+        np.savez(fh, **arrays)
+    tmp.replace(path)
+
+
+def _load_bounds(path: Path):
+    from robust_imdp.abstraction import CellBounds
+    from robust_imdp.gp import RKHSErrorBound
+
+    with np.load(path, allow_pickle=False) as z:
+        cb = CellBounds(z["image_lower"], z["image_upper"], z["std_upper"])
+        cols = {f: z[f"eb_{f}"] for f in _EB_FIELDS}
+    n_modes, n = cols["rkhs_bound"].shape
+    models = tuple(tuple(RKHSErrorBound(**{f: (int(cols[f][u, i]) if f == "n_samples"
+                                               else float(cols[f][u, i])) for f in _EB_FIELDS})
+                         for i in range(n)) for u in range(n_modes))
+    return cb, models
 
 
 def _parameters(problem: Problem, abstraction) -> dict:
@@ -301,8 +337,31 @@ def _check_atoms(dfa, problem: Problem) -> None:
         )
 
 
-def _build_abstraction(problem: Problem, partition, log: _Log):
-    from robust_imdp.abstraction import CellBounds, abstract
+def _build_abstraction(problem: Problem, partition, log: _Log, cache_dir=None):
+    from robust_imdp.abstraction import abstract
+
+    bounds_file = None
+    if cache_dir is not None:
+        bounds_file = Path(cache_dir) / f"bounds-{bounds_key(problem)}.npz"
+    if bounds_file is not None and bounds_file.exists():
+        with log.stage("load_bounds"):
+            cell_bounds, error_models = _load_bounds(bounds_file)
+        log.info(f"reused learned cell bounds {bounds_file.name}")
+    else:
+        cell_bounds, error_models = _learn_and_bound(problem, partition, log)
+        if bounds_file is not None:
+            bounds_file.parent.mkdir(parents=True, exist_ok=True)
+            _save_bounds(bounds_file, cell_bounds, error_models)
+    with log.stage("abstract"):
+        abstraction = abstract(partition, cell_bounds, problem.noise, error_models,
+                               eta=problem.eta, eps_rule=problem.eps_rule, combine=problem.combine)
+    log.info(f"IMDP: {abstraction.imdp.n_states} states, {int(np.sum(abstraction.nnz_per_row))} "
+             "listed transitions")
+    return abstraction
+
+
+def _learn_and_bound(problem: Problem, partition, log: _Log):
+    from robust_imdp.abstraction import CellBounds
     from robust_imdp.bounds import bound_image
     from robust_imdp.gp import learn
 
@@ -323,11 +382,7 @@ def _build_abstraction(problem: Problem, partition, log: _Log):
         image_upper=np.stack([im.upper for im in images]),
         std_upper=np.stack([im.std_upper for im in images]),
     )
-    with log.stage("abstract"):
-        abstraction = abstract(partition, cell_bounds, problem.noise, learned.error_bounds,
-                               eta=problem.eta, eps_rule=problem.eps_rule, combine=problem.combine)
-    log.info(f"IMDP: {abstraction.imdp.n_states} states")
-    return abstraction
+    return cell_bounds, learned.error_bounds
 
 
 def _synthesize(problem: Problem, partition, abstraction, dfa, log: _Log):
@@ -397,7 +452,7 @@ def synthesize_from_data(problem: Problem, *, progress: bool = True,
             from_cache = True
             log.info(f"reused abstraction {cache_file.name}")
     if abstraction is None:
-        abstraction = _build_abstraction(problem, partition, log)
+        abstraction = _build_abstraction(problem, partition, log, abstraction_cache)
         if cache_file is not None:
             cache_file.parent.mkdir(parents=True, exist_ok=True)
             abstraction.save(cache_file)
