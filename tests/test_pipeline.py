@@ -1,0 +1,94 @@
+"""A tiny end-to-end run (coarse grid, few points) of the whole pipeline, caching and validation."""
+
+import numpy as np
+import pytest
+
+from robust_imdp.casestudies import get_case_study
+from robust_imdp.errors import UnknownAtomError
+from robust_imdp.io import load_result, save_result
+from robust_imdp.noise import TruncatedGaussianNoise
+from robust_imdp.pipeline import (
+    Problem, abstraction_key, bounds_key, resynthesize, synthesize_from_data,
+)
+from robust_imdp.system import AffineMap, Dataset
+from robust_imdp.validate import validate
+
+CASE = get_case_study("three_mode_linear")
+
+
+def tiny_problem(formula="G !obs & F des", **changes):
+    """3-mode linear system, 40 points per mode, 0.5 grid (64 cells)."""
+    sysm = CASE.system
+    x, u, x_next = sysm.sample_dataset(40, CASE.lower, CASE.upper, rng=3)
+    values = dict(
+        space_lower=np.array(CASE.lower), space_upper=np.array(CASE.upper),
+        cell_size=np.array([0.5, 0.5]), regions=CASE.regions, formula=formula, threshold=0.9,
+        horizon=None, data=Dataset(x, u, x_next, modes=sysm.mode_names),
+        mode_names=sysm.mode_names, maps=tuple(AffineMap.zero(2) for _ in range(3)),
+        noise=TruncatedGaussianNoise(sysm.sigma, sysm.bound), rkhs_bound=10.0,
+        gp_options={"lengthscale": 4.0, "signal_variance": 10.0}, bound_tol=1e-2,
+        bound_max_boxes=200,
+    )
+    values.update(changes)
+    return Problem(**values)
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    cache = tmp_path_factory.mktemp("cache")
+    return synthesize_from_data(tiny_problem(), progress=False, abstraction_cache=cache), cache
+
+
+def test_end_to_end_bounds_and_classes(run):
+    res, _ = run
+    syn = res.synthesis
+    assert res.partition.n_cells == 64
+    assert np.all(syn.p_low <= syn.p_up) and np.all(syn.p_up <= syn.p_up_star)
+    cls = res.class_names
+    assert np.all((cls == "yes") == (syn.p_low >= 0.9))  # paper Sec. 5 definition of Q_yes
+    assert np.all((cls == "no") == ((syn.p_up < 0.9) & (syn.p_low < 0.9)))
+    # first-label semantics: a cell inside des (and not obs) satisfies G !obs & F des at once
+    des_bit = 1 << res.partition.atoms.index("des")
+    in_des = (res.partition.labels & des_bit) > 0
+    assert np.all(syn.p_low[in_des] == 1.0)
+    obs_bit = 1 << res.partition.atoms.index("obs")
+    assert np.all(syn.p_up[(res.partition.labels & obs_bit) > 0] == 0.0)  # starts in an obstacle
+    for stage in ("specify", "partition", "learn", "bound", "abstract", "synthesize", "total"):
+        assert res.timings[stage] >= 0.0
+    assert "Q_yes" in res.summary() and not res.from_cache
+
+
+def test_cache_reused_for_a_new_formula(run):
+    res, cache = run
+    again = synthesize_from_data(tiny_problem("F des"), progress=False, abstraction_cache=cache)
+    assert again.from_cache and "learn" not in again.timings
+    mem = resynthesize(res, formula="F des", progress=False)
+    np.testing.assert_array_equal(again.synthesis.p_low, mem.synthesis.p_low)
+    # F des is implied by G !obs & F des, so its lower bound can only be larger
+    assert np.all(mem.synthesis.p_low >= res.synthesis.p_low - 1e-12)
+
+
+def test_cache_keys():
+    p = tiny_problem()
+    assert abstraction_key(p) == abstraction_key(p.replace(formula="F des", threshold=0.5))
+    assert abstraction_key(p) != abstraction_key(p.replace(eta=np.array([0.009, 0.009])))
+    assert bounds_key(p) == bounds_key(p.replace(eta=np.array([0.009, 0.009])))
+    assert bounds_key(p) != bounds_key(p.replace(rkhs_bound=20.0))
+
+
+def test_result_files_and_monte_carlo_containment(run, tmp_path):
+    res, _ = run
+    save_result(res, tmp_path)
+    loaded = load_result(tmp_path)
+    np.testing.assert_array_equal(loaded.p_low, res.synthesis.p_low)
+    np.testing.assert_array_equal(loaded.strategy, res.synthesis.strategy)
+    assert loaded.classes.tolist() == res.class_names.tolist()
+    # Soundness: the true probability from each cell lies in [p_low, p_up]. 64 cells x 200 runs,
+    # 99.99 % Wilson intervals: a correct result is flagged with probability < 64 * 1e-4 < 1 %.
+    rep = validate(loaded, CASE.system, n_per_cell=200, max_steps=60, rng=5, confidence=0.9999)
+    assert rep.outside.size == 0, rep.summary()
+
+
+def test_unknown_region_fails_before_learning():
+    with pytest.raises(UnknownAtomError, match=r"regions \['goal'\] that are not defined"):
+        synthesize_from_data(tiny_problem("F goal"), progress=False)
