@@ -79,7 +79,7 @@ from robust_imdp.geometry import Partition
 from robust_imdp.imdp import IMDP
 from robust_imdp.noise import NoiseModel
 
-__all__ = ["CellBounds", "Abstraction", "abstract", "EPS_LEVELS"]
+__all__ = ["CellBounds", "Abstraction", "abstract", "confidence_cell_bounds", "EPS_LEVELS"]
 
 #: Probability levels at which candidate eps are proposed (``eps_for_prob(level, std)``).
 EPS_LEVELS = 1.0 - np.array(
@@ -404,6 +404,65 @@ def _separated_best(mode, gap_p, gap_pv, rows, j):
     P[:, j] = gap_p
     PV[:, j] = gap_pv
     return _combine_down(P, PV, mode.combine)
+
+
+# ============================================================================ confidence mode
+def confidence_cell_bounds(cell_bounds: CellBounds, error_models, confidence: float = 0.99) -> CellBounds:
+    """Fold the GP error into the image boxes at one data-confidence level (the sound default).
+
+    Why. Thm 1 mixes two different probabilities: ``P[sup_q |g - mu| <= eps]`` is a probability
+    over the *training data* (g is a fixed unknown function), while ``T(q'|x)`` is a probability
+    over the process noise. For a fixed system and a fixed data set the printed product
+    ``P_g * P_v * 1[...]`` is therefore not a bound of ``T(q'|x)``: when the realised error is
+    large, the true ``T`` can be below the printed lower bound (``tests/test_soundness_audit.py``
+    shows 0.575 printed against 0.436 true). The statement that does hold is a confidence
+    statement: by Lemma 1 (Chowdhury & Gopalan 2017, Thm 2) applied with ``delta_ui`` to the GP of
+    mode u and output i, and a union bound over all ``n_modes * d`` GPs, with probability at least
+    ``confidence = 1 - sum delta_ui`` over the data,
+
+        for every mode u, output i and x in X:  |g_ui(x) - mu_ui(x)| <= beta_ui(delta_ui) sigma_ui(x).
+
+    On that event the true successor mean ``f_u(x) + g_u(x)`` of every x in cell q lies in the
+    image box expanded by ``eps_uqi = beta_ui(delta_ui) * std_upper[u, q, i]``, so the
+    known-dynamics abstraction of the expanded boxes (eps = 0, error probability 1) contains
+    the true transition probabilities of *every* row simultaneously, and every p_low/p_up
+    computed from it holds with that confidence. No independence between GPs is needed.
+
+    Parameters
+    ----------
+    cell_bounds : CellBounds
+        Image boxes of ``f_u + mu_u`` and std bounds (``std_upper`` must not be None).
+    error_models : sequence (n_modes) of sequences (d) of error models
+        Each with ``eps_for_prob(p, std_upper)`` returning ``beta(1 - p) * std_upper`` rounded up.
+    confidence : float in (0, 1)
+        Probability over the data with which the resulting abstraction is sound.
+
+    Returns
+    -------
+    CellBounds
+        Expanded image boxes (rounded outward) with ``std_upper=None``.
+    """
+    confidence = float(confidence)
+    if not 0.0 < confidence < 1.0:
+        raise InvalidInputError(f"confidence must lie in (0, 1); got {confidence}")
+    if cell_bounds.std_upper is None:
+        raise InvalidInputError("cell_bounds.std_upper is None (known dynamics): there is no GP error to fold in")
+    M, _, d = cell_bounds.image_lower.shape
+    models = _check_models(error_models, M, d)
+    # Union bound over the M*d GPs: each gets an equal share of 1 - confidence. 1 - confidence
+    # is rounded down (smaller delta -> larger beta -> larger eps: the safe side).
+    delta_each = _down1(_down1(1.0 - confidence) / (M * d))
+    # p one ulp above fl(1 - delta_each): then 1 - p (exact by Sterbenz) <= delta_each, so the
+    # per-GP failure probability used by eps_for_prob never exceeds its union-bound share.
+    p_each = _up1(1.0 - delta_each)
+    eps = np.empty_like(cell_bounds.std_upper)
+    for u in range(M):
+        for i in range(d):
+            eps[u, :, i] = models[u][i].eps_for_prob(p_each, cell_bounds.std_upper[u, :, i])
+    # Expansion by eps, rounded outward (one correctly rounded subtraction/addition each).
+    lo = _down1(cell_bounds.image_lower - eps)
+    hi = _up1(cell_bounds.image_upper + eps)
+    return CellBounds(lo, hi, None)
 
 
 # ============================================================================ main entry
