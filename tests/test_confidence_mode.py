@@ -15,7 +15,7 @@ from robust_imdp.errors import InvalidInputError
 from robust_imdp.geometry import Box, Partition
 from robust_imdp.noise import GaussianNoise
 
-A = np.array([[0.5, 0.1], [-0.1, 0.4]])
+A = np.array([[0.3, 0.05], [-0.05, 0.3]])
 B = np.array([0.05, -0.02])
 
 
