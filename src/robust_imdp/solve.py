@@ -208,7 +208,7 @@ def row_value(j0, j1, col, lower, upper, f, w, use_rank, rank, sv, hi, lo, adv_m
 
 @njit(cache=True)
 def bellman_layer(state_ptr, row_ptr, col, lower, upper, floor, w, active, adv_max, use_rank,
-                  rank, sv, hi, lo, ctrl, strat, direction, out_val, out_arg, out_rows, want_rows):
+                  rank, sv, hi, lo, ctrl, strat, direction, out_val, out_arg, out_rows, want_rows, keep_better):
     """One Bellman update of the states with ``active[q]``.
 
     ctrl: 0 = controller maximises over rows, 1 = minimises, 2 = fixed row ``strat[q]``.
@@ -253,7 +253,17 @@ def bellman_layer(state_ptr, row_ptr, col, lower, upper, floor, w, active, adv_m
             if best < 0.0 or (ctrl == 0 and v > best) or (ctrl == 1 and v < best):
                 best = v
                 barg = r - state_ptr[q]
-        out_val[q] = best
+        # unbounded iteration (keep_better): keep the better of the old bound (in out_val) and
+        # the new one, both sound for the same value; with out_val aliasing w this is a sound
+        # Gauss-Seidel sweep.  Never for k-step values (the old bound is for k-1 steps).
+        if keep_better and direction < 0:
+            if best > out_val[q]:
+                out_val[q] = best
+        elif keep_better and direction > 0:
+            if best < out_val[q]:
+                out_val[q] = best
+        else:
+            out_val[q] = best
         out_arg[q] = barg
 
 
@@ -922,9 +932,17 @@ class _Sweeper:
             return V[0]
         return V[self.nxt[l], self._ar]
 
-    def sweep(self, V, direction, want_rows=False, strat_layer=None):
+    def sweep(self, V, direction, want_rows=False, strat_layer=None, inplace=False):
+        """One sweep; ``direction`` -1/+1 keeps the better of old and new bound per node.
+
+        ``inplace`` (unbounded iteration only, never for k-step values) keeps per node the
+        better of the old and new bound, and updates ``V`` in place (Gauss-Seidel) when that
+        is exact: one layer and no floor rows (the global order and prefix sums of a floor
+        model are computed from the values at the start of a sweep).
+        """
         m = self.m
-        newV = V.copy()
+        gs = inplace and direction != 0 and self.L == 1 and not self.use_rank
+        newV = V if gs else V.copy()
         arg = np.zeros((self.L, self.n), dtype=np.int64)
         rows = np.full(self.L * m.n_choices if want_rows else 1, -np.inf)
         for l in self.layers:
@@ -942,7 +960,7 @@ class _Sweeper:
             out_rows = rows[l * m.n_choices:(l + 1) * m.n_choices] if want_rows else rows
             bellman_layer(m.state_ptr, m.row_ptr, m.col, m.lower, m.upper, m.floor, w, self.active[l],
                           self.adv_max, self.use_rank, rank, sv, hi, lo, self.ctrl, strat, direction,
-                          newV[l], arg[l], out_rows, want_rows)
+                          newV[l], arg[l], out_rows, want_rows, inplace)
         return newV, arg, rows
 
 
@@ -1022,12 +1040,10 @@ def _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, pre
     gap = float(np.max(up - lo)) if up.size else 0.0
     while gap > precision and it < max_iterations:
         it += 1
-        newlo, _, _ = sw.sweep(lo, -1)
-        np.maximum(lo, newlo, out=lo)  # max of two lower bounds is a lower bound
+        lo, _, _ = sw.sweep(lo, -1, inplace=True)  # keeps max(old, new): both are lower bounds
         # deflation is an optional tightening (sound whenever applied): every 4th iteration
         deflate = ncomp > 0 and (it <= 3 or it % 4 == 0)
-        newup, _, rows = sw.sweep(up, +1, want_rows=deflate)
-        np.minimum(up, newup, out=up)  # min of two upper bounds is an upper bound
+        up, _, rows = sw.sweep(up, +1, want_rows=deflate, inplace=True)  # min(old, new): both upper bounds
         if deflate:
             _deflate(imdp, nxt, up, rows, comp, ncomp, comp_cnt, adv_max, ctrl, flat_strat)
         gap = float(np.max(up - lo))
@@ -1134,10 +1150,8 @@ def _edge_graph(imdp, nxt, rowmask, act):
         dst = imdp.col.astype(itype) if L == 1 else (nxt[l][imdp.col] * n + imdp.col).astype(itype)
         emask &= act[dst]
         emask &= np.repeat(act[l * n:(l + 1) * n], ent_end - ent_start)
-        cs = np.zeros(imdp.nnz + 1, dtype=np.int64 if imdp.nnz >= 2**31 - 1 else np.int32)
-        np.cumsum(emask, out=cs[1:])
-        counts = cs[ent_end] - cs[ent_start]
-        del cs
+        counts = np.add.reduceat(np.append(emask, False), ent_start, dtype=np.int64)
+        counts[ent_end == ent_start] = 0  # reduceat quirk for empty segments (cannot happen: >= 1 row)
         indptrs.append(offset + np.cumsum(counts))
         offset += int(counts.sum())
         indices.append(dst[emask])
