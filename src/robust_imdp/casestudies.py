@@ -113,7 +113,7 @@ class CaseStudy:
     lower: tuple = (-2.0, -2.0)
     upper: tuple = (2.0, 2.0)
     cell_size: tuple = (0.125, 0.125)
-    gp: tuple = (("lengthscale", 4.0), ("signal_variance", 10.0))
+    gp: tuple = (("lengthscale", 8.0), ("signal_variance", 100.0))
 
 
 _SIGMA = np.array([0.01, 0.01])
