@@ -15,22 +15,29 @@ value V* is its *least* fixed point (for every combination max/min x max/min).
 * **Lower**: ``l_0`` = indicator of the target <= V*; ``l_{k+1} = max(l_k, B_down(l_k))`` where
   ``B_down`` is B evaluated in floating point minus a proven bound of its rounding error
   (``ROW_ERR``, derivation below).  By monotonicity ``B_down(l) <= B(l) <= B(V*) = V*``.
-* **Upper**: (a) a graph pre-computation finds the nodes with V* = 0 (no admissible way to put
-  positive probability on the target; liberal in borderline cases, so it never zeroes a
-  positive value); (b) ``u_0 = 1`` elsewhere and ``u_{k+1} = min(u_k, B_up(u_k))``, sound since
+  Unbounded iteration without floors updates in place (Gauss-Seidel): every partially
+  updated vector is still a vector of lower bounds, so the same argument applies per node.
+  (Upper bounds likewise with ``min``; k-step values use plain Jacobi sweeps.)
+* **Graph pre-computation** (exact, integer/boolean): (a) the nodes with V* = 0 (no admissible
+  way to put positive probability on the target; liberal in borderline cases, so it never
+  zeroes a positive value) and (a') for a maximising controller or a fixed strategy the nodes
+  with V* = 1 (almost-sure reachability, nested fixed point; conservative, so it never claims
+  1 wrongly).  Both are fixed like avoid states / targets.
+* **Upper**: (b) ``u_0 = 1`` elsewhere and ``u_{k+1} = min(u_k, B_up(u_k))``, sound since
   ``u >= V*`` implies ``B_up(u) >= B(u) >= B(V*) = V*``.  End components make (b) stall at a
-  larger fixed point, so (d) every iteration also applies
+  larger fixed point, so (d) the first iterations and every 4th one also apply
 * **Lemma D (deflation)**.  Let C be any set of non-target nodes and u >= V*.  Call a row
   (s, a), s in C, *stay-able* if some admissible p has support inside C.  Define the row bound
   ``b(s, a)``: for a minimising adversary, -inf if the row is stay-able and ``B_a(u)(s)``
-  otherwise; for a maximising adversary, -inf if no admissible p leaves C, otherwise the
-  largest u of a possible successor outside C.  Let ``b(s)`` combine the rows as the controller
-  does (max, min, or its fixed row) and ``e = max_{s in C} b(s)``.  Then ``V* <= max(e, 0)`` on C.
+  otherwise; for a maximising adversary, -inf if no admissible p leaves C, otherwise (an
+  upper bound of) the conditional exit average ``sup {p_out.u / p(out) : p(out) > 0}``.
+  Let ``b(s)`` combine the rows as the controller does (max, min, or its fixed row) and
+  ``e = max_{s in C} b(s)``.  Then ``V* <= max(e, 0)`` on C.
   *Proof.*  Put ``V' = min(V*, max(e, 0))`` on C and ``V' = V*`` elsewhere, so V' <= V* and
   ``B(V') <= B(V*) = V*``.  For s in C and a row a: a stay-able row under a minimising
   adversary gives ``B_a(V')(s) <= p_C.V' <= max_C V' <= max(e,0)``; a non-stay-able one
   ``<= B_a(V*)(s) <= B_a(u)(s) <= e``; under a maximising adversary every p gives
-  ``p.V' <= p(C) max(e,0) + p(out) * (largest outside u) <= max(e,0)``.  Hence
+  ``p.V' <= p(C) max(e,0) + p_out.u <= p(C) max(e,0) + p(out) b(s,a) <= max(e,0)``.  Hence
   ``B(V') <= V'``, V' is a pre-fixed point, and by Knaster-Tarski V* = lfp <= V'.  QED.
   The lemma holds for *any* C; we apply it to the maximal end components of the stay-able
   rows (Haddad & Monmege 2014; Baier et al. CAV 2017; the game version is Kelmendi et al.
@@ -48,7 +55,7 @@ Hot loop: numba (``@njit(cache=True)``), serial.  A numpy formulation needs a pe
 
 Rounding-error bound of one row (ROW_ERR)
 -----------------------------------------
- The same bound rounds lower results down and upper results up.  All
+The same bound rounds lower results down and upper results up.  All
 quantities are in [0, 1] (probabilities, values, partial sums), so each rounded operation
 errs by at most u = 2**-53 in absolute value.  Per row with k listed entries: the base sum
 ``sum(lower*w)`` costs 2k operations; ``rem = 1 - sum(lower)`` k; every greedy step (capacity,
