@@ -353,3 +353,20 @@ def test_bad_input_solve(kw, exc, match):
 def test_bad_strategy(strategy, exc, match):
     with pytest.raises(exc, match=match):
         evaluate_strategy(trap_model(), [1], np.asarray(strategy))
+
+
+def test_almost_sure_states_get_exactly_one_without_iterating():
+    # state 0: self [0, 0.9], T [0.1, 1]: every admissible p sends >= 0.1 to T and nothing
+    # leaves {0, T}, so T is reached almost surely (value 1) against every adversary.
+    # state 2: self [0, 0.9], T [0.1, 0.5], Z [0, 0.5]: the robust value is < 1:
+    # V2 = 0.1 + 0.4 V2 ... the adversary puts 0.5 on Z, 0.4 on self, 0.1 on T -> V2 = 0.1 / 0.6
+    lo, up = dense(4, 1)
+    up[0, 0, 0], lo[0, 0, 1], up[0, 0, 1] = 0.9, 0.1, 1.0
+    up[2, 0, 2], lo[2, 0, 1], up[2, 0, 1], up[2, 0, 3] = 0.9, 0.1, 0.5, 0.5
+    absorbing(lo, up, [1, 3])
+    m = IMDP.from_dense(lo, up)
+    r = solve_reachability(m, [1], avoid=[3])
+    assert r.lower[0] == 1.0 and r.upper[0] == 1.0
+    assert r.lower[2] <= 0.1 / 0.6 <= r.upper[2] and r.precision <= 1e-8
+    ev = evaluate_strategy(m, [1], r.strategy, avoid=[3])
+    assert ev.lower[0] == 1.0
