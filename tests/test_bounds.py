@@ -88,7 +88,7 @@ def assert_contains(gp, r, lo, hi, rng, n=10_000):
 
 
 @pytest.mark.parametrize("d", [1, 2, 3])
-@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("seed", range(6))
 def test_bounds_contain_dense_samples(d, seed):
     gp, rng = random_gp(d, seed)
     lo, hi = random_boxes(rng, 6, d)
@@ -238,6 +238,9 @@ def test_image_bound_is_joint_and_sound():
         img = (pts.reshape(-1, 1) @ A[i] + b[i] + mu).reshape(2, -1)
         assert np.all(r.lower[:, i] <= img.min(1)) and np.all(r.upper[:, i] >= img.max(1))
         assert np.all(r.std_upper[:, i] >= sd.reshape(2, -1).max(1))
+    assert not r.budget_exhausted.any()
+    assert np.all(r.lower_gap <= 1e-4) and np.all(r.upper_gap <= 1e-4)
+    assert np.all(r.std_upper_gap <= 1e-4 + 1e-12)  # + one ulp of the rounded-up sqrt
     sep = bound_posterior(gps[0], lo, hi, tol=1e-4, local_solver=None)
     sep_width = (sep.mean_upper - sep.mean_lower) + (hi - lo)[:, 0]
     assert np.all(r.upper[:, 0] - r.lower[:, 0] < 0.2 * sep_width)
