@@ -209,7 +209,7 @@ def plot_eta_sweep(results, etas, *, which: str = "p_low", fig=None, suptitle: s
     results = [_result(r) for r in results]
     if len(results) != len(etas):
         raise DimensionError(f"etas must have one entry per result ({len(results)}); got {len(etas)}")
-    ncol = min(4, len(results))
+    ncol = min(5, len(results))
     nrow = -(-len(results) // ncol)
     fig = fig or plt.figure(figsize=(3.3 * ncol + 0.8, 3.4 * nrow), constrained_layout=True)
     axes = np.atleast_1d(fig.subplots(nrow, ncol, squeeze=False)).ravel()
