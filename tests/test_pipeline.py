@@ -92,3 +92,23 @@ def test_result_files_and_monte_carlo_containment(run, tmp_path):
 def test_unknown_region_fails_before_learning():
     with pytest.raises(UnknownAtomError, match=r"regions \['goal'\] that are not defined"):
         synthesize_from_data(tiny_problem("F goal"), progress=False)
+
+
+def test_library_controller_agrees_with_the_result_tables(run):
+    # controller.py and the table-driven simulation in validate.py are written independently;
+    # from the same start state they must choose the same first mode.
+    from robust_imdp.io import result_to_dict
+    from robust_imdp.validate import ResultFile
+
+    res, _ = run
+    tables = ResultFile.from_dict(result_to_dict(res))
+    locate = tables.locator()
+    rng = np.random.default_rng(11)
+    ctrl = res.controller()
+    for x0 in rng.uniform(-2.0, 2.0, size=(30, 2)):
+        q = int(locate(x0[None])[0])
+        s = tables.dfa_delta[tables.dfa_initial, tables.label_letters[q]]
+        if tables.dfa_accepting[s] or tables.dfa_sink()[s]:
+            continue  # decided at once: no mode is applied
+        ctrl.reset(x0)
+        assert ctrl.act(x0) == tables.modes[tables.strategy[q, s]]
