@@ -107,3 +107,13 @@ def test_console_script_no_traceback(tmp_path):
                            "--out", str(tmp_path)], capture_output=True, text=True)
     assert proc.returncode == 1
     assert "robust-imdp: error:" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_unknown_region_in_formula_exit_1(tmp_path, capsys):
+    # Fails at the specify stage, before any learning; names the region and the known ones.
+    root = __import__("pathlib").Path(__file__).parents[1]
+    problem = root / "examples" / "problems" / "three_mode_linear.toml"
+    code, _, err = _run(["run", str(problem), "--out", str(tmp_path), "--formula", "F goal",
+                         "--quiet"], capsys)
+    assert code == 1
+    assert "regions ['goal'] that are not defined" in err and "Traceback" not in err

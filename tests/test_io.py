@@ -202,3 +202,14 @@ def test_load_result_errors(tmp_path):
     (tmp_path / "result.json").write_text('{"format": "other"}')
     with pytest.raises(ProblemFileError, match="expected format 'robust_imdp.result/1'"):
         load_result(tmp_path)
+
+
+def test_committed_example_problems_load():
+    from robust_imdp.io import load_problem
+
+    root = Path(__file__).parents[1] / "examples" / "problems"
+    for name, n_modes in (("three_mode_linear", 3), ("four_mode_nonlinear", 4),
+                          ("four_mode_nonlinear_two_goals", 4)):
+        p = load_problem(root / f"{name}.toml")
+        assert len(p.mode_names) == n_modes and p.data.x.shape[1] == 2
+        assert p.threshold == 0.95 and p.rkhs_bound > 0
