@@ -93,13 +93,21 @@ def _outline_segments(bx, by, ind) -> list:
 
 
 def _draw_regions(ax, res: ResultFile, *, fill: bool, label_text: bool = True, lw: float = 1.6):
-    atoms = sorted({a for lab in res.labels for a in lab})
-    handles = []
-    for k, atom in enumerate(atoms):
-        colour = _REGION_COLOURS[k % len(_REGION_COLOURS)]
+    groups: list = []  # regions covering exactly the same cells are drawn once, named together
+    for atom in sorted({a for lab in res.labels for a in lab}):
         bx, by, ind = _region_raster(res, atom)
+        for g in groups:
+            if np.array_equal(g[3], ind):
+                g[0].append(atom)
+                break
+        else:
+            groups.append(([atom], bx, by, ind))
+    handles = []
+    for k, (names, bx, by, ind) in enumerate(groups):
+        colour = _REGION_COLOURS[k % len(_REGION_COLOURS)]
+        atom = " = ".join(names)
         if fill:
-            has = np.array([atom in lab for lab in res.labels])
+            has = np.array([names[0] in lab for lab in res.labels])
             ax.add_collection(PolyCollection(_rects(res)[has], facecolors=colour, alpha=0.35,
                                              edgecolors="none"))
         if fill:
