@@ -92,9 +92,10 @@ def _outline_segments(bx, by, ind) -> list:
     return segs
 
 
-def _draw_regions(ax, res: ResultFile, *, fill: bool, label_text: bool = True, lw: float = 1.6):
+def _draw_regions(ax, res: ResultFile, *, fill: bool, label_text: bool = True, lw: float = 1.6,
+                  only=None):
     groups: list = []  # regions covering exactly the same cells are drawn once, named together
-    for atom in sorted({a for lab in res.labels for a in lab}):
+    for atom in sorted({a for lab in res.labels for a in lab if only is None or a in only}):
         bx, by, ind = _region_raster(res, atom)
         for g in groups:
             if np.array_equal(g[3], ind):
@@ -151,7 +152,7 @@ def plot_classes(result, ax=None, *, title: str | None = None, legend: bool = Tr
     colours = np.array([CLASS_COLOURS[c] for c in res.classes], dtype=object)
     ax.add_collection(PolyCollection(_rects(res), facecolors=colours, edgecolors="white",
                                      linewidths=0.2))
-    _draw_regions(ax, res, fill=False, label_text=True, lw=1.8)
+    _draw_regions(ax, res, fill=False, label_text=True, lw=1.8, only=res.dfa_atoms)
     counts = {c: int(np.sum(res.classes == c)) for c in CLASS_COLOURS}
     _frame(ax, res, title or f"Classification for {res.formula!r}, threshold {res.threshold:g}")
     if legend:
@@ -171,7 +172,7 @@ def plot_values(result, which: str = "p_low", ax=None, *, title: str | None = No
     coll = PolyCollection(_rects(res), array=values, cmap=cmap, norm=Normalize(0.0, 1.0),
                           edgecolors="face", linewidths=0.2)
     ax.add_collection(coll)
-    _draw_regions(ax, res, fill=False, label_text=False, lw=1.2)
+    _draw_regions(ax, res, fill=False, label_text=False, lw=1.2, only=res.dfa_atoms)
     names = {"p_low": "lower bound p_low", "p_up": "upper bound p_up",
              "p_up_star": "optimal upper bound p_up*", "error": "error p_up* - p_low"}
     _frame(ax, res, title or f"{names.get(which, which)} of P(sat) for {res.formula!r}")
