@@ -88,13 +88,14 @@ def _cmd_run(args) -> int:
         problem = problem.replace(**changes)
     cache = args.cache if args.cache is not None else out / "cache"
     result = synthesize_from_data(problem, progress=not args.quiet, abstraction_cache=cache)
-    if not args.no_figures:
+    figures = not args.no_figures and len(problem.space_lower) == 2  # plots are 2-D only
+    if figures:
         from robust_imdp.plotting import save_figures
 
         save_figures(result, out)
     path = save_result(result, out)
     print(result.summary())
-    print(f"wrote {path}" + ("" if args.no_figures else f" and figures in {out}"))
+    print(f"wrote {path}" + (f" and figures in {out}" if figures else " (no figures)"))
     return 0
 
 
@@ -116,7 +117,7 @@ def _cmd_simulate(args) -> int:
         "wilson_low", "wilson_up", "p_low", "p_up", "outside", "containment_rate",
         "expected_outside")}
     (out / "validation.json").write_text(json.dumps(_jsonable(doc), indent=1))
-    if not args.no_figures and args.paths > 0:
+    if not args.no_figures and args.paths > 0 and len(res.space_lower) == 2:
         from robust_imdp.plotting import plot_trajectories
         import matplotlib.pyplot as plt
 

@@ -372,6 +372,16 @@ class ValidationReport:
             f"  containment: {c - len(self.outside)}/{c} cells = {100 * self.containment_rate:.2f} % "
             f"(chance alone flags <= {self.expected_outside:.2f} cells on average)",
         ]
+        if c:
+            lo_margin = self.wilson_up - self.p_low  # < 0 means p_low is contradicted
+            up_margin = self.p_up - self.wilson_low  # < 0 means p_up is contradicted
+            j, k = int(np.argmin(lo_margin)), int(np.argmin(up_margin))
+            lines.append(
+                f"  tightest cells: {int(self.cells[j])} (p_low {self.p_low[j]:.3f} vs Wilson upper "
+                f"{self.wilson_up[j]:.3f}), {int(self.cells[k])} (p_up {self.p_up[k]:.3f} vs Wilson "
+                f"lower {self.wilson_low[k]:.3f}); mean empirical {np.mean(self.empirical):.3f} vs "
+                f"mean [p_low, p_up] = [{np.mean(self.p_low):.3f}, {np.mean(self.p_up):.3f}]"
+            )
         for j in np.flatnonzero(np.isin(self.cells, self.outside))[:20]:
             lines.append(
                 f"  OUTSIDE cell {int(self.cells[j])}: empirical {self.empirical[j]:.3f} "
