@@ -112,3 +112,17 @@ def test_library_controller_agrees_with_the_result_tables(run):
             continue  # decided at once: no mode is applied
         ctrl.reset(x0)
         assert ctrl.act(x0) == tables.modes[tables.strategy[q, s]]
+
+
+def test_k_step_result_files_and_validation(run, tmp_path):
+    # k-step: time-varying strategy (k, n_cells, S) -> strategy_by_time in result.json; runs
+    # undecided at the horizon count as not satisfied (exactly the k-step semantics).
+    res, _ = run
+    k = resynthesize(res, formula="F des", horizon=3, progress=False)
+    save_result(k, tmp_path)
+    loaded = load_result(tmp_path)
+    assert loaded.horizon == 3 and loaded.strategy_by_time.shape[0] == 3
+    np.testing.assert_array_equal(loaded.strategy_by_time, k.synthesis.strategy)
+    rep = validate(loaded, CASE.system, n_per_cell=100, max_steps=50, rng=7, confidence=0.9999)
+    assert rep.max_steps == 3 and int(rep.capped.sum()) == 0
+    assert rep.outside.size == 0, rep.summary()
