@@ -453,9 +453,11 @@ def synthesize_from_data(problem: Problem, *, progress: bool = True,
             log.info(f"reused abstraction {cache_file.name}")
     if abstraction is None:
         abstraction = _build_abstraction(problem, partition, log, abstraction_cache)
-        if cache_file is not None:
+        if cache_file is not None:  # write under a temporary name, then rename (atomic)
             cache_file.parent.mkdir(parents=True, exist_ok=True)
-            abstraction.save(cache_file)
+            tmp = cache_file.with_name(cache_file.stem + ".part.npz")
+            abstraction.save(tmp)
+            tmp.replace(cache_file)
     syn, classes = _synthesize(problem, partition, abstraction, dfa, log)
     log.timings["total"] = time.perf_counter() - log.t0
     result = Result(problem=problem, partition=partition, abstraction=abstraction, dfa=dfa,
