@@ -10,7 +10,7 @@ import pytest
 from robust_imdp.casestudies import problem_toml, get_case_study, write_problem_files
 from robust_imdp.errors import ProblemFileError
 from robust_imdp.io import (
-    load_result, parse_problem_file, read_data_file, result_to_dict, save_result, write_data_file,
+    load_result, parse_problem_file, read_data_file, save_result, write_data_file,
 )
 
 GOOD = """
