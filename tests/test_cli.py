@@ -117,3 +117,29 @@ def test_unknown_region_in_formula_exit_1(tmp_path, capsys):
                          "--quiet"], capsys)
     assert code == 1
     assert "regions ['goal'] that are not defined" in err and "Traceback" not in err
+
+
+def test_run_end_to_end_on_a_coarse_problem(tmp_path, capsys):
+    # Tiny run through the command line: 64 cells, 40 points per mode; writes the contract files.
+    from robust_imdp.casestudies import get_case_study, problem_toml
+    from robust_imdp.io import write_data_file
+
+    case = get_case_study("three_mode_linear")
+    x, u, xn = case.system.sample_dataset(40, case.lower, case.upper, rng=1)
+    write_data_file(tmp_path / "d.csv", x, u, xn, modes=case.system.mode_names)
+    text = problem_toml(case, "G !obs & F des", "d.csv").replace(
+        "cell_size = [0.125, 0.125]", "cell_size = [0.5, 0.5]")
+    (tmp_path / "p.toml").write_text(text + "bound_tol = 0.01\nbound_max_boxes = 200\n")
+    out = tmp_path / "out"
+    code, stdout, err = _run(["run", str(tmp_path / "p.toml"), "--out", str(out)], capsys)
+    assert code == 0, err
+    assert "cells: 64" in stdout and "stage times:" in stdout
+    assert "[robust-imdp] bound" in err  # progress lines go to stderr
+    doc = json.loads((out / "result.json").read_text())
+    assert len(doc["classes"]) == 64 and doc["modes"] == ["1", "2", "3"]
+    for png in ("partition", "classes", "p_low", "error"):
+        assert (out / f"{png}.png").exists()
+    # same data, new threshold: the abstraction comes from OUT/cache
+    code, stdout, _ = _run(["run", str(tmp_path / "p.toml"), "--out", str(out), "--threshold",
+                            "0.5", "--no-figures", "--quiet"], capsys)
+    assert code == 0 and "reused from cache" in stdout
