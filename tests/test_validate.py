@@ -117,3 +117,24 @@ def test_bad_documents():
         class Other:
             mode_names = ("x",)
         simulate(_two_cell_doc([1, 0], [1, 1]), Other(), [[0.5, 0.5]])
+
+
+def test_case_study_true_systems_match_the_paper():
+    from robust_imdp.casestudies import true_system
+
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-2, 2, size=(500, 2))
+    lin = true_system("three_mode_linear")
+    A = [np.array([[0.4, 0.1], [0, 0.5]]), np.array([[0.4, 0.5], [0, 0.5]]),
+         np.array([[0.4, 0], [0.5, 0.5]])]
+    for u in range(3):
+        v = lin.step(x, np.full(500, u), rng) - x @ A[u].T
+        assert np.all(np.abs(v) <= 0.01)  # truncated to [-sigma, sigma]
+        assert 0.004 < np.std(v) < 0.007  # N(0, 0.01^2) truncated at 1 sd: sd = 0.0054
+    non = true_system("four_mode_nonlinear")
+    s1, s2, c1, c2 = np.sin(x[:, 0]), np.sin(x[:, 1]), np.cos(x[:, 0]), np.cos(x[:, 1])
+    g = [np.c_[0.5 + 0.2 * s2, 0.4 * c1], np.c_[-0.5 + 0.2 * s2, 0.4 * c1],
+         np.c_[0.4 * c2, 0.5 + 0.2 * s1], np.c_[0.4 * c2, -0.5 + 0.2 * s1]]
+    for u in range(4):
+        v = non.step(x, np.full(500, u), rng) - x - g[u]
+        assert np.all(np.abs(v) <= 0.01)
