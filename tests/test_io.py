@@ -56,7 +56,8 @@ def test_good_file_parses(tmp_path):
     assert spec["regions"]["obs"][0][1].tolist() == [-1.0, -1.0]
     assert spec["horizon"] is None and spec["threshold"] == 0.95
     assert spec["data_file"] == str((tmp_path / "data.csv").resolve())
-    assert spec["abstraction"] == {"eta": None, "eps_rule": "optimized", "combine": "product"}
+    assert spec["abstraction"] == {"eta": None, "eps_rule": "optimized", "combine": "product",
+                                   "guarantee": "confidence", "confidence": 0.99}
 
 
 @pytest.mark.parametrize("old,new,match", [
@@ -74,6 +75,10 @@ def test_good_file_parses(tmp_path):
     ("upper = [-1.0, -1.0]", "upper = [-1.0, 3.0]", r"\[regions.obs\[0\]\].*lies outside the space"),
     ("cell_size = [0.5, 0.5]", "cell_size = [0.5, -0.5]", r"cell_size must be > 0"),
     ("rkhs_bound = 10.0", "rkhs_bound = -1.0", r"rkhs_bound must be > 0"),
+    ("rkhs_bound = 10.0", 'rkhs_bound = 10.0\n[abstraction]\nguarantee = "papr"',
+     r"\[abstraction\].guarantee must be one of confidence, paper; got 'papr'"),
+    ("rkhs_bound = 10.0", "rkhs_bound = 10.0\n[abstraction]\nconfidence = 1.0",
+     r"\[abstraction\].confidence must lie in \(0, 1\)"),
 ])
 def test_problem_file_errors_name_the_key(tmp_path, old, new, match):
     assert old in GOOD

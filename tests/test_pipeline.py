@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from robust_imdp.casestudies import get_case_study
-from robust_imdp.errors import UnknownAtomError
+from robust_imdp.errors import InvalidInputError, UnknownAtomError
 from robust_imdp.io import load_result, save_result
 from robust_imdp.noise import TruncatedGaussianNoise
 from robust_imdp.pipeline import (
@@ -126,3 +126,17 @@ def test_k_step_result_files_and_validation(run, tmp_path):
     rep = validate(loaded, CASE.system, n_per_cell=100, max_steps=50, rng=7, confidence=0.9999)
     assert rep.max_steps == 3 and int(rep.capped.sum()) == 0
     assert rep.outside.size == 0, rep.summary()
+
+
+def test_guarantee_modes_and_validation():
+    """The confidence mode (default) folds the GP error into the images: the abstraction is
+    built without per-entry GP probabilities; the paper mode keeps them. Both are valid
+    brackets here (p_low <= p_up); the key differs so neither reuses the other's cache."""
+    p = tiny_problem()
+    assert p.guarantee == "confidence" and p.confidence == 0.99
+    assert abstraction_key(p) != abstraction_key(p.replace(guarantee="paper"))
+    assert abstraction_key(p) != abstraction_key(p.replace(confidence=0.9))
+    with pytest.raises(InvalidInputError, match="guarantee must be one of"):
+        p.replace(guarantee="bogus")
+    with pytest.raises(InvalidInputError, match="confidence must lie in"):
+        p.replace(confidence=1.0)

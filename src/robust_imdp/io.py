@@ -10,7 +10,7 @@ Problem file contract (keys in ``[brackets]`` are tables; ``?`` marks optional k
     [noise]         kind = "truncated_gaussian" (sigma, bound) | "gaussian" (sigma) | "uniform" (bound)
     [gp]            rkhs_bound, lengthscale?, signal_variance? (number or "tune"), optimize?,
                     info_gain? ("data" | "trivial"), bound_tol? (1e-3), bound_max_boxes? (2000)
-    [abstraction]?  eta?, eps_rule?, combine?
+    [abstraction]?  eta?, eps_rule?, combine?, guarantee? ("confidence" | "paper"), confidence?
 
 Data files: ``.csv`` with header ``x_1..x_n,u,x_next_1..x_next_n`` (``u`` holds mode names), or
 ``.npz`` with arrays ``x`` (m, n), ``u`` (m,) and ``x_next`` (m, n). Every mode name in ``u``
@@ -63,7 +63,7 @@ _SCHEMA: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "noise": (("kind",), ("sigma", "bound")),
     "gp": (("rkhs_bound",), ("lengthscale", "signal_variance", "optimize", "info_gain", "bound_tol",
                       "bound_max_boxes")),
-    "abstraction": ((), ("eta", "eps_rule", "combine")),
+    "abstraction": ((), ("eta", "eps_rule", "combine", "guarantee", "confidence")),
 }
 _TOP_REQUIRED = ("space", "regions", "spec", "data", "modes", "noise", "gp")
 _TOP_OPTIONAL = ("abstraction",)
@@ -74,6 +74,7 @@ _NOISE_KEYS = {
 }
 EPS_RULES = ("optimized", "paper")
 COMBINE_RULES = ("product", "union")
+GUARANTEES = ("confidence", "paper")
 
 
 def _suggest(key: str, valid) -> str:
@@ -284,10 +285,16 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
         gp["bound_tol"] = float(_number(gp_in["bound_tol"], "[gp].bound_tol", where, lo=1e-12))
 
     ab_in = doc.get("abstraction", {})
-    ab: dict[str, Any] = {"eta": None, "eps_rule": "optimized", "combine": "product"}
+    ab: dict[str, Any] = {"eta": None, "eps_rule": "optimized", "combine": "product",
+                          "guarantee": "confidence", "confidence": 0.99}
     if "eta" in ab_in:
         ab["eta"] = _positive_vector(ab_in["eta"], "[abstraction].eta", where, n)
-    for key, valid in (("eps_rule", EPS_RULES), ("combine", COMBINE_RULES)):
+    if "confidence" in ab_in:
+        c = _number(ab_in["confidence"], "[abstraction].confidence", where)
+        if not 0.0 < float(c) < 1.0:
+            raise ProblemFileError(f"{where}: [abstraction].confidence must lie in (0, 1); got {c!r}")
+        ab["confidence"] = float(c)
+    for key, valid in (("eps_rule", EPS_RULES), ("combine", COMBINE_RULES), ("guarantee", GUARANTEES)):
         if key in ab_in:
             if ab_in[key] not in valid:
                 raise ProblemFileError(
@@ -367,6 +374,7 @@ def load_problem(path):
         mode_names=tuple(names), maps=tuple(AffineMap(A, b) for A, b in spec["modes"].values()),
         noise=make_noise(spec["noise"]), rkhs_bound=rkhs_bound, gp_options=gp,
         bound_tol=bound_tol, bound_max_boxes=bound_max_boxes, eta=ab["eta"], eps_rule=ab["eps_rule"], combine=ab["combine"],
+        guarantee=ab["guarantee"], confidence=ab["confidence"],
     )
 
 

@@ -37,6 +37,7 @@ __all__ = ["Problem", "Result", "synthesize_from_data", "resynthesize", "abstrac
            "bounds_key"]
 
 CLASS_NAMES = ("yes", "no", "maybe")
+GUARANTEES = ("confidence", "paper")
 
 
 @dataclass(frozen=True, eq=False)
@@ -72,6 +73,17 @@ class Problem:
         Branch-and-bound budget per cell and problem (bounds stay sound, only looser).
     eta : (n,) float array or None
         Noise threshold of Thm 1; None = the noise model's default.
+    guarantee : {"confidence", "paper"}
+        How the GP error enters the abstraction. ``"confidence"`` (default, sound for the one
+        fixed system that produced the data): the error bound of every GP is taken at one
+        data-confidence level and folded into the image boxes
+        (``abstraction.confidence_cell_bounds``); every printed bound then holds with
+        probability >= ``confidence`` over the data. ``"paper"``: Thm 1 as printed (with the
+        corrected complements), where the GP error probability multiplies each transition
+        bound; that mixes a probability over the data into the transition probabilities and is
+        kept to reproduce the paper (see docs/soundness_audit.md, finding F2).
+    confidence : float in (0, 1)
+        Data-confidence level of ``guarantee="confidence"``.
     eps_rule : {"optimized", "paper"}
     combine : {"product", "union"}
     """
@@ -94,6 +106,15 @@ class Problem:
     eta: Any = None
     eps_rule: str = "optimized"
     combine: str = "product"
+    guarantee: str = "confidence"
+    confidence: float = 0.99
+
+    def __post_init__(self):
+        if self.guarantee not in GUARANTEES:
+            raise InvalidInputError(f"guarantee must be one of {GUARANTEES}; got {self.guarantee!r}")
+        c = float(self.confidence)
+        if not 0.0 < c < 1.0:
+            raise InvalidInputError(f"confidence must lie in (0, 1); got {self.confidence!r}")
 
     def replace(self, **changes) -> "Problem":
         """A copy with some attributes changed (e.g. ``formula=...``)."""
@@ -267,7 +288,8 @@ def abstraction_key(problem: Problem) -> str:
     """Hash of everything the abstraction depends on (not the formula, threshold, horizon)."""
     h = hashlib.sha256(bounds_key(problem).encode())
     _fingerprint(h, [None if problem.eta is None else np.asarray(problem.eta, float),
-                     problem.eps_rule, problem.combine])
+                     problem.eps_rule, problem.combine, problem.guarantee,
+                     float(problem.confidence)])
     return h.hexdigest()[:20]
 
 
@@ -315,6 +337,8 @@ def _parameters(problem: Problem, abstraction) -> dict:
         "eta_used": getattr(abstraction, "eta", None),
         "eps_rule": problem.eps_rule,
         "combine": problem.combine,
+        "guarantee": problem.guarantee,
+        "confidence": float(problem.confidence) if problem.guarantee == "confidence" else None,
         "abstraction_key": abstraction_key(problem),
     }
     from robust_imdp.io import _jsonable
@@ -338,7 +362,7 @@ def _check_atoms(dfa, problem: Problem) -> None:
 
 
 def _build_abstraction(problem: Problem, partition, log: _Log, cache_dir=None):
-    from robust_imdp.abstraction import abstract
+    from robust_imdp.abstraction import abstract, confidence_cell_bounds
 
     bounds_file = None
     if cache_dir is not None:
@@ -353,6 +377,11 @@ def _build_abstraction(problem: Problem, partition, log: _Log, cache_dir=None):
             bounds_file.parent.mkdir(parents=True, exist_ok=True)
             _save_bounds(bounds_file, cell_bounds, error_models)
     with log.stage("abstract"):
+        if problem.guarantee == "confidence":
+            # One data-confidence event for all GPs: the error is folded into the image boxes
+            # and the abstraction is built as for known dynamics (eps = 0, P_g = 1).
+            cell_bounds = confidence_cell_bounds(cell_bounds, error_models, problem.confidence)
+            error_models = None
         abstraction = abstract(partition, cell_bounds, problem.noise, error_models,
                                eta=problem.eta, eps_rule=problem.eps_rule, combine=problem.combine)
     log.info(f"IMDP: {abstraction.imdp.n_states} states, {int(np.sum(abstraction.nnz_per_row))} "
