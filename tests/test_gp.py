@@ -416,3 +416,17 @@ def test_tune_signal_variance_is_the_argmin_and_ignores_y():
     assert len(sf2s) == 1 and sf2s <= set(SF2_CANDIDATES)
     with pytest.raises(InvalidInputError, match="signal_variance must be a positive float or 'tune'"):
         learn(d1, (lambda z: z, lambda z: z), rkhs_bound=1.0, noise_theta=0.01, signal_variance="auto")
+
+
+def test_learn_with_fitted_hyperparameters_warns_about_the_assumption():
+    """Issue 4: a kernel fitted on the same data must not feed the guarantee silently."""
+    from robust_imdp.errors import AssumptionWarning
+    from robust_imdp.system import AffineMap, Dataset
+
+    rng = np.random.default_rng(5)
+    x = rng.uniform(-1, 1, (30, 1))
+    xn = np.sin(x) + 0.01 * rng.standard_normal((30, 1))
+    data = Dataset(x, np.zeros(30, dtype=int), xn)
+    with pytest.warns(AssumptionWarning, match="optimize=True"):
+        learn(data, [AffineMap.zero(1)], rkhs_bound=5.0, noise_theta=0.01, optimize=True,
+              n_restarts=1, rng=0)

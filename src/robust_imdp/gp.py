@@ -976,6 +976,15 @@ def learn(dataset: Any, known_maps: Sequence[Callable], *, rkhs_bound: Any, nois
     if tune and signal_variance != "tune":
         raise InvalidInputError(f"signal_variance must be a positive float or 'tune'; got {signal_variance!r}")
     gen = np.random.default_rng(rng)
+    if optimize:
+        # Issue 4: a GP whose kernel was fitted on the same data must not feed the guarantee
+        # silently -- Thm 2 of Chowdhury & Gopalan assumes a kernel fixed before the data.
+        warnings.warn(
+            "learn(optimize=True) fits kernel hyperparameters on the same data the error bound is "
+            "computed from; Chowdhury & Gopalan's Thm 2 assumes a kernel fixed in advance, so the "
+            "printed guarantees then rest on an extra assumption (use fixed values or "
+            "signal_variance='tune', which looks at the inputs only)",
+            AssumptionWarning, stacklevel=2)
     gps, bounds = [], []
     for u in range(n_modes):
         x, xn = dataset.by_mode(u)
