@@ -370,3 +370,20 @@ def test_almost_sure_states_get_exactly_one_without_iterating():
     assert r.lower[2] <= 0.1 / 0.6 <= r.upper[2] and r.precision <= 1e-8
     ev = evaluate_strategy(m, [1], r.strategy, avoid=[3])
     assert ev.lower[0] == 1.0
+
+
+def test_strong_components_match_scipy():
+    # independent check of the numba Tarjan used for end components
+    import scipy.sparse as sp
+    from scipy.sparse import csgraph
+
+    from robust_imdp.solve import strong_components
+
+    rng = np.random.default_rng(0)
+    for _ in range(30):
+        N = int(rng.integers(1, 40))
+        E = int(rng.integers(0, 3 * N))
+        g = sp.csr_matrix((np.ones(E), (rng.integers(0, N, E), rng.integers(0, N, E))), shape=(N, N))
+        nc, lab = csgraph.connected_components(g, directed=True, connection="strong")
+        lab2, nc2 = strong_components(g.indptr.astype(np.int64), g.indices.astype(np.int32))
+        assert nc2 == nc and len(set(zip(lab.tolist(), lab2.tolist()))) == nc  # same partition

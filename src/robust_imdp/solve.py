@@ -73,9 +73,7 @@ from dataclasses import dataclass
 from enum import Enum
 
 import numpy as np
-import scipy.sparse as sp
 from numba import njit
-from scipy.sparse import csgraph
 
 from robust_imdp.errors import ConvergenceWarning, DimensionError, InvalidInputError
 from robust_imdp.imdp import IMDP
@@ -467,6 +465,110 @@ def almost_sure(state_ptr, row_ptr, col, lower, upper, floor, nxt, target, W, ct
         if same:
             return X
         Y = X
+
+
+@njit(cache=True)
+def edge_csr(state_ptr, row_ptr, col, upper, nxt, rowmask, act):
+    """CSR (indptr int64 (N+1,), indices int32) of the listed positive-upper entries of the rows
+    in ``rowmask`` between active nodes of the layered graph (node ``l*n + q``)."""
+    L = nxt.shape[0]
+    n = state_ptr.shape[0] - 1
+    R = row_ptr.shape[0] - 1
+    N = L * n
+    indptr = np.zeros(N + 1, dtype=np.int64)
+    for l in range(L):
+        for q in range(n):
+            node = l * n + q
+            if not act[node]:
+                continue
+            c = 0
+            for r in range(state_ptr[q], state_ptr[q + 1]):
+                if not rowmask[l * R + r]:
+                    continue
+                for j in range(row_ptr[r], row_ptr[r + 1]):
+                    if upper[j] > 0.0 and act[nxt[l, col[j]] * n + col[j]]:
+                        c += 1
+            indptr[node + 1] = c
+    for i in range(N):
+        indptr[i + 1] += indptr[i]
+    indices = np.empty(indptr[N], dtype=np.int32)
+    for l in range(L):
+        for q in range(n):
+            node = l * n + q
+            if not act[node]:
+                continue
+            pos = indptr[node]
+            for r in range(state_ptr[q], state_ptr[q + 1]):
+                if not rowmask[l * R + r]:
+                    continue
+                for j in range(row_ptr[r], row_ptr[r + 1]):
+                    d = nxt[l, col[j]] * n + col[j]
+                    if upper[j] > 0.0 and act[d]:
+                        indices[pos] = d
+                        pos += 1
+    return indptr, indices
+
+
+@njit(cache=True)
+def strong_components(indptr, indices):
+    """Strongly connected components (iterative Tarjan); returns (label (N,), count)."""
+    N = indptr.shape[0] - 1
+    index = np.full(N, -1, dtype=np.int64)
+    low = np.zeros(N, dtype=np.int64)
+    onstack = np.zeros(N, dtype=np.bool_)
+    stack = np.empty(N, dtype=np.int64)
+    cs_node = np.empty(N, dtype=np.int64)
+    cs_edge = np.empty(N, dtype=np.int64)
+    comp = np.full(N, -1, dtype=np.int64)
+    sp = 0
+    nc = 0
+    idx = 0
+    for s in range(N):
+        if index[s] != -1:
+            continue
+        cs_node[0] = s
+        cs_edge[0] = indptr[s]
+        csp = 1
+        index[s] = idx
+        low[s] = idx
+        idx += 1
+        stack[sp] = s
+        sp += 1
+        onstack[s] = True
+        while csp > 0:
+            v = cs_node[csp - 1]
+            e = cs_edge[csp - 1]
+            if e < indptr[v + 1]:
+                cs_edge[csp - 1] = e + 1
+                w = indices[e]
+                if index[w] == -1:
+                    index[w] = idx
+                    low[w] = idx
+                    idx += 1
+                    stack[sp] = w
+                    sp += 1
+                    onstack[w] = True
+                    cs_node[csp] = w
+                    cs_edge[csp] = indptr[w]
+                    csp += 1
+                elif onstack[w] and index[w] < low[v]:
+                    low[v] = index[w]
+            else:
+                csp -= 1
+                if csp > 0:
+                    u = cs_node[csp - 1]
+                    if low[v] < low[u]:
+                        low[u] = low[v]
+                if low[v] == index[v]:
+                    while True:
+                        sp -= 1
+                        w = stack[sp]
+                        onstack[w] = False
+                        comp[w] = nc
+                        if w == v:
+                            break
+                    nc += 1
+    return comp, nc
 
 
 @njit(cache=True)
@@ -1108,8 +1210,9 @@ def _end_components(imdp, nxt, active, ctrl, flat_strat):
     comp = np.full(N, -1, dtype=np.int64)
     ncomp = 0
     for _ in range(8):
-        g = _edge_graph(imdp, nxt, rowmask, act)
-        nc, lab = csgraph.connected_components(g, directed=True, connection="strong")
+        indptr, indices = edge_csr(imdp.state_ptr, imdp.row_ptr, imdp.col, imdp.upper, nxt, rowmask, act)
+        lab, nc = strong_components(indptr, indices)
+        del indptr, indices
         lab = np.where(act, lab, -1)
         cnt = np.zeros((L, nc), dtype=np.int64)
         for l in range(L):
@@ -1135,37 +1238,6 @@ def _end_components(imdp, nxt, active, ctrl, flat_strat):
     comp = np.where((comp >= 0) & keep[np.maximum(comp, 0)], newid[np.maximum(comp, 0)], -1)
     cnt = cnt[:, keep] if ncomp else cnt
     return comp, int(keep.sum()), np.ascontiguousarray(cnt)
-
-
-def _edge_graph(imdp, nxt, rowmask, act):
-    """CSR graph (node -> node) of the listed positive-upper entries of the rows in ``rowmask``,
-    between active nodes.  Built per layer directly in CSR order (rows are grouped by state),
-    with int32 indices, so it costs ~6 bytes per stored entry instead of a COO triple."""
-    L, n = nxt.shape
-    N = L * n
-    R = imdp.n_choices
-    itype = np.int32 if N < 2**31 - 1 else np.int64
-    rl = np.diff(imdp.row_ptr)
-    ent_start = imdp.row_ptr[imdp.state_ptr[:-1]]
-    ent_end = imdp.row_ptr[imdp.state_ptr[1:]]
-    pos = imdp.upper > 0
-    indptrs, indices = [], []
-    offset = 0
-    for l in range(L):
-        emask = np.repeat(rowmask[l * R:(l + 1) * R], rl)
-        emask &= pos
-        dst = imdp.col.astype(itype) if L == 1 else (nxt[l][imdp.col] * n + imdp.col).astype(itype)
-        emask &= act[dst]
-        emask &= np.repeat(act[l * n:(l + 1) * n], ent_end - ent_start)
-        counts = np.add.reduceat(np.append(emask, False), ent_start, dtype=np.int64)
-        counts[ent_end == ent_start] = 0  # reduceat quirk for empty segments (cannot happen: >= 1 row)
-        indptrs.append(offset + np.cumsum(counts))
-        offset += int(counts.sum())
-        indices.append(dst[emask])
-        del dst, emask
-    indptr = np.concatenate([[0]] + indptrs).astype(np.int64 if offset >= 2**31 - 1 else np.int32)
-    ind = np.concatenate(indices) if L > 1 else indices[0]
-    return sp.csr_matrix((np.ones(ind.size, dtype=np.int8), ind, indptr), shape=(N, N))
 
 
 def _deflate(imdp, nxt, up, rows, comp, ncomp, comp_cnt, adv_max, ctrl, flat_strat):
