@@ -14,6 +14,7 @@ Usage: python benchmarks/abstraction.py [--quick] [--repeats N]
 
 from __future__ import annotations
 
+import os
 import argparse
 import json
 import platform
@@ -121,7 +122,7 @@ def main():
             print(json.dumps(r))
     classes = rule_comparison()
     meta = {"python": platform.python_version(), "numpy": np.__version__, "machine": platform.machine(),
-            "note": "2 shared cores, machine loaded by other jobs: absolute times are pessimistic"}
+            "note": os.environ.get("BENCH_NOTE", "2-core machine; median of the stated runs")}
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "abstraction.json").write_text(json.dumps({"meta": meta, "results": rows, "classes": classes}, indent=2))
     lines = ["# Abstraction benchmark", "", meta["note"] + ".", "",

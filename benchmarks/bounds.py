@@ -166,7 +166,7 @@ def main():
         print(json.dumps(r))
         results.append(r)
     meta = {"machine": platform.platform(), "python": platform.python_version(),
-            "note": "2-core machine shared with ~7 other jobs (loaded); single run per case",
+            "note": os.environ.get("BENCH_NOTE", "2-core machine; single run per case"),
             "quick": args.quick, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
     out_dir = Path(__file__).parent / "results"
     out_dir.mkdir(exist_ok=True)

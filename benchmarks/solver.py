@@ -17,6 +17,7 @@ were produced on is shared (2 cores, several concurrent jobs), so absolute times
 
 from __future__ import annotations
 
+import os
 import argparse
 import json
 import platform
@@ -250,7 +251,7 @@ def main(argv=None):
         for floor in (False, True):
             rows.append(run_case(n, floor, rng, args))
     meta = {"python": sys.version.split()[0], "numpy": np.__version__, "machine": platform.machine(),
-            "note": "shared machine (2 cores, several concurrent jobs): absolute times are noisy",
+            "note": os.environ.get("BENCH_NOTE", "2-core machine; medians of the stated repetitions"),
             "total_s": time.perf_counter() - t0, "actions": A, "successors": K, "seed": args.seed}
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "solver.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1, default=float))
