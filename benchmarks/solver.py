@@ -11,8 +11,8 @@ states are targets.  The floor variant lists 20 successors carrying 95% of the m
 every other state the floor 0.1 / n (the GP abstraction's shape); Storm cannot take floors
 without densifying (n^2 entries), so it is not run there.
 
-Reported medians; ratios come from one run on the same machine.  The machine these numbers
-were produced on is shared (2 cores, several concurrent jobs), so absolute times are noisy.
+Reported medians; ratios come from one run on the same machine.  Absolute times depend on the
+machine and its load; the results' note (``BENCH_NOTE``) records the conditions of the run.
 """
 
 from __future__ import annotations
