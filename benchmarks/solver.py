@@ -86,7 +86,7 @@ def numba_sweep(m: IMDP, w: np.ndarray, adv_max=False):
 
 def storm_case(m: IMDP, target, avoid, ours, args):
     try:
-        from robust_imdp.formats import storm_reachability, to_stormpy  # H2's bridge (lazy)
+        from robust_imdp.formats import storm_reachability, to_stormpy  # the stormpy bridge (lazy)
         import stormpy  # noqa: F401
     except ImportError as e:  # optional dependency
         return {"skipped": f"stormpy bridge unavailable: {e}"}

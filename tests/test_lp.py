@@ -135,7 +135,7 @@ def test_inner_lp_bad_input():
 
 
 def test_ordering_matches_solver_inner_problem():
-    """H1's ordering Bellman step (one iteration from the target indicator) against the LP."""
+    """The solver's ordering Bellman step (one iteration from the target indicator) against the LP."""
     solve = pytest.importorskip("robust_imdp.solve")
     rng = np.random.default_rng(3)
     m = random_imdp(rng, 6, 2, 3, floor=True)
@@ -214,7 +214,7 @@ def test_end_component_trap_strategy():
         assert res.strategy[0] == 1
 
 
-# ----------------------------------------------------------------------------- against the solver (H1)
+# ----------------------------------------------------------------------------- against the solver (solve.py)
 def test_solver_against_lp_random_models():
     solve = pytest.importorskip("robust_imdp.solve")
     rng = np.random.default_rng(2024)
@@ -287,7 +287,7 @@ def _probe_model(lo, up, floor, v):
 @given(seed=st.integers(0, 2**32 - 1), k=st.integers(1, 5), extra=st.integers(0, 4),
        with_floor=st.booleans(), adversary=st.sampled_from(["pessimistic", "optimistic"]))
 def test_solver_inner_problem_matches_lp_with_floors(seed, k, extra, with_floor, adversary):
-    """H1's ordering inner problem (through a 2-step query on a probe model) against the LP."""
+    """The solver's ordering inner problem (through a 2-step query on a probe model) against the LP."""
     solve = pytest.importorskip("robust_imdp.solve")
     rng = np.random.default_rng(seed)
     N = k + extra
