@@ -281,3 +281,29 @@ def test_bad_input_messages():
         bound_image([gp], np.full((1, 2), np.inf), np.zeros(1), lo, lo + 1)
     with pytest.raises(InvalidInputError, match="gps must be a non-empty"):
         bound_image([], np.zeros((0, 2)), np.zeros(0), lo, lo + 1)
+
+
+def test_mean_bounds_cover_the_exact_posterior_despite_an_inexact_alpha():
+    """The error lemma is about mu = k^T (K + lambda I)^{-1} y; bounds.py certifies k^T alpha_ and
+    widens by a bound of |k^T (alpha - alpha_)| from the residual. Perturb alpha_ by 1e-3 (far
+    above float error) and check the bounds still contain the exact posterior mean at dense
+    samples, while the widening stays tiny for an unperturbed GP."""
+    from robust_imdp.gp import GaussianProcess
+
+    rng = np.random.default_rng(11)
+    X = rng.uniform(-1, 1, (40, 2))
+    y = np.sin(3 * X[:, 0]) + 0.1 * rng.standard_normal(40)
+    gp = GaussianProcess(0.5, 1.0, "chowdhury").fit(X, y)
+    from robust_imdp.bounds import _GPTerms
+
+    assert 0.0 < _GPTerms(gp).alpha_err < 1e-10  # unperturbed: only float error
+    K = gp.kernel(X, X) + gp.noise_variance_ * np.eye(40)
+    alpha_exact = np.linalg.solve(K, y)
+    gp.alpha_ = gp.alpha_ + 1e-3 * rng.standard_normal(40)
+    lo = np.array([[-1.0, -1.0], [0.0, -0.5], [0.5, 0.5]])
+    hi = lo + 0.25
+    pb = bound_posterior(gp, lo, hi, tol=1e-4)
+    for b in range(len(lo)):
+        pts = lo[b] + rng.random((5000, 2)) * (hi[b] - lo[b])
+        mu = gp.kernel(pts, X) @ alpha_exact
+        assert np.all(pb.mean_lower[b] <= mu) and np.all(mu <= pb.mean_upper[b])

@@ -57,6 +57,7 @@ from scipy.linalg import cho_solve, solve_triangular
 from robust_imdp.errors import DimensionError, InvalidInputError
 
 _EPS = np.finfo(float).eps
+_U = 0.5 * _EPS  # unit round-off
 
 # --------------------------------------------------------------------------- results
 
@@ -351,6 +352,32 @@ class _GPTerms:
             )
         self._M = None
         self._Klam = None
+        y = getattr(gp, "y_train_", None)
+        self.y = None if y is None else np.asarray(y, float).reshape(-1)
+        if self.y is not None and (self.y.shape != (m,) or not np.all(np.isfinite(self.y))):
+            raise InvalidInputError(f"{name}.y_train_ must be {m} finite values; got shape {self.y.shape}")
+
+    @property
+    def alpha_err(self) -> float:
+        """Bound of ``|k_x^T (alpha - alpha_)|`` over all x, alpha = (K + lambda' I)^{-1} y exact.
+
+        The error lemma is about the exact posterior mean; ``alpha_`` is a floating-point solve.
+        With the computed residual r~ = y - (K + lambda' I) alpha_ and its rounding error
+        (componentwise <= (m + 2) u (|y| + (K + lambda' I)|alpha_|), Higham 2002, eq. 3.4-3.5,
+        plus ~20 u relative error of each recomputed kernel entry: we use (m + 32) u),
+        ||alpha - alpha_||_2 <= ||r||_2 / lambda_min(K + lambda' I) <= ||r||_2 / lambda'
+        (K is PSD), and ||k_x||_2 <= sqrt(m) sf2. Returns 0 for a GP without ``y_train_``
+        (then ``alpha_`` itself defines the mean being bounded) and inf for lambda' = 0.
+        """
+        if self.y is None:
+            return 0.0
+        if self.lam <= 0.0:
+            return np.inf
+        Kl = self.Klam
+        r = self.y - Kl @ self.alpha
+        slack = (self.m + 32) * _U * (np.abs(self.y) + Kl @ np.abs(self.alpha))
+        r_norm = np.linalg.norm(np.abs(r) + slack) * (1.0 + 4.0 * self.m * _U)
+        return float(_round_up(np.sqrt(self.m) * self.sf2 * r_norm / self.lam * (1.0 + 4.0 * _U)))
 
     def kvec(self, x):
         """(N, m) kernel vectors k(x, X)."""
@@ -643,8 +670,11 @@ def _bound_one(gpt: _GPTerms, lower, upper, lin, const, tol, max_boxes, local_so
         lower, upper, relax_var, value_var, tol_var, max_boxes, gpt.ls,
         refine=refine_v, per_iter=per_iter,
     )
-    mean_lower = rm.lb[:k]
-    mean_upper = -rm.lb[k:]  # lb of -F rounded down => -lb is rounded up
+    # lb of -F rounded down => -lb is rounded up; both widened by the bound of the floating-point
+    # error of alpha_ so that they hold for the exact posterior mean of the error lemma.
+    a_err = gpt.alpha_err
+    mean_lower = _round_down(rm.lb[:k], a_err) if a_err > 0 else rm.lb[:k]
+    mean_upper = _round_up(-rm.lb[k:], a_err) if a_err > 0 else -rm.lb[k:]
     var_up = -rv.lb
     # sigma^2 >= 0 exactly (Schur complement of a PSD matrix), so clipping the upper bound at 0
     # keeps it above the true value; sqrt then rounded up one ulp.
