@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from robust_imdp.errors import ProblemFileError
+from robust_imdp.pipeline import GUARANTEES  # the one definition of the guarantee modes
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -74,7 +75,6 @@ _NOISE_KEYS = {
 }
 EPS_RULES = ("optimized", "paper")
 COMBINE_RULES = ("product", "union")
-GUARANTEES = ("confidence", "paper")
 
 
 def _suggest(key: str, valid) -> str:
