@@ -19,9 +19,10 @@ from typing import Callable
 
 import numpy as np
 
-from robust_imdp.errors import InvalidInputError
+from robust_imdp.errors import DimensionError, InvalidInputError
 
-__all__ = ["TrueSystem", "CaseStudy", "CASE_STUDIES", "get_case_study", "true_system"]
+__all__ = ["TrueSystem", "CaseStudy", "CASE_STUDIES", "get_case_study", "true_system",
+           "known_dynamics_cell_bounds"]
 
 _A_LINEAR = np.array([
     [[0.4, 0.1], [0.0, 0.5]],
@@ -46,6 +47,106 @@ def _g_nonlinear(x: np.ndarray, modes: np.ndarray) -> np.ndarray:
     return g
 
 
+# --------------------------------------------------------------------------- separable form
+# The same unknown parts as sums of one-coordinate terms, for exact image boxes
+# (TrueSystem.image_bounds): g_terms[u][i] = ((kind, coordinate, coefficient), ...) with kind
+# "lin" (c * x_j), "sin" (c * sin x_j), "cos" (c * cos x_j) or "const" (c; coordinate -1).
+# tests/test_casestudies.py checks them against g at random points.
+_G_TERMS_LINEAR = tuple(
+    tuple(tuple(("lin", j, float(A[i, j])) for j in range(2) if A[i, j] != 0.0) for i in range(2))
+    for A in _A_LINEAR
+)
+_G_TERMS_NONLINEAR = (
+    ((("const", -1, 0.5), ("sin", 1, 0.2)), (("cos", 0, 0.4),)),
+    ((("const", -1, -0.5), ("sin", 1, 0.2)), (("cos", 0, 0.4),)),
+    ((("cos", 1, 0.4),), (("const", -1, 0.5), ("sin", 0, 0.2))),
+    ((("cos", 1, 0.4),), (("const", -1, -0.5), ("sin", 0, 0.2))),
+)
+
+_TERM_KINDS = ("lin", "sin", "cos", "const")
+_EPS = 2.0 ** -52  # float64 machine epsilon (2 x unit round-off)
+# Outward margin of image_bounds, relative to the magnitudes involved (see _term_sum_bounds).
+_MARGIN_REL = 1e-12
+
+
+def _trig_range(kind: str, lo: np.ndarray, hi: np.ndarray):
+    """Range ``[min, max]`` of ``sin`` or ``cos`` over ``[lo, hi]`` (arrays), up to float error.
+
+    The extremes of a smooth function over an interval are at the endpoints or at interior
+    critical points: sin has its maxima at pi/2 + 2k pi and minima at -pi/2 + 2k pi, cos at
+    2k pi and pi + 2k pi. A critical point c + 2k pi lies in [lo, hi] iff
+    k = ceil((lo - c) / 2pi) satisfies c + 2k pi <= hi. That test is done in floats; it can
+    only err for a critical point within ``delta`` (returned) of an endpoint, and then the
+    endpoint value is within ``delta**2 / 2`` of +-1 (|f''| <= 1), which the caller adds to
+    its margin. Where the test says "inside" the exact value +-1 is used.
+
+    Returns
+    -------
+    fmin, fmax : arrays like ``lo`` (computed with libm, NOT yet rounded outward)
+    delta : array like ``lo``, bound on the distance error of the critical-point test
+    """
+    f = np.sin if kind == "sin" else np.cos
+    peak, trough = (0.5 * np.pi, -0.5 * np.pi) if kind == "sin" else (0.0, np.pi)
+    two_pi = 2.0 * np.pi
+    f_lo, f_hi = f(lo), f(hi)
+    fmin, fmax = np.minimum(f_lo, f_hi), np.maximum(f_lo, f_hi)
+
+    def has(c):
+        k = np.ceil((lo - c) / two_pi)
+        return c + k * two_pi <= hi
+
+    fmax = np.where(has(peak), 1.0, fmax)
+    fmin = np.where(has(trough), -1.0, fmin)
+    # |computed c + 2k pi - exact| <= (|c| + 2|k| pi) * few eps (pi rounded, one product, one
+    # sum); |k| 2 pi <= |lo| + |hi| + 2 pi + |c|; a factor 8 covers the few roundings.
+    delta = 8.0 * _EPS * (np.abs(lo) + np.abs(hi) + 4.0 * np.pi + 4.0)
+    return fmin, fmax, delta
+
+
+def _term_sum_bounds(terms, lower: np.ndarray, upper: np.ndarray):
+    """Outward-rounded ``[lo, hi]`` of ``sum_t term_t(x)`` over the boxes ``[lower, upper]``.
+
+    ``terms``: ((kind, coordinate, coefficient), ...); boxes (k, n). Returns two (k,) arrays.
+
+    Exactness: when every coordinate appears in at most one term, the range of the sum over a
+    box is the sum of the 1-D ranges (the coordinates vary independently over a box), so the
+    result is the exact range plus the margin below. When a coordinate appears twice the sum of
+    ranges still CONTAINS the range of the sum (sound, possibly loose).
+
+    Soundness of the margin (why the box is never inward). The float result differs from the
+    real one by (a) at most one rounding (|error| <= eps/2 |value|) per product ``c * v``,
+    (b) the libm error of sin/cos, at most a few ulp of values in [-1, 1] (glibc < 1 ulp, numpy's
+    SIMD kernels <= 4 ulp), times |c|, (c) the summation of k terms, <= (k - 1) eps/2 times the
+    sum of magnitudes, (d) the critical-point test of ``_trig_range``: <= delta**2 / 2 times |c|.
+    With S = sum of term magnitudes and C = sum of |c| of trig terms, (a)+(c) <= (k + 1) eps S
+    and (b) <= 8 eps C; we subtract/add ``1e-12 (1 + S + C) + C delta**2``, which exceeds that
+    for any k < 4000 terms, and then move one more ulp outward with ``nextafter``. The same
+    margin covers the float evaluation of f + g by :meth:`TrueSystem.step` (a few roundings).
+    """
+    k = lower.shape[0]
+    lo, hi = np.zeros(k), np.zeros(k)
+    mag, trig_c, trig_extra = np.zeros(k), np.zeros(k), np.zeros(k)
+    for kind, j, c in terms:
+        c = float(c)
+        if kind == "const":
+            t_lo = t_hi = np.full(k, c)
+        elif kind == "lin":
+            a, b = c * lower[:, j], c * upper[:, j]
+            t_lo, t_hi = np.minimum(a, b), np.maximum(a, b)
+        else:
+            fmin, fmax, delta = _trig_range(kind, lower[:, j], upper[:, j])
+            a, b = c * fmin, c * fmax
+            t_lo, t_hi = np.minimum(a, b), np.maximum(a, b)
+            trig_c += abs(c)
+            trig_extra += abs(c) * delta ** 2
+        lo += t_lo
+        hi += t_hi
+        mag += np.maximum(np.abs(t_lo), np.abs(t_hi))
+    margin = _MARGIN_REL * (1.0 + mag + trig_c) + trig_extra
+    # outward: lower bounds down, upper bounds up, plus one ulp (ARCHITECTURE: soundness direction)
+    return np.nextafter(lo - margin, -np.inf), np.nextafter(hi + margin, np.inf)
+
+
 @dataclass(frozen=True, eq=False)
 class TrueSystem:
     """x+ = A_u x + b_u + g_u(x) + v, vectorised over rows with per-row modes.
@@ -56,6 +157,11 @@ class TrueSystem:
     known_A : (n_modes, n, n) float array, known_b : (n_modes, n) float array
     g : callable ``(x (k, n), modes (k,) int) -> (k, n)``, the unknown part
     sigma, bound : (n,) float arrays of the truncated Gaussian noise
+    g_terms : tuple or None
+        Optional separable form of ``g`` for :meth:`image_bounds`: ``g_terms[u][i]`` is a tuple
+        of ``(kind, coordinate, coefficient)`` with kind ``"lin"`` (``c x_j``), ``"sin"``
+        (``c sin x_j``), ``"cos"`` (``c cos x_j``) or ``"const"`` (``c``, coordinate ``-1``)
+        whose sum is component ``i`` of ``g`` in mode ``u``. None: no exact images.
     """
 
     mode_names: tuple
@@ -64,6 +170,78 @@ class TrueSystem:
     g: Callable
     sigma: np.ndarray
     bound: np.ndarray
+    g_terms: tuple | None = None
+
+    def __post_init__(self):
+        if self.g_terms is None:
+            return
+        M, n = len(self.mode_names), len(self.sigma)
+        if len(self.g_terms) != M or any(len(row) != n for row in self.g_terms):
+            raise DimensionError(
+                f"g_terms must have {M} modes x {n} outputs; got {[len(r) for r in self.g_terms]}")
+        for u, row in enumerate(self.g_terms):
+            for i, terms in enumerate(row):
+                for kind, j, _c in terms:
+                    if kind not in _TERM_KINDS or (kind != "const" and not 0 <= j < n):
+                        raise InvalidInputError(
+                            f"g_terms[{u}][{i}] must hold (kind in {_TERM_KINDS}, coordinate in "
+                            f"0..{n - 1}, coefficient); got {(kind, j, _c)!r}")
+
+    def image_bounds(self, lower, upper):
+        """Certified boxes of the noise-free images ``{A_u x + b_u + g_u(x) : x in cell}``.
+
+        Every output component of every case study is a sum of functions of single
+        coordinates (the known affine part and ``g_terms``), so its range over a box is the
+        sum of exact 1-D ranges (linear: the endpoints, so ``x -> A x`` gives ``A c -+ |A| h`` for
+        centre c and half-widths h; sin/cos: endpoints and the interior critical points k pi/2); see ``_term_sum_bounds`` for the outward margin
+        (``1e-12 (1 + magnitudes)``, far below any width that matters, always on the safe side).
+
+        Parameters
+        ----------
+        lower, upper : (n_cells, n) float arrays
+            Cell boxes, ``lower <= upper``.
+
+        Returns
+        -------
+        image_lower, image_upper : (n_modes, n_cells, n) float arrays
+            Contain the exact images, rounded outward (never inward).
+
+        Raises
+        ------
+        InvalidInputError
+            The system has no ``g_terms``, or the boxes are not finite with ``lower <= upper``.
+        DimensionError
+            ``lower`` / ``upper`` do not have shape (n_cells, n).
+        """
+        if self.g_terms is None:
+            raise InvalidInputError(
+                "image_bounds needs the separable form g_terms of the true system; this TrueSystem has g_terms=None")
+        n = len(self.sigma)
+        lower = np.asarray(lower, dtype=float)
+        upper = np.asarray(upper, dtype=float)
+        if lower.ndim != 2 or lower.shape[1] != n:
+            raise DimensionError(f"lower must have shape (n_cells, {n}); got {lower.shape}")
+        if upper.shape != lower.shape:
+            raise DimensionError(f"upper must have shape {lower.shape} like lower; got {upper.shape}")
+        if not (np.all(np.isfinite(lower)) and np.all(np.isfinite(upper))):
+            raise InvalidInputError("lower and upper must be finite")
+        bad = np.argwhere(lower > upper)
+        if bad.size:
+            q, j = (int(v) for v in bad[0])
+            raise InvalidInputError(
+                f"lower must be <= upper; got [{lower[q, j]}, {upper[q, j]}] at cell {q}, dim {j}")
+        M = len(self.mode_names)
+        img_lo = np.empty((M, lower.shape[0], n))
+        img_hi = np.empty_like(img_lo)
+        for u in range(M):
+            for i in range(n):
+                known = [("lin", j, float(self.known_A[u, i, j])) for j in range(n)
+                         if self.known_A[u, i, j] != 0.0]
+                if self.known_b[u, i] != 0.0:
+                    known.append(("const", -1, float(self.known_b[u, i])))
+                img_lo[u, :, i], img_hi[u, :, i] = _term_sum_bounds(
+                    tuple(known) + tuple(self.g_terms[u][i]), lower, upper)
+        return img_lo, img_hi
 
     def noise_model(self):
         """The noise as a :class:`robust_imdp.noise.TruncatedGaussianNoise`."""
@@ -127,7 +305,7 @@ _EYE = np.eye(2)
 _THREE = CaseStudy(
     name="three_mode_linear",
     system=TrueSystem(("1", "2", "3"), np.stack([_ZERO] * 3), np.zeros((3, 2)), _g_linear,
-                      _SIGMA, _SIGMA.copy()),
+                      _SIGMA, _SIGMA.copy(), _G_TERMS_LINEAR),
     n_per_mode=200,
     regions={
         "des": [((-1.0, -1.0), (0.0, 0.0)), ((0.0, 0.0), (1.0, 1.0))],
@@ -140,7 +318,7 @@ _THREE = CaseStudy(
 _FOUR = CaseStudy(
     name="four_mode_nonlinear",
     system=TrueSystem(("1", "2", "3", "4"), np.stack([_EYE] * 4), np.zeros((4, 2)), _g_nonlinear,
-                      _SIGMA, _SIGMA.copy()),
+                      _SIGMA, _SIGMA.copy(), _G_TERMS_NONLINEAR),
     n_per_mode=300,
     regions={
         "des": [((-0.75, -0.75), (0.75, 0.75))],
@@ -171,6 +349,42 @@ def get_case_study(name: str) -> CaseStudy:
 def true_system(name: str) -> TrueSystem:
     """The true system of case study ``name`` (for ``validate`` and ``simulate``)."""
     return get_case_study(name).system
+
+
+def known_dynamics_cell_bounds(name: str, partition):
+    """Exact (certified) image boxes of case study ``name``'s true dynamics over ``partition``.
+
+    The input of the known-dynamics reference: ``abstraction.abstract(partition, bounds, noise)``
+    with these bounds is the abstraction our pipeline would build if it knew ``f_u + g_u``
+    exactly (no GP error), so its Q_yes is the best any learned bound can reach on that grid.
+
+    Parameters
+    ----------
+    name : str
+        A case study in ``CASE_STUDIES``.
+    partition : geometry.Partition
+        Cells ``partition.cells_lower`` / ``partition.cells_upper`` (n_cells, n).
+
+    Returns
+    -------
+    abstraction.CellBounds
+        ``image_lower``, ``image_upper`` (n_modes, n_cells, n) from
+        :meth:`TrueSystem.image_bounds`, ``std_upper=None`` (known dynamics).
+    """
+    from robust_imdp.abstraction import CellBounds
+
+    system = true_system(name)
+    lower = getattr(partition, "cells_lower", None)
+    upper = getattr(partition, "cells_upper", None)
+    if lower is None or upper is None:
+        raise InvalidInputError(
+            f"partition must be a Partition (with cells_lower / cells_upper); got {type(partition).__name__}")
+    if np.shape(lower)[1:] != (len(system.sigma),):
+        raise DimensionError(
+            f"partition must have dimension {len(system.sigma)} like case study {name!r}; got cells of shape "
+            f"{np.shape(lower)}")
+    lo, hi = system.image_bounds(lower, upper)
+    return CellBounds(lo, hi, None)
 
 
 def _toml_list(v) -> str:
