@@ -1,0 +1,295 @@
+"""Known-dynamics reference: how close are our learned guarantees to what the grid allows? (issue 9)
+
+For every shipped case-study problem (``examples/problems/*.toml``):
+
+* **reference** -- the same grid, regions, noise, threshold, formula and abstraction options,
+  but the EXACT image boxes of the true dynamics over every cell
+  (``casestudies.known_dynamics_cell_bounds``) fed to our own ``abstraction.abstract`` and
+  ``synthesis.synthesize``. No learned bound can classify more cells as Q_yes on this grid
+  (up to the abstraction's own rules), so it is the yardstick of tightness.
+* **ours** -- ``io.load_problem`` + ``pipeline.synthesize_from_data`` on the problem file, as
+  shipped (no cache): Q_yes / Q_no / Q_?, Q_yes as a fraction of the reference, pipeline time.
+* **image boxes** -- the boxes our pipeline hands to ``abstraction.abstract`` are recorded by
+  wrapping that function during the run (no library change; works whatever the pipeline does
+  before, as long as it ends in ``abstract``). Per mode and output: median / max excess per
+  side over the exact box (``exact_lo - ours_lo`` and ``ours_hi - exact_hi``), and
+  **containment**: the number of (mode, cell, output, side) where an exact box sticks out of
+  ours. In the confidence mode that number must be 0 (the boxes then contain the true images
+  with the stated data confidence; a violation on the shipped data is a soundness red flag).
+  In the "paper" mode the boxes hold ``f + mu`` only (the GP error enters the probabilities),
+  so containment is not expected and is reported as n/a.
+
+Writes ``benchmarks/results/reference.json`` and ``.md`` (machine info, medians over
+``--repeat`` pipeline runs, ``BENCH_NOTE``).
+
+Usage: ``python benchmarks/reference.py [--repeat N] [--only STEM ...] [--render]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+# one BLAS thread: the machine has 2 cores shared by other jobs (oversubscription is slower)
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+import numpy as np  # noqa: E402
+
+import robust_imdp  # noqa: E402
+from robust_imdp import abstraction as _abstraction  # noqa: E402
+from robust_imdp.casestudies import CASE_STUDIES, known_dynamics_cell_bounds, true_system  # noqa: E402
+from robust_imdp.dfa import ltlf_to_dfa  # noqa: E402
+from robust_imdp.geometry import Box, Partition, Region  # noqa: E402
+from robust_imdp.io import load_problem  # noqa: E402
+from robust_imdp.pipeline import synthesize_from_data  # noqa: E402
+from robust_imdp.synthesis import synthesize  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+PROBLEMS = ROOT / "examples" / "problems"
+OUT = HERE / "results"
+
+#: Problem file stem -> case study whose true dynamics produced its data.
+CASES = {
+    "three_mode_linear": "three_mode_linear",
+    "four_mode_nonlinear": "four_mode_nonlinear",
+    "four_mode_nonlinear_two_goals": "four_mode_nonlinear",
+}
+#: Reference Q_yes measured by the session that filed issue 9 (same grid 0.125, same settings).
+EXPECTED_REFERENCE_YES = {"three_mode_linear": 764, "four_mode_nonlinear": 1018,
+                          "four_mode_nonlinear_two_goals": 654}
+
+
+# --------------------------------------------------------------------------- helpers
+def _counts(p_low, p_up, threshold) -> dict:
+    """Classes by definition (paper, Sec. 5): yes iff p_low >= t, no iff p_up < t."""
+    p_low, p_up = np.asarray(p_low), np.asarray(p_up)
+    yes = p_low >= threshold
+    no = (p_up < threshold) & ~yes
+    return {"yes": int(yes.sum()), "no": int(no.sum()), "maybe": int((~yes & ~no).sum())}
+
+
+def _partition(problem) -> Partition:
+    regions = [Region(k, [Box(lo, up) for lo, up in v]) for k, v in problem.regions.items()]
+    return Partition(Box(problem.space_lower, problem.space_upper), problem.cell_size, regions)
+
+
+def _mean_successors(abstr, n_cells: int) -> float:
+    """Mean listed successors per cell row, the outside-state entry not counted."""
+    nnz = np.asarray(abstr.nnz_per_row)
+    return float(np.mean(nnz[: n_cells * abstr.n_modes]) - 1.0)
+
+
+def reference(problem, case: str) -> dict:
+    """Known-dynamics reference of ``problem`` (exact images of case study ``case``)."""
+    system = true_system(case)
+    if tuple(problem.mode_names) != tuple(system.mode_names):
+        raise ValueError(f"problem modes {problem.mode_names} differ from case study {case!r} "
+                         f"modes {system.mode_names}")
+    t0 = time.perf_counter()
+    part = _partition(problem)
+    cb = known_dynamics_cell_bounds(case, part)
+    abstr = _abstraction.abstract(part, cb, problem.noise, None, eta=getattr(problem, "eta", None),
+                                  eps_rule=getattr(problem, "eps_rule", "optimized"),
+                                  combine=getattr(problem, "combine", "product"))
+    dfa = ltlf_to_dfa(problem.formula)
+    syn = synthesize(abstr.imdp, part.labels, part.atoms, dfa, threshold=problem.threshold,
+                     horizon=problem.horizon, outside_state=part.outside_state)
+    return {"counts": _counts(syn.p_low, syn.p_up, problem.threshold),
+            "time_s": time.perf_counter() - t0,
+            "mean_successors_per_row": _mean_successors(abstr, part.n_cells),
+            "mean_p_low": float(np.mean(syn.p_low)),
+            "cell_bounds": cb}
+
+
+class _RecordAbstract:
+    """Wraps ``abstraction.abstract`` wherever it is bound, recording its cell-bounds argument."""
+
+    def __init__(self):
+        self.calls = []
+        self.original = _abstraction.abstract
+        self.patched = []
+
+    def __enter__(self):
+        original, calls = self.original, self.calls
+
+        def recording(partition, cell_bounds, *args, **kwargs):
+            calls.append(cell_bounds)
+            return original(partition, cell_bounds, *args, **kwargs)
+
+        # every loaded robust_imdp module that bound the function by name (lazy imports read
+        # the module attribute at call time, so patching robust_imdp.abstraction covers them)
+        for name, mod in list(sys.modules.items()):
+            if (name == "robust_imdp" or name.startswith("robust_imdp.")) and \
+                    getattr(mod, "abstract", None) is original:
+                setattr(mod, "abstract", recording)
+                self.patched.append(mod)
+        return self
+
+    def __exit__(self, *exc):
+        for mod in self.patched:
+            setattr(mod, "abstract", self.original)
+        return False
+
+
+def image_comparison(ours, exact) -> dict:
+    """Per-side excess of our boxes over the exact ones and containment violations."""
+    lo_ex = exact.image_lower - ours.image_lower  # >= 0 when ours contains the exact box
+    hi_ex = ours.image_upper - exact.image_upper
+    both = np.stack([lo_ex, hi_ex])  # (2, M, N, n)
+    M, _, n = exact.image_lower.shape
+    per = [[{"median": float(np.median(both[:, u, :, i])), "max": float(np.max(both[:, u, :, i])),
+             "violations": int(np.sum(both[:, u, :, i] < 0))} for i in range(n)] for u in range(M)]
+    return {"excess_median": float(np.median(both)), "excess_max": float(np.max(both)),
+            "containment_violations": int(np.sum(both < 0)),
+            "worst_violation": float(max(0.0, -np.min(both))),
+            "per_mode_output": per}
+
+
+def run_one(stem: str, repeat: int) -> dict:
+    path = PROBLEMS / f"{stem}.toml"
+    case = CASES[stem]
+    problem = load_problem(path)
+    ref = reference(problem, case)
+    exact = ref.pop("cell_bounds")
+    row = {"problem": f"examples/problems/{stem}.toml", "case_study": case, "formula": problem.formula,
+           "threshold": float(problem.threshold), "guarantee": getattr(problem, "guarantee", None),
+           "reference": ref, "expected_reference_yes": EXPECTED_REFERENCE_YES.get(stem)}
+    times, result, recorded = [], None, None
+    for _ in range(repeat):
+        with _RecordAbstract() as rec:
+            result = synthesize_from_data(problem, progress=False)  # no cache: a full run
+        times.append(float(result.timings.get("total", float("nan"))))
+        recorded = rec.calls
+    c = _counts(result.synthesis.p_low, result.synthesis.p_up, problem.threshold)
+    row["ours"] = {
+        "counts": c, "class_names_counts": result.counts(),
+        "fraction_of_reference_yes": c["yes"] / ref["counts"]["yes"] if ref["counts"]["yes"] else None,
+        "pipeline_time_median_s": statistics.median(times), "pipeline_times_s": times,
+        "stage_times_s": {k: float(v) for k, v in result.timings.items()},
+        "mean_successors_per_row": _mean_successors(result.abstraction, result.partition.n_cells),
+        "mean_p_low": float(np.mean(result.synthesis.p_low)),
+        "parameters": {k: result.parameters.get(k) for k in ("rkhs_bound", "gp_options", "guarantee",
+                                                             "confidence", "eps_rule", "combine")},
+    }
+    boxes = [cb for cb in (recorded or []) if getattr(cb, "image_lower", None) is not None
+             and cb.image_lower.shape == exact.image_lower.shape]
+    if not boxes:
+        row["images"] = {"note": "the pipeline did not call abstraction.abstract with boxes of this "
+                                 "shape (cache? new entry point?): no image comparison"}
+    else:
+        ours = boxes[-1]
+        row["images"] = image_comparison(ours, exact)
+        if ours.std_upper is not None:  # "paper" mode: boxes of f + mu, GP error not folded in
+            row["images"]["note"] = ("boxes hold f + mu only (GP error enters the probabilities): "
+                                     "containment not expected")
+            row["images"]["containment_violations"] = None
+    return row
+
+
+def _git_commit() -> str | None:
+    try:
+        out = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
+                             capture_output=True, text=True, check=True)
+        dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--", "src"],
+                               capture_output=True, text=True, check=True).stdout.strip()
+        return out.stdout.strip() + (" + uncommitted src changes" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return None
+
+
+# --------------------------------------------------------------------------- report
+def write_md(path: Path, data: dict) -> None:
+    meta, rows = data["meta"], data["rows"]
+    lines = [
+        "# Known-dynamics reference (`benchmarks/reference.py`)", "",
+        f"{meta['note']}; {meta['date']}; commit {meta['commit']}; python {meta['python']}, "
+        f"numpy {meta['numpy']}, {meta['machine']}; pipeline times are medians of {meta['repeat']} run(s).", "",
+        "*reference*: the same grid, regions, noise, threshold and abstraction options with the EXACT "
+        "image boxes of the true dynamics (`casestudies.known_dynamics_cell_bounds`) through our own "
+        "`abstract` + `synthesize`. *ours*: `synthesize_from_data` on the shipped problem file. "
+        "*excess*: per side, how far our image box (as handed to `abstract`) reaches beyond the exact "
+        "box. *containment*: (mode, cell, output, side) where the exact box sticks out of ours "
+        "(must be 0). *succ/row*: mean listed successor cells per row.", "",
+        "| problem | formula | reference Q_yes / Q_no / Q_? | ours Q_yes / Q_no / Q_? | Q_yes fraction |"
+        " pipeline s | excess median / max | containment | succ/row ref / ours |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        rc, oc, im = r["reference"]["counts"], r["ours"]["counts"], r["images"]
+        frac = r["ours"]["fraction_of_reference_yes"]
+        exc = (f"{im['excess_median']:.4f} / {im['excess_max']:.4f}" if "excess_median" in im else "n/a")
+        cont = im.get("containment_violations")
+        lines.append(
+            f"| {Path(r['problem']).stem} | `{r['formula']}` | {rc['yes']} / {rc['no']} / {rc['maybe']} | "
+            f"{oc['yes']} / {oc['no']} / {oc['maybe']} | {'n/a' if frac is None else f'{frac:.3f}'} | "
+            f"{r['ours']['pipeline_time_median_s']:.1f} | {exc} | {'n/a' if cont is None else cont} | "
+            f"{r['reference']['mean_successors_per_row']:.1f} / {r['ours']['mean_successors_per_row']:.1f} |")
+    lines += ["", "## Excess of our image boxes per mode and output (per side: median / max)", "",
+              "| problem | mode | output | median | max | containment violations |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        per = r["images"].get("per_mode_output")
+        if per is None:
+            continue
+        for u, outs in enumerate(per):
+            for i, e in enumerate(outs):
+                lines.append(f"| {Path(r['problem']).stem} | {u} | {i} | {e['median']:.4f} | {e['max']:.4f} | "
+                             f"{e['violations']} |")
+    notes = []
+    for r in rows:
+        exp = r.get("expected_reference_yes")
+        if exp is not None and exp != r["reference"]["counts"]["yes"]:
+            notes.append(f"* {Path(r['problem']).stem}: reference Q_yes {r['reference']['counts']['yes']} differs "
+                         f"from the {exp} measured when issue 9 was filed (problem settings changed?).")
+        if "note" in r["images"]:
+            notes.append(f"* {Path(r['problem']).stem}: {r['images']['note']}.")
+        cont = r["images"].get("containment_violations")
+        if cont:
+            notes.append(f"* {Path(r['problem']).stem}: **{cont} containment violations** (worst "
+                         f"{r['images']['worst_violation']:.3g}): a learned box misses the exact image.")
+    if notes:
+        lines += ["", "## Notes", "", *notes]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--repeat", type=int, default=1, help="pipeline runs per problem (median time)")
+    ap.add_argument("--only", nargs="+", choices=sorted(CASES), help="problem file stems to run")
+    ap.add_argument("--render", action="store_true", help="only rewrite reference.md from reference.json")
+    args = ap.parse_args(argv)
+    OUT.mkdir(exist_ok=True)
+    if args.render:
+        write_md(OUT / "reference.md", json.loads((OUT / "reference.json").read_text()))
+        return 0
+    assert set(CASES.values()) <= set(CASE_STUDIES)
+    t0 = time.perf_counter()
+    rows = []
+    for stem in args.only or list(CASES):
+        row = run_one(stem, max(1, args.repeat))
+        rc, oc = row["reference"]["counts"], row["ours"]["counts"]
+        print(f"{stem}: reference {rc['yes']}/{rc['no']}/{rc['maybe']}, ours {oc['yes']}/{oc['no']}/{oc['maybe']} "
+              f"(Q_yes fraction {row['ours']['fraction_of_reference_yes']}), pipeline "
+              f"{row['ours']['pipeline_time_median_s']:.1f} s, containment violations "
+              f"{row['images'].get('containment_violations')}", flush=True)
+        rows.append(row)
+    meta = {"machine": platform.platform(), "python": platform.python_version(), "numpy": np.__version__,
+            "robust_imdp": robust_imdp.__version__, "commit": _git_commit(), "repeat": max(1, args.repeat),
+            "note": os.environ.get("BENCH_NOTE", "2-core machine shared with other jobs"),
+            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+            "total_s": time.perf_counter() - t0}
+    data = {"meta": meta, "rows": rows}
+    (OUT / "reference.json").write_text(json.dumps(data, indent=1))
+    write_md(OUT / "reference.md", data)
+    bad = [r for r in rows if r["images"].get("containment_violations")]
+    return 1 if bad else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
