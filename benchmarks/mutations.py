@@ -1,0 +1,364 @@
+"""Mutation check of the test suite: does every soundness check catch a slightly unsound bound? (issue 14)
+
+Each entry of ``MUTATIONS`` is a one-line source edit that makes one bound slightly unsound
+(typically a shrink by 1e-3 = 0.1 %, or outward rounding switched off). For each, the working
+tree is copied to a scratch directory (``git ls-files --cached --others --exclude-standard``:
+tracked and new, not ignored, files), the edit is applied there (the original text must occur
+EXACTLY ONCE in the file, else the script stops: keep the list current when the code moves),
+and the test suite runs on the copy::
+
+    PYTHONPATH=<scratch>/src python -m pytest -x -q -p no:cacheprovider     (cwd = <scratch>)
+
+after checking, in the same environment, that ``import robust_imdp`` resolves to the scratch
+copy. A mutation is *caught* when pytest fails (exit 1); the first failing test is recorded.
+A baseline run of the unmutated copy (whole suite, no ``-x``) comes first: tests that already
+fail there (someone's work in progress) are deselected from the mutation runs and listed in the
+report; ``--strict-baseline`` stops instead.
+
+Not run in CI (one full suite per mutation). Writes the table to ``docs/mutations.md`` with the
+date and the command, and the raw results to ``benchmarks/results/mutations.json``.
+
+Usage::
+
+    python benchmarks/mutations.py [--jobs N] [--only NAME ...] [--list] [--no-write]
+
+Adding an entry (e.g. for a new bound in rkhs.py): append a dict with ``name`` (unique, short),
+``file`` (repository-relative path), ``original`` (exact text, usually one whole line with its
+indentation; it must occur exactly once), ``replacement`` and ``description`` (what becomes
+unsound and by how much). Prefer edits that keep the model internally consistent (e.g. cap a
+raised lower bound at the upper bound), so that a catch comes from a soundness check and not
+from an unrelated validation error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+DOC = ROOT / "docs" / "mutations.md"
+RAW = ROOT / "benchmarks" / "results" / "mutations.json"
+
+_ABS = "src/robust_imdp/abstraction.py"
+_BOUNDS = "src/robust_imdp/bounds.py"
+_GP = "src/robust_imdp/gp.py"
+_SOLVE = "src/robust_imdp/solve.py"
+_SYN = "src/robust_imdp/synthesis.py"
+
+_VI_RETURN = ("    return ReachabilityResult(lower=lo, upper=up, strategy=strat, iterations=it, "
+              "precision=gap, converged=converged)")
+_VI_K_RETURN = ("    return ReachabilityResult(lower=lo, upper=up, strategy=strat, iterations=k, "
+                "precision=prec, converged=True)")
+_SYN_CHECK = "    bad = np.flatnonzero(~(p_low <= p_up))"
+_FLOOR = "    floor = np.concatenate([floors.T.ravel(), np.zeros(M)])"
+
+#: The mutations, in the order they are run. Keep each ``original`` unique in its file.
+MUTATIONS = [
+    # ------------------------------------------------------------------ abstraction (Thm 1)
+    dict(name="outward-off", file=_ABS,
+         original="    return np.where(err > 0, moved, x)",
+         replacement="    return x",
+         description="abstraction._outward returns x (outward rounding off)"),
+    dict(name="floor-x0.99", file=_ABS, original=_FLOOR,
+         replacement="    floor = np.concatenate([floors.T.ravel() * 0.99, np.zeros(M)])",
+         description="every row's floor (upper bound of unlisted targets) x 0.99"),
+    dict(name="floor-x0.5", file=_ABS, original=_FLOOR,
+         replacement="    floor = np.concatenate([floors.T.ravel() * 0.5, np.zeros(M)])",
+         description="every row's floor x 0.5"),
+    dict(name="floor-shrink-1e-3", file=_ABS, original=_FLOOR,
+         replacement="    floor = np.concatenate([floors.T.ravel() * (1 - 1e-3), np.zeros(M)])",
+         description="every row's floor x (1 - 1e-3)"),
+    dict(name="listed-upper-shrink-1e-3", file=_ABS,
+         original="            upper[dest] = _complement_up(G)",
+         replacement="            upper[dest] = np.maximum(_complement_up(G) * (1 - 1e-3), low)",
+         description="upper bounds of listed cell targets x (1 - 1e-3) (kept >= lower)"),
+    dict(name="listed-lower-shrink-1e-3", file=_ABS,
+         original="            lower[dest] = low",
+         replacement="            lower[dest] = np.minimum(low * (1 + 1e-3), upper[dest])",
+         description="lower bounds of listed cell targets x (1 + 1e-3) (kept <= upper)"),
+    dict(name="outside-upper-shrink-1e-3", file=_ABS,
+         original="            upper[dout] = up_out",
+         replacement="            upper[dout] = np.maximum(up_out * (1 - 1e-3), low_out)",
+         description="upper bound of the outside-X state x (1 - 1e-3) (kept >= lower)"),
+    dict(name="outside-lower-shrink-1e-3", file=_ABS,
+         original="            lower[dout] = low_out",
+         replacement="            lower[dout] = np.minimum(low_out * (1 + 1e-3), upper[dout])",
+         description="lower bound of the outside-X state x (1 + 1e-3) (kept <= upper)"),
+    dict(name="confidence-eps-shrink-1e-3", file=_ABS,
+         original="            eps[u, :, i] = models[u][i].eps_for_prob(p_each, cell_bounds.std_upper[u, :, i])",
+         replacement="            eps[u, :, i] = models[u][i].eps_for_prob(p_each, cell_bounds.std_upper[u, :, i]) * (1 - 1e-3)",
+         description="confidence mode: GP error radius folded into the image boxes x (1 - 1e-3)"),
+    dict(name="confidence-no-union-bound", file=_ABS,
+         original="    delta_each = _down1(_down1(1.0 - confidence) / (M * d))",
+         replacement="    delta_each = _down1(1.0 - confidence)",
+         description="confidence mode: each GP gets all of 1 - confidence (union bound over GPs dropped)"),
+    # ------------------------------------------------------------------ GP bounds (bounds.py, gp.py)
+    dict(name="gp-mean-lower-shrink-1e-3", file=_BOUNDS,
+         original="        mean_lower=mean_lower,",
+         replacement="        mean_lower=mean_lower + 1e-3 * (mean_upper - mean_lower),",
+         description="certified lower bound of the posterior mean (image) over a box raised by 1e-3 of the box width"),
+    dict(name="gp-mean-upper-shrink-1e-3", file=_BOUNDS,
+         original="        mean_upper=mean_upper,",
+         replacement="        mean_upper=mean_upper - 1e-3 * (mean_upper - mean_lower),",
+         description="certified upper bound of the posterior mean (image) over a box lowered by 1e-3 of the box width"),
+    dict(name="gp-std-upper-shrink-1e-3", file=_BOUNDS,
+         original="        std_upper=std_upper,",
+         replacement="        std_upper=std_upper * (1 - 1e-3),",
+         description="certified upper bound of the posterior std over a box x (1 - 1e-3)"),
+    dict(name="beta-shrink-1e-3", file=_GP,
+         original="        return _round_up(beta * (1 + 16 * _EPS))",
+         replacement="        return _round_up(beta * (1 - 1e-3))",
+         description="Chowdhury-Gopalan beta(delta) x (1 - 1e-3)"),
+    # ------------------------------------------------------------------ value iteration (solve.py)
+    dict(name="vi-upper-x0.99", file=_SOLVE, original=_VI_RETURN,
+         replacement=_VI_RETURN.replace("upper=up,", "upper=up * 0.99,"),
+         description="unbounded value iteration: upper end of every bracket x 0.99 (robust upper Bellman values)"),
+    dict(name="vi-upper-shrink-1e-3", file=_SOLVE, original=_VI_RETURN,
+         replacement=_VI_RETURN.replace("upper=up,", "upper=up * (1 - 1e-3),"),
+         description="unbounded value iteration: upper end of every bracket x (1 - 1e-3)"),
+    dict(name="vi-lower-shrink-1e-3", file=_SOLVE, original=_VI_RETURN,
+         replacement=_VI_RETURN.replace("lower=lo,", "lower=np.minimum(lo * (1 + 1e-3), 1.0),"),
+         description="unbounded value iteration: lower end of every bracket x (1 + 1e-3) (capped at 1)"),
+    dict(name="vi-kstep-upper-shrink-1e-3", file=_SOLVE, original=_VI_K_RETURN,
+         replacement=_VI_K_RETURN.replace("upper=up,", "upper=up * (1 - 1e-3),"),
+         description="k-step value iteration: upper end of every bracket x (1 - 1e-3)"),
+    dict(name="vi-kstep-lower-shrink-1e-3", file=_SOLVE, original=_VI_K_RETURN,
+         replacement=_VI_K_RETURN.replace("lower=lo,", "lower=np.minimum(lo * (1 + 1e-3), 1.0),"),
+         description="k-step value iteration: lower end of every bracket x (1 + 1e-3) (capped at 1)"),
+    # ------------------------------------------------------------------ synthesis (what the pipeline reports)
+    dict(name="p_low-x1.01", file=_SYN, original=_SYN_CHECK,
+         replacement="    p_low = np.minimum(p_low * 1.01, p_up); " + _SYN_CHECK.strip(),
+         description="p_low x 1.01 (capped at p_up) in synthesis, i.e. in every pipeline result"),
+    dict(name="p_low-shrink-1e-3", file=_SYN, original=_SYN_CHECK,
+         replacement="    p_low = np.minimum(p_low * (1 + 1e-3), p_up); " + _SYN_CHECK.strip(),
+         description="p_low x (1 + 1e-3) (capped at p_up)"),
+    dict(name="p_up-shrink-1e-3", file=_SYN, original=_SYN_CHECK,
+         replacement="    p_up = np.maximum(p_up * (1 - 1e-3), p_low); " + _SYN_CHECK.strip(),
+         description="p_up x (1 - 1e-3) (kept >= p_low)"),
+    dict(name="p_up_star-shrink-1e-3", file=_SYN,
+         original="    p_up_star = np.array(optimistic.initial_upper, dtype=np.float64)[:n_cells]",
+         replacement="    p_up_star = np.maximum(np.array(optimistic.initial_upper, dtype=np.float64)[:n_cells] * (1 - 1e-3), p_low)",
+         description="p_up_star x (1 - 1e-3) (kept >= p_low; p_up = min(., p_up_star) follows)"),
+]
+
+
+# --------------------------------------------------------------------------- machinery
+def _check_list(mutations) -> list[str]:
+    """Problems with the list: duplicate names, missing files, original not exactly once."""
+    problems, seen = [], set()
+    for m in mutations:
+        missing = {"name", "file", "original", "replacement", "description"} - set(m)
+        if missing:
+            problems.append(f"{m.get('name', '?')}: missing keys {sorted(missing)}")
+            continue
+        if m["name"] in seen:
+            problems.append(f"{m['name']}: duplicate name")
+        seen.add(m["name"])
+        path = ROOT / m["file"]
+        if not path.is_file():
+            problems.append(f"{m['name']}: file {m['file']} does not exist")
+            continue
+        n = path.read_text().count(m["original"])
+        if n != 1:
+            problems.append(f"{m['name']}: original text occurs {n} times in {m['file']} (must be exactly once): "
+                            f"{m['original']!r}")
+        if m["original"] == m["replacement"]:
+            problems.append(f"{m['name']}: replacement equals the original")
+    return problems
+
+
+def _tree_files() -> list[str]:
+    out = subprocess.run(["git", "-C", str(ROOT), "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
+                         capture_output=True, check=True).stdout.decode()
+    return sorted({f for f in out.split("\0") if f and (ROOT / f).is_file()})
+
+
+def _copy_tree(dest: Path, files) -> None:
+    for f in files:
+        target = dest / f
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(ROOT / f, target)  # keeps mtimes: numba's cache (below) stays valid
+    # numba's on-disk cache (keyed by the source file's mtime and size): reusing it saves the
+    # compile time; the mutated file's new mtime invalidates its own entries only.
+    for cache in (ROOT / "src").rglob("__pycache__"):
+        for f in cache.glob("*.nb[ic]"):
+            target = dest / f.relative_to(ROOT)
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(f, target)
+
+
+def _apply(dest: Path, m: dict) -> None:
+    path = dest / m["file"]
+    text = path.read_text()
+    n = text.count(m["original"])
+    if n != 1:
+        raise RuntimeError(f"mutation {m['name']}: original text occurs {n} times in {m['file']}")
+    path.write_text(text.replace(m["original"], m["replacement"], 1))
+
+
+def _env(dest: Path) -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(dest / "src")
+    env.pop("PYTHONHOME", None)
+    env.setdefault("MPLBACKEND", "Agg")
+    env.setdefault("OPENBLAS_NUM_THREADS", "1")
+    env["PYTHONDONTWRITEBYTECODE"] = "1"
+    return env
+
+
+def _failures(output: str) -> list[str]:
+    """Test ids of the short summary's FAILED / ERROR lines."""
+    out = []
+    for line in output.splitlines():
+        if line.startswith(("FAILED ", "ERROR ")):
+            out.append(line.split(" ", 1)[1].split(" - ")[0].strip())
+    return out
+
+
+def _first_failure(output: str) -> str | None:
+    f = _failures(output)
+    return f[0] if f else None
+
+
+def run_one(m: dict | None, files, timeout: float, deselect=()) -> dict:
+    """Copy, mutate (``m`` None: baseline), check the import path, run pytest; a result dict."""
+    name = "baseline" if m is None else m["name"]
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix=f"mut-{name}-") as tmp:
+        dest = Path(tmp)
+        _copy_tree(dest, files)
+        if m is not None:
+            _apply(dest, m)
+        env = _env(dest)
+        probe = subprocess.run([sys.executable, "-c", "import robust_imdp; print(robust_imdp.__file__)"],
+                               cwd=dest, env=env, capture_output=True, text=True)
+        where = probe.stdout.strip()
+        if probe.returncode != 0 or not Path(where).resolve().is_relative_to(dest.resolve()):
+            raise RuntimeError(f"{name}: robust_imdp imports from {where or probe.stderr.strip()!r}, "
+                               f"not from the scratch copy {dest}")
+        try:
+            cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider"]
+            cmd += [] if m is None else ["-x"]  # baseline: every failure, to deselect them below
+            for test_id in deselect:
+                cmd += ["--deselect", test_id]
+            proc = subprocess.run(cmd, cwd=dest, env=env, capture_output=True, text=True, timeout=timeout)
+            rc, out = proc.returncode, proc.stdout + proc.stderr
+        except subprocess.TimeoutExpired as exc:
+            rc = None
+            out = (exc.stdout or b"").decode() if isinstance(exc.stdout, bytes) else (exc.stdout or "")
+    last = [line for line in out.splitlines() if line.strip()][-1:] if out else []
+    if rc == 0:
+        status = "not caught"
+    elif rc == 1:
+        status = "caught"
+    elif rc is None:
+        status = f"timeout ({timeout:.0f} s)"
+    else:
+        status = f"error (pytest exit {rc})"
+    return {"name": name, "status": status, "returncode": rc, "first_failure": _first_failure(out),
+            "failures": _failures(out) if m is None else None,
+            "summary": last[0].strip("= ") if last else "", "seconds": time.perf_counter() - t0,
+            "file": None if m is None else m["file"], "description": "unmutated copy" if m is None
+            else m["description"]}
+
+
+def write_doc(results, baseline, command, elapsed, deselected) -> None:
+    caught = sum(r["status"] == "caught" for r in results)
+    lines = [
+        "# Mutation check of the test suite (`benchmarks/mutations.py`)", "",
+        f"Run {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} with `{command}` "
+        f"({elapsed / 60:.1f} min). Baseline (unmutated copy): {baseline['status'].replace('not caught', 'passes')}"
+        f" ({baseline['summary']}).", "",
+        "Each row is a one-line edit that makes one bound slightly unsound, applied to a scratch copy of "
+        "the working tree; the whole suite then runs on the copy (`pytest -x`). **caught** = some test fails "
+        "(the first one is named); **not caught** = the suite passes although the bound is unsound, i.e. a "
+        "missing soundness check (issue 14). The list of mutations is `MUTATIONS` at the top of the script.", "",
+        *([f"Tests failing already in the baseline, deselected from the mutation runs: "
+           f"{', '.join(f'`{t}`' for t in deselected)}.", ""] if deselected else []),
+        f"**{caught} of {len(results)} caught.**", "",
+        "| mutation | file | what is made unsound | result | first failing test | s |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in results:
+        res = f"**{r['status']}**" if r["status"] != "caught" else "caught"
+        ff = f"`{r['first_failure'].removeprefix('FAILED ').removeprefix('ERROR ')}`" if r["first_failure"] else "-"
+        lines.append(f"| `{r['name']}` | {Path(r['file']).name} | {r['description']} | {res} | {ff} | "
+                     f"{r['seconds']:.0f} |")
+    DOC.write_text("\n".join(lines) + "\n")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--jobs", type=int, default=1, help="mutations run in parallel (default 1)")
+    ap.add_argument("--only", nargs="+", metavar="NAME", help="run only these mutations")
+    ap.add_argument("--list", action="store_true", help="print the mutations and check the list, run nothing")
+    ap.add_argument("--no-write", action="store_true", help="do not write docs/mutations.md and the json")
+    ap.add_argument("--no-baseline", action="store_true", help="skip the unmutated run")
+    ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per pytest run")
+    ap.add_argument("--strict-baseline", action="store_true",
+                    help="stop when the unmutated suite fails (default: deselect its failing tests)")
+    args = ap.parse_args(argv)
+
+    selected = MUTATIONS
+    if args.only:
+        unknown = sorted(set(args.only) - {m["name"] for m in MUTATIONS})
+        if unknown:
+            print(f"--only: unknown mutations {unknown}; known: {[m['name'] for m in MUTATIONS]}", file=sys.stderr)
+            return 2
+        selected = [m for m in MUTATIONS if m["name"] in args.only]
+    problems = _check_list(selected)
+    if problems:
+        print("the mutation list is out of date:\n  " + "\n  ".join(problems), file=sys.stderr)
+        return 2
+    if args.list:
+        for m in selected:
+            print(f"{m['name']:32s} {m['file']:34s} {m['description']}")
+        return 0
+
+    command = "python benchmarks/mutations.py" + "".join(
+        f" {a}" for a in (sys.argv[1:] if argv is None else argv))
+    files = _tree_files()
+    t0 = time.perf_counter()
+    baseline = {"status": "not run", "summary": "skipped"}
+    deselected = []
+    if not args.no_baseline:
+        baseline = run_one(None, files, args.timeout)
+        print(f"baseline: {baseline['summary']} ({baseline['seconds']:.0f} s)", flush=True)
+        if baseline["status"] != "not caught":
+            deselected = baseline["failures"] or []
+            if args.strict_baseline or baseline["returncode"] != 1 or not deselected:
+                print(f"the unmutated suite does not pass ({baseline['status']}, failures {deselected}): "
+                      "fix that first", file=sys.stderr)
+                return 3
+            print(f"WARNING: {len(deselected)} tests fail without any mutation; deselected: {deselected}",
+                  file=sys.stderr, flush=True)
+
+    def one(m):
+        r = run_one(m, files, args.timeout, deselected)
+        print(f"{r['name']:32s} {r['status']:12s} {r['first_failure'] or '-'} ({r['seconds']:.0f} s)", flush=True)
+        return r
+
+    with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+        results = list(pool.map(one, selected))
+    elapsed = time.perf_counter() - t0
+    caught = sum(r["status"] == "caught" for r in results)
+    print(f"{caught} of {len(results)} mutations caught ({elapsed / 60:.1f} min)")
+    if not args.no_write:
+        write_doc(results, baseline, command, elapsed, deselected)
+        RAW.parent.mkdir(parents=True, exist_ok=True)
+        RAW.write_text(json.dumps({"command": command, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+                                   "baseline": baseline, "deselected": deselected, "results": results},
+                                  indent=1))
+    return 0 if caught == len(results) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
