@@ -105,7 +105,7 @@ def reference(problem, case: str) -> dict:
             "time_s": time.perf_counter() - t0,
             "mean_successors_per_row": _mean_successors(abstr, part.n_cells),
             "mean_p_low": float(np.mean(syn.p_low)),
-            "cell_bounds": cb}
+            "cell_bounds": cb, "p_low": np.asarray(syn.p_low), "p_up_star": np.asarray(syn.p_up_star)}
 
 
 class _RecordAbstract:
@@ -158,6 +158,7 @@ def run_one(stem: str, repeat: int) -> dict:
     problem = load_problem(path)
     ref = reference(problem, case)
     exact = ref.pop("cell_bounds")
+    ref_p_low, ref_p_up_star = ref.pop("p_low"), ref.pop("p_up_star")
     row = {"problem": f"examples/problems/{stem}.toml", "case_study": case, "formula": problem.formula,
            "threshold": float(problem.threshold), "guarantee": getattr(problem, "guarantee", None),
            "reference": ref, "expected_reference_yes": EXPECTED_REFERENCE_YES.get(stem)}
@@ -178,6 +179,13 @@ def run_one(stem: str, repeat: int) -> dict:
         "parameters": {k: result.parameters.get(k) for k in ("rkhs_bound", "gp_options", "guarantee",
                                                              "confidence", "eps_rule", "combine")},
     }
+    # Consistency: when our boxes contain the exact ones, every interval of our IMDP contains the
+    # reference's (the abstraction is monotone in the boxes), so our p_low cannot exceed the
+    # reference's and our p_up_star cannot fall below it, up to the solver precision (1e-8).
+    d_low = np.asarray(result.synthesis.p_low) - ref_p_low
+    d_star = ref_p_up_star - np.asarray(result.synthesis.p_up_star)
+    row["ours"]["p_low_above_reference"] = {"cells": int(np.sum(d_low > 1e-7)), "max": float(np.max(d_low))}
+    row["ours"]["p_up_star_below_reference"] = {"cells": int(np.sum(d_star > 1e-7)), "max": float(np.max(d_star))}
     boxes = [cb for cb in (recorded or []) if getattr(cb, "image_lower", None) is not None
              and cb.image_lower.shape == exact.image_lower.shape]
     if not boxes:
@@ -216,10 +224,12 @@ def write_md(path: Path, data: dict) -> None:
         "`abstract` + `synthesize`. *ours*: `synthesize_from_data` on the shipped problem file. "
         "*excess*: per side, how far our image box (as handed to `abstract`) reaches beyond the exact "
         "box. *containment*: (mode, cell, output, side) where the exact box sticks out of ours "
-        "(must be 0). *succ/row*: mean listed successor cells per row.", "",
+        "(must be 0). *succ/row*: mean listed successor cells per row. *monotone*: cells where our "
+        "p_low exceeds the reference's or our p_up_star falls below it by > 1e-7 (must be 0 when "
+        "the boxes are contained).", "",
         "| problem | formula | reference Q_yes / Q_no / Q_? | ours Q_yes / Q_no / Q_? | Q_yes fraction |"
-        " pipeline s | excess median / max | containment | succ/row ref / ours |",
-        "|---|---|---|---|---|---|---|---|---|",
+        " pipeline s | excess median / max | containment | monotone | succ/row ref / ours |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         rc, oc, im = r["reference"]["counts"], r["ours"]["counts"], r["images"]
@@ -230,6 +240,8 @@ def write_md(path: Path, data: dict) -> None:
             f"| {Path(r['problem']).stem} | `{r['formula']}` | {rc['yes']} / {rc['no']} / {rc['maybe']} | "
             f"{oc['yes']} / {oc['no']} / {oc['maybe']} | {'n/a' if frac is None else f'{frac:.3f}'} | "
             f"{r['ours']['pipeline_time_median_s']:.1f} | {exc} | {'n/a' if cont is None else cont} | "
+            f"{r['ours'].get('p_low_above_reference', {}).get('cells', 'n/a')} / "
+            f"{r['ours'].get('p_up_star_below_reference', {}).get('cells', 'n/a')} | "
             f"{r['reference']['mean_successors_per_row']:.1f} / {r['ours']['mean_successors_per_row']:.1f} |")
     lines += ["", "## Excess of our image boxes per mode and output (per side: median / max)", "",
               "| problem | mode | output | median | max | containment violations |", "|---|---|---|---|---|---|"]
@@ -249,6 +261,11 @@ def write_md(path: Path, data: dict) -> None:
                          f"from the {exp} measured when issue 9 was filed (problem settings changed?).")
         if "note" in r["images"]:
             notes.append(f"* {Path(r['problem']).stem}: {r['images']['note']}.")
+        for key, what in (("p_low_above_reference", "p_low above"), ("p_up_star_below_reference", "p_up_star below")):
+            v = r["ours"].get(key)
+            if v and v["cells"]:
+                notes.append(f"* {Path(r['problem']).stem}: ours {what} the reference in {v['cells']} cells "
+                             f"(max {v['max']:.3g}): expected 0 when our boxes contain the exact ones.")
         cont = r["images"].get("containment_violations")
         if cont:
             notes.append(f"* {Path(r['problem']).stem}: **{cont} containment violations** (worst "
