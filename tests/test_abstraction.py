@@ -20,6 +20,10 @@ from robust_imdp.errors import DimensionError, InvalidInputError, SoundnessError
 from robust_imdp.geometry import Box, Partition, Region
 from robust_imdp.noise import GaussianNoise, TruncatedGaussianNoise, UniformNoise
 
+from soundness_checks import (
+    check_intervals, check_unlisted_mass, dense_rows, drop_upper, gauss_interval, interval_kinds, shrink_kind,
+)
+
 
 class TailModel:
     """Stand-in GP error model: P[sup |g - mu| <= eps] >= 1 - 2 exp(-(eps/s)^2 / 2).
@@ -65,17 +69,22 @@ def test_1d_linear_bounds_enclose_exact_transition_probabilities(rule, combine, 
     ab = abstract(P, cb, noise, eps_rule=rule, combine=combine)
     low, up = dense(ab)
     bp = P.breakpoints[0]
+    M, N = len(LIN_MODES), P.n_cells
+    T = np.empty((M, N, 401, N + 1))
+    cdf = lambda z: noise.prob_interval(np.full((z.size, 1), -np.inf), z[:, None])[:, 0]  # noqa: E731
     for u, (a, c) in enumerate(LIN_MODES):
-        for q in range(P.n_cells):
+        for q in range(N):
             x = np.linspace(P.cells_lower[q, 0], P.cells_upper[q, 0], 401)  # includes both ends
             mean = a * x + c
-            cdf = lambda z: noise.prob_interval(np.full((z.size, 1), -np.inf), z[:, None])[:, 0]  # noqa: E731
-            T = np.stack([cdf(bp[k + 1] - mean) - cdf(bp[k] - mean) for k in range(P.n_cells)]
-                         + [1 - (cdf(1.0 - mean) - cdf(-1.0 - mean))], axis=1)  # (401, N+1)
-            # soundness implies lower <= min_grid and upper >= max_grid (no tolerance needed
-            # beyond the 1e-13 accuracy of the closed form evaluated in float64)
-            assert np.all(low[u, q] <= T.min(axis=0) + 1e-13), (u, q)
-            assert np.all(up[u, q] >= T.max(axis=0) - 1e-13), (u, q)
+            T[u, q] = np.stack([cdf(bp[k + 1] - mean) - cdf(bp[k] - mean) for k in range(N)]
+                               + [1 - (cdf(1.0 - mean) - cdf(-1.0 - mean))], axis=1)  # (401, N+1)
+    # soundness implies lower <= min_grid and upper >= max_grid for every kind of entry (no
+    # tolerance needed beyond the 1e-13 accuracy of the closed form evaluated in float64)
+    kinds = interval_kinds(ab)
+    assert check_intervals(low, up, T.min(axis=2), T.max(axis=2), kinds, 1e-13) == dict.fromkeys(kinds, 0)
+    # and the floor's derivation: all unlisted cells together get at most the floor
+    floor = ab.imdp.floor[: N * M].reshape(N, M).T
+    assert check_unlisted_mass(floor, kinds["floor"], T, 1e-13) == 0
 
 
 def test_1d_bounds_are_informative():
@@ -96,6 +105,57 @@ def test_1d_bounds_are_informative():
     assert np.all(l2[0, :, target] == 1.0) and np.all(u2[0, :, target] == 1.0)
     others = np.delete(u2[0], target, axis=1)
     assert np.all(others == 0.0)  # bounded noise + known dynamics: exact zeros, floor 0
+
+
+@pytest.mark.parametrize("d", [1, 2])
+def test_floor_is_tight_for_the_unlisted_cells(d):
+    """A problem where the floor is exercised: known dynamics mapping every cell to the point 0,
+    v ~ N(0, 0.05^2 I), and cell boundaries at +-(e_f + 1e-9) on every axis, so the listed
+    targets are the middle cell (and the outside state) and the unlisted cells are exactly the
+    complement of Im + e_f in X. The floor 1 - prod_j P[|v_j| <= e_f,j] (about 1e-7) is then
+    the exact probability of the union of the unlisted cells, up to 1e-5 relative.
+
+    * check_unlisted_mass: 0 violations; the floor x (1 - 1e-3) is flagged (so are the issue's
+      x 0.99 and x 0.5 mutations);
+    * the per-target check (what the IMDP semantics needs): 0 violations; it can only see a
+      shrink below x 0.5 -- with symmetric noise one cell collects at most one of the two tails
+      the floor pays for (here the largest single unlisted cell gets floor / (2 d)) -- and it
+      does see x 0.45 in 1-D.
+    """
+    sigma, delta = 0.05, 1e-9
+    noise = GaussianNoise([sigma] * d)
+    X = Box(-np.ones(d), np.ones(d))
+    zero = lambda N: np.zeros((1, N, d))  # noqa: E731  the image of every cell: the point 0
+    ab0 = abstract(Partition(X, 2.0), CellBounds(zero(1), zero(1)), noise)
+    e = ab0.floor_eps[0, 0] + ab0.floor_eta[0, 0]  # (d,), known dynamics: eps = 0
+    part = Partition(X, 2.0, [Region("m", (Box(-(e + delta), e + delta),))])
+    N = part.n_cells
+    assert N == 3**d
+    ab = abstract(part, CellBounds(zero(N), zero(N)), noise)
+    np.testing.assert_array_equal(ab.floor_eta[0], np.broadcast_to(e, (N, d)))  # same floor pair
+    # exact probabilities of the 3 intervals per axis, product over axes; outside X ~ 1e-88
+    edges = np.array([-1.0, -(e[0] + delta), e[0] + delta, 1.0])
+    p1 = gauss_interval(edges[:-1] / sigma, edges[1:] / sigma)
+    Tc = p1
+    for _ in range(d - 1):
+        Tc = np.multiply.outer(Tc, p1)
+    T = np.broadcast_to(np.append(Tc.ravel(), 1.0 - np.sum(Tc)), (1, N, N + 1))
+    low, up = dense_rows(ab)
+    kinds = interval_kinds(ab)
+    unl = kinds["floor"]
+    assert np.all(unl.sum(axis=2) == N - 1)  # only the middle cell (and outside) listed
+    floor = ab.imdp.floor[:N].reshape(1, N)
+    union = np.sum(np.where(unl, T, 0.0), axis=2)
+    assert np.all(union <= floor) and np.all(union >= (1 - 1e-5) * floor)  # tight
+    T4 = T[:, :, None, :]
+    assert check_unlisted_mass(floor, unl, T4, 1e-15) == 0
+    assert check_intervals(low, up, T, T, kinds, 1e-15)["floor"] == 0
+    for rel in (1e-3, 0.01, 0.5):
+        assert check_unlisted_mass(drop_upper(floor, rel), unl, T4, 1e-15) == N
+    assert np.max(np.where(unl, T, 0.0)) <= floor.max() / (2 * d) * (1 + 1e-5)  # one tail of 2 d
+    if d == 1:
+        l45, u45 = shrink_kind(low, up, kinds, "floor", rel=0.55)  # floor x 0.45
+        assert check_intervals(l45, u45, T, T, kinds, 1e-15)["floor"] > 0
 
 
 # ============================================================================ 2-D Monte Carlo
