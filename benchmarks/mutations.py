@@ -3,8 +3,9 @@
 Each entry of ``MUTATIONS`` is a one-line source edit that makes one bound slightly unsound
 (typically a shrink by 1e-3 = 0.1 %, or outward rounding switched off). For each, the working
 tree is copied to a scratch directory (``git ls-files --cached --others --exclude-standard``:
-tracked and new, not ignored, files), the edit is applied there (the original text must occur
-EXACTLY ONCE in the file, else the script stops: keep the list current when the code moves),
+tracked and new, not ignored, files; with ``--source head`` the last commit instead), the edit
+is applied there (the original text must occur EXACTLY ONCE in the file, else the script stops:
+keep the list current when the code moves),
 and the test suite runs on the copy::
 
     PYTHONPATH=<scratch>/src python -m pytest -x -q -p no:cacheprovider     (cwd = <scratch>)
@@ -151,7 +152,16 @@ MUTATIONS = [
 
 
 # --------------------------------------------------------------------------- machinery
-def _check_list(mutations) -> list[str]:
+def _read(file: str, source: str) -> str | None:
+    """Text of repository file ``file`` in the working tree or at HEAD (None if absent)."""
+    if source == "head":
+        r = subprocess.run(["git", "-C", str(ROOT), "show", f"HEAD:{file}"], capture_output=True, text=True)
+        return r.stdout if r.returncode == 0 else None
+    path = ROOT / file
+    return path.read_text() if path.is_file() else None
+
+
+def _check_list(mutations, source: str = "worktree") -> list[str]:
     """Problems with the list: duplicate names, missing files, original not exactly once."""
     problems, seen = [], set()
     for m in mutations:
@@ -162,11 +172,11 @@ def _check_list(mutations) -> list[str]:
         if m["name"] in seen:
             problems.append(f"{m['name']}: duplicate name")
         seen.add(m["name"])
-        path = ROOT / m["file"]
-        if not path.is_file():
+        text = _read(m["file"], source)
+        if text is None:
             problems.append(f"{m['name']}: file {m['file']} does not exist")
             continue
-        n = path.read_text().count(m["original"])
+        n = text.count(m["original"])
         if n != 1:
             problems.append(f"{m['name']}: original text occurs {n} times in {m['file']} (must be exactly once): "
                             f"{m['original']!r}")
@@ -182,10 +192,19 @@ def _tree_files() -> list[str]:
 
 
 def _copy_tree(dest: Path, files) -> None:
-    for f in files:
-        target = dest / f
-        target.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copy2(ROOT / f, target)  # keeps mtimes: numba's cache (below) stays valid
+    """``files``: a list of paths (copy the working tree) or ``"HEAD"`` (the last commit)."""
+    if files == "HEAD":
+        archive = subprocess.run(["git", "-C", str(ROOT), "archive", "HEAD"], capture_output=True, check=True)
+        subprocess.run(["tar", "-x", "-C", str(dest)], input=archive.stdout, check=True)
+        for f in (p for p in dest.rglob("*") if p.is_file()):
+            src = ROOT / f.relative_to(dest)
+            if src.is_file() and src.read_bytes() == f.read_bytes():
+                shutil.copystat(src, f)  # same bytes: same mtime, so numba's cache (below) applies
+    else:
+        for f in files:
+            target = dest / f
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(ROOT / f, target)  # keeps mtimes: numba's cache (below) stays valid
     # numba's on-disk cache (keyed by the source file's mtime and size): reusing it saves the
     # compile time; the mutated file's new mtime invalidates its own entries only.
     for cache in (ROOT / "src").rglob("__pycache__"):
@@ -303,6 +322,9 @@ def main(argv=None) -> int:
     ap.add_argument("--no-write", action="store_true", help="do not write docs/mutations.md and the json")
     ap.add_argument("--no-baseline", action="store_true", help="skip the unmutated run")
     ap.add_argument("--timeout", type=float, default=1800.0, help="seconds per pytest run")
+    ap.add_argument("--source", choices=("worktree", "head"), default="worktree",
+                    help="copy the working tree (tracked + new files; default) or the last commit (HEAD), "
+                         "e.g. while others have half-done edits in the working tree")
     ap.add_argument("--strict-baseline", action="store_true",
                     help="stop when the unmutated suite fails (default: deselect its failing tests)")
     args = ap.parse_args(argv)
@@ -314,7 +336,7 @@ def main(argv=None) -> int:
             print(f"--only: unknown mutations {unknown}; known: {[m['name'] for m in MUTATIONS]}", file=sys.stderr)
             return 2
         selected = [m for m in MUTATIONS if m["name"] in args.only]
-    problems = _check_list(selected)
+    problems = _check_list(selected, args.source)
     if problems:
         print("the mutation list is out of date:\n  " + "\n  ".join(problems), file=sys.stderr)
         return 2
@@ -325,7 +347,7 @@ def main(argv=None) -> int:
 
     command = "python benchmarks/mutations.py" + "".join(
         f" {a}" for a in (sys.argv[1:] if argv is None else argv))
-    files = _tree_files()
+    files = _tree_files() if args.source == "worktree" else "HEAD"
     t0 = time.perf_counter()
     baseline = {"status": "not run", "summary": "skipped"}
     deselected = []
