@@ -9,10 +9,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from robust_imdp import solve
 from robust_imdp.errors import InvalidInputError
 from robust_imdp.formats import storm_reachability, to_stormpy, write_drn
 from robust_imdp.imdp import IMDP
 from robust_imdp.lp import nature_maximises, ordering_inner_dense, solve_reachability_lp
+
+from soundness_checks import check_close, drop_upper, raise_lower
 
 stormpy = pytest.importorskip("stormpy")
 pytestmark = pytest.mark.stormpy
@@ -91,20 +94,41 @@ def test_storm_refuses_zero_lower_bounds_unbounded():
         storm_reachability(m, [0], adversary="pessimistic")
 
 
-def test_solver_matches_storm():
-    solve = pytest.importorskip("robust_imdp.solve")
-    rng = np.random.default_rng(10)
-    for trial in range(3):
+def solver_and_storm(seed=10, trials=3):
+    """(ours, storm) value pairs on random 12-state models: unbounded and 5-step, both
+    adversaries (max-min = robust, max-max = optimistic) and both objectives."""
+    rng = np.random.default_rng(seed)
+    for _ in range(trials):
         m = random_imdp(rng, 12, 3, 4, positive_lower=True)
         tgt = np.zeros(12, bool)
         tgt[[0, 1]] = True
         for adversary in ("pessimistic", "optimistic"):
-            ours = solve.solve_reachability(m, tgt, adversary=adversary, precision=1e-10)
-            storm = storm_reachability(m, tgt, adversary=adversary, precision=PREC)
-            assert np.max(np.abs(ours.lower - storm)) <= TOL
-            ours_k = solve.solve_reachability(m, tgt, adversary=adversary, horizon=5)
-            storm_k = storm_reachability(m, tgt, adversary=adversary, horizon=5, precision=PREC)
-            assert np.max(np.abs(ours_k.lower - storm_k)) <= TOL
+            for objective in ("maximize", "minimize"):
+                for horizon in (None, 5):
+                    ours = solve.solve_reachability(m, tgt, adversary=adversary, objective=objective,
+                                                    horizon=horizon, precision=1e-10)
+                    storm = storm_reachability(m, tgt, adversary=adversary, objective=objective, horizon=horizon,
+                                               precision=PREC)
+                    yield (adversary, objective, horizon), ours, storm
+
+
+def test_solver_matches_storm():
+    """Both ends of our bracket agree with Storm's value to TOL, for max-min and max-max (and the
+    minimising controller), unbounded and k-step: lower AND upper values are compared."""
+    for case, ours, storm in solver_and_storm():
+        assert check_close(ours.lower, ours.upper, storm, TOL) == 0, case
+
+
+def test_storm_comparison_sees_shrunk_bounds():
+    """Sensitivity of the comparison above: the upper ends x 0.99 (and x (1 - 1e-3)), or the lower
+    ends x (1 + 1e-3), disagree with Storm in every case, on the states whose value exceeds 0.02
+    (at least 2 per case; the shifts there are >= 2e-5 >> TOL)."""
+    for case, ours, storm in solver_and_storm(trials=1):
+        informative = storm > 0.02
+        assert informative.sum() >= 2, case
+        for lo, up in ((ours.lower, drop_upper(ours.upper, 0.01)), (ours.lower, drop_upper(ours.upper)),
+                       (raise_lower(ours.lower), ours.upper)):
+            assert check_close(lo[informative], up[informative], storm[informative], TOL) > 0, case
 
 
 def test_to_stormpy_chunking_is_invisible():
