@@ -289,12 +289,22 @@ def run_one(m: dict | None, files, timeout: float, deselect=()) -> dict:
             else m["description"]}
 
 
-def write_doc(results, baseline, command, elapsed, deselected) -> None:
+def _commit(source: str) -> str:
+    sha = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
+                         text=True).stdout.strip() or "unknown"
+    if source == "head":
+        return sha
+    dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=normal"],
+                           capture_output=True, text=True).stdout.strip()
+    return sha + (" + uncommitted changes in the working tree" if dirty else "")
+
+
+def write_doc(results, baseline, command, elapsed, deselected, code) -> None:
     caught = sum(r["status"] == "caught" for r in results)
     lines = [
         "# Mutation check of the test suite (`benchmarks/mutations.py`)", "",
         f"Run {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} with `{command}` "
-        f"({elapsed / 60:.1f} min). Baseline (unmutated copy): {baseline['status'].replace('not caught', 'passes')}"
+        f"({elapsed / 60:.1f} min) on commit {code}. Baseline (unmutated copy): {baseline['status'].replace('not caught', 'passes')}"
         f" ({baseline['summary']}).", "",
         "Each row is a one-line edit that makes one bound slightly unsound, applied to a scratch copy of "
         "the working tree; the whole suite then runs on the copy (`pytest -x`). **caught** = some test fails "
@@ -348,6 +358,7 @@ def main(argv=None) -> int:
     command = "python benchmarks/mutations.py" + "".join(
         f" {a}" for a in (sys.argv[1:] if argv is None else argv))
     files = _tree_files() if args.source == "worktree" else "HEAD"
+    code = _commit(args.source)
     t0 = time.perf_counter()
     baseline = {"status": "not run", "summary": "skipped"}
     deselected = []
@@ -374,9 +385,9 @@ def main(argv=None) -> int:
     caught = sum(r["status"] == "caught" for r in results)
     print(f"{caught} of {len(results)} mutations caught ({elapsed / 60:.1f} min)")
     if not args.no_write:
-        write_doc(results, baseline, command, elapsed, deselected)
+        write_doc(results, baseline, command, elapsed, deselected, code)
         RAW.parent.mkdir(parents=True, exist_ok=True)
-        RAW.write_text(json.dumps({"command": command, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        RAW.write_text(json.dumps({"command": command, "code": code, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                                    "baseline": baseline, "deselected": deselected, "results": results},
                                   indent=1))
     return 0 if caught == len(results) else 1
