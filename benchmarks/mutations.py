@@ -148,6 +148,15 @@ MUTATIONS = [
          original="    p_up_star = np.array(optimistic.initial_upper, dtype=np.float64)[:n_cells]",
          replacement="    p_up_star = np.maximum(np.array(optimistic.initial_upper, dtype=np.float64)[:n_cells] * (1 - 1e-3), p_low)",
          description="p_up_star x (1 - 1e-3) (kept >= p_low; p_up = min(., p_up_star) follows)"),
+    # ------------------------------------------------------------------ controller and Monte-Carlo validation
+    dict(name="controller-next-mode", file="src/robust_imdp/controller.py",
+         original="        mode = int(table[self.cell, self.dfa_state])",
+         replacement="        mode = (int(table[self.cell, self.dfa_state]) + 1) % max(self.n_modes, 1)",
+         description="the refined controller applies the next mode (cyclically) instead of the strategy's"),
+    dict(name="validate-next-mode", file="src/robust_imdp/validate.py",
+         original="        modes = table[q[run], s[run]]",
+         replacement="        modes = (table[q[run], s[run]] + 1) % len(res.modes)",
+         description="Monte-Carlo validation simulates the next mode (cyclically) instead of the strategy's"),
 ]
 
 
