@@ -132,7 +132,7 @@ def check_posterior_bounds(mean_lower, mean_upper, std_upper, gp, lower, upper, 
     for k in range(lower.shape[0]):
         lo, hi = lower[k], upper[k]
         inside = gp.X_train_[np.all((gp.X_train_ >= lo) & (gp.X_train_ <= hi), axis=1)]
-        mn, mx = estimate_extrema(gp.predict, lo, hi, rng, n, starts, inside)
+        mn, mx = estimate_extrema(lambda Z: gp.predict(Z, return_std=True)[0], lo, hi, rng, n, starts, inside)
         _, sd = estimate_extrema(lambda Z: gp.predict(Z, return_std=True)[1], lo, hi, rng, n, starts, inside)
         bad += int(mean_lower[k] > mn + mag) + int(mean_upper[k] < mx - mag) + int(std_upper[k] < sd - mag)
     return bad

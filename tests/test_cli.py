@@ -119,6 +119,7 @@ def test_unknown_region_in_formula_exit_1(tmp_path, capsys):
     assert "regions ['goal'] that are not defined" in err and "Traceback" not in err
 
 
+@pytest.mark.slow
 def test_run_end_to_end_on_a_coarse_problem(tmp_path, capsys):
     # Tiny run through the command line: 64 cells, 40 points per mode; writes the contract files.
     from robust_imdp.casestudies import get_case_study, problem_toml

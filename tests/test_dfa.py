@@ -74,6 +74,7 @@ def test_reach_avoid_structure():
     assert dfa.accepts([set(), {"des"}]) and not dfa.accepts([{"obs"}, {"des"}])
 
 
+@pytest.mark.slow
 @settings(deadline=None, max_examples=40)
 @given(formulas(("a", "b")))
 def test_dfa_matches_semantics_two_atoms(f):
@@ -83,6 +84,7 @@ def test_dfa_matches_semantics_two_atoms(f):
     assert_minimal(dfa)
 
 
+@pytest.mark.slow
 @settings(deadline=None, max_examples=20)
 @given(formulas(("a", "b", "c")), st.integers(0, 2**32 - 1))
 def test_dfa_matches_semantics_three_atoms(f, seed):

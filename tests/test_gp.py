@@ -292,8 +292,8 @@ def test_chowdhury_bound_holds_by_monte_carlo(theta, sf2):
 
     200 seeded data sets; the bound at delta = 0.1 may fail on at most a fraction 0.1 of them.
     Binomial tolerance: if P[fail] <= 0.1 the count is <= 20 + 3 sd (sd = sqrt(200*0.1*0.9)
-    = 4.2), i.e. <= 32, except with probability < 0.2%. Failures are searched on 401 grid
-    points (the theorem's event is over all x; a grid can only miss failures).
+    = 4.2), i.e. <= 32, except with probability P[Bin(200, 0.1) >= 33] = 0.29 %. Failures are
+    searched on 401 grid points (the theorem's event is over all x; a grid can only miss failures).
     """
     ls, m, n_sets = np.array([0.5]), 30, 200
     rng = np.random.default_rng(12345)

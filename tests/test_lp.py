@@ -12,6 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from robust_imdp import solve
 from robust_imdp.errors import ConvergenceError, DimensionError, InvalidInputError
 from robust_imdp.imdp import IMDP
 from robust_imdp.lp import (
@@ -136,7 +137,6 @@ def test_inner_lp_bad_input():
 
 def test_ordering_matches_solver_inner_problem():
     """The solver's ordering Bellman step (one iteration from the target indicator) against the LP."""
-    solve = pytest.importorskip("robust_imdp.solve")
     rng = np.random.default_rng(3)
     m = random_imdp(rng, 6, 2, 3, floor=True)
     target = np.zeros(6, bool)
@@ -215,8 +215,8 @@ def test_end_component_trap_strategy():
 
 
 # ----------------------------------------------------------------------------- against the solver (solve.py)
+@pytest.mark.slow
 def test_solver_against_lp_random_models():
-    solve = pytest.importorskip("robust_imdp.solve")
     rng = np.random.default_rng(2024)
     for trial in range(4):
         m = random_imdp(rng, 6, 2, 3, floor=trial % 2 == 1)
@@ -288,7 +288,6 @@ def _probe_model(lo, up, floor, v):
        with_floor=st.booleans(), adversary=st.sampled_from(["pessimistic", "optimistic"]))
 def test_solver_inner_problem_matches_lp_with_floors(seed, k, extra, with_floor, adversary):
     """The solver's ordering inner problem (through a 2-step query on a probe model) against the LP."""
-    solve = pytest.importorskip("robust_imdp.solve")
     rng = np.random.default_rng(seed)
     N = k + extra
     m_unlisted = N - k + 3  # successors k+1..N, T, sink, state 0
@@ -317,7 +316,6 @@ def test_heavy_backends_are_imported_lazily():
 
 
 def test_solver_dispatches_method_lp():
-    solve = pytest.importorskip("robust_imdp.solve")
     m = tiny_example()
     res = solve.solve_reachability(m, [1], adversary="optimistic", method="lp")
     assert isinstance(res, solve.ReachabilityResult)

@@ -129,9 +129,10 @@ def test_k_step_result_files_and_validation(run, tmp_path):
 
 
 def test_guarantee_modes_and_validation():
-    """The confidence mode (default) folds the GP error into the images: the abstraction is
-    built without per-entry GP probabilities; the paper mode keeps them. Both are valid
-    brackets here (p_low <= p_up); the key differs so neither reuses the other's cache."""
+    """The confidence mode (default, confidence 0.99) and the paper mode build different
+    abstractions, so their cache keys differ (also across confidence levels) and neither reuses
+    the other's cache; unknown guarantee names and confidences outside (0, 1) are refused.
+    (The brackets of the confidence mode are checked end to end by the tests above.)"""
     p = tiny_problem()
     assert p.guarantee == "confidence" and p.confidence == 0.99
     assert abstraction_key(p) != abstraction_key(p.replace(guarantee="paper"))
@@ -140,3 +141,19 @@ def test_guarantee_modes_and_validation():
         p.replace(guarantee="bogus")
     with pytest.raises(InvalidInputError, match="confidence must lie in"):
         p.replace(confidence=1.0)
+
+
+def test_result_reports_the_synthesis_of_its_own_abstraction(run):
+    """The pipeline passes synthesize()'s numbers through unchanged: re-solving the result's own
+    abstraction gives bit-identical p_low / p_up / p_up_star and strategy. (The numbers of
+    synthesize() itself are checked against brute force and Monte Carlo in test_synthesis.py,
+    test_sensitivity.py and test_tight_monte_carlo.py; together this catches, e.g., a p_low
+    scaled by 1.01 between synthesis and the result.)"""
+    from robust_imdp.synthesis import synthesize
+
+    res, _ = run
+    part = res.partition
+    again = synthesize(res.abstraction.imdp, part.labels, part.atoms, res.dfa, threshold=res.problem.threshold,
+                       horizon=res.problem.horizon, outside_state=part.outside_state)
+    for name in ("p_low", "p_up", "p_up_star", "strategy"):
+        np.testing.assert_array_equal(getattr(res.synthesis, name), getattr(again, name), err_msg=name)

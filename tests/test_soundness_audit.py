@@ -55,7 +55,7 @@ def test_lemma_holds_for_known_rkhs_functions(sf2):
 
     g has a known norm B0 (finite expansion), so the assumption ||g||_{k0} <= B0 holds exactly;
     sf2 != 1 exercises B = B0 / sqrt(sf2). delta = 0.1: chance failures ~ Binomial(60, <= 0.1),
-    P[>= 14] < 1e-3; we assert < 14. (Measured: 0 failures; worst |g - mu| / (beta sigma)
+    P[>= 14] = 2.0e-3; we assert < 14. (Measured: 0 failures; worst |g - mu| / (beta sigma)
     0.53, 0.39, 0.93 for sf2 = 1, 9, 0.04 -- the bound is nearly tight for small sf2.)
     """
     ls, theta, m, delta = 0.3, 0.1, 25, 0.1
@@ -399,6 +399,7 @@ def test_bounds_2d_mixed_alphas_degenerate_and_training_point_boxes():
     _check_posterior(gp, lower, upper, rng, max_boxes=300)
 
 
+@pytest.mark.slow
 def test_bounds_3d():
     rng = np.random.default_rng(2)
     X = rng.uniform(-1, 1, (50, 3))
@@ -422,6 +423,7 @@ def test_std_bound_near_zero_and_near_sf():
     assert 2.0 <= pb.std_upper[2] <= 2.0 * (1 + 1e-9)  # sigma <= sf exactly; bound close to sf
 
 
+@pytest.mark.slow
 def test_image_bound_with_nonzero_A_contains_extrema():
     rng = np.random.default_rng(4)
     X = rng.uniform(-1, 1, (40, 2))

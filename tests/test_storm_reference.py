@@ -52,6 +52,7 @@ def bounded_reference(imdp, target, horizon, nature_max, ctrl_max):
     return x
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("adversary", ["pessimistic", "optimistic"])
 @pytest.mark.parametrize("objective", ["maximize", "minimize"])
 def test_unbounded_storm_matches_lp(adversary, objective):

@@ -16,6 +16,8 @@ from robust_imdp.errors import DimensionError, InvalidInputError, SoundnessError
 from robust_imdp.imdp import IMDP
 from robust_imdp.synthesis import SynthesisResult, remap_letters, synthesize
 
+from soundness_checks import check_synthesis
+
 
 # --------------------------------------------------------------------------- brute-force oracle
 def _inner(w, lo, up, maximize):
@@ -182,6 +184,12 @@ def test_random_bounds_ordered_and_equal_to_evaluation(seed, horizon, product_mo
     np.testing.assert_allclose(res.p_low, bf.initial_lower[:n_cells], atol=1e-6)
     bf_up = bruteforce_solve(imdp, letters, dfa, avoid=[n_cells], adversary="optimistic", horizon=horizon)
     np.testing.assert_allclose(res.p_up_star, bf_up.initial_upper[:n_cells], atol=1e-6)
+    # p_up bounds pi's value against the maximising adversary (sensitivity of this check:
+    # test_sensitivity.py, test_synthesis_check_sees_a_shrink)
+    bf_opt = bruteforce_evaluate(imdp, letters, dfa, pi, avoid=[n_cells], adversary="optimistic", horizon=horizon)
+    assert check_synthesis(res.p_low, res.p_up, res.p_up_star, bf.initial_lower[:n_cells],
+                           bf_opt.initial_lower[:n_cells], bf_up.initial_upper[:n_cells], 1e-6) == \
+        {"p_low": 0, "p_up": 0, "p_up_star": 0}
     # classification follows the definition
     assert np.array_equal(res.classes == "yes", res.p_low >= thr)
     assert np.array_equal(res.classes == "no", res.p_up < thr)

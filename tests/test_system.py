@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from robust_imdp import noise
 from robust_imdp.errors import DimensionError, InvalidInputError, InvalidModelError
 from robust_imdp.system import AffineMap, Dataset, ModeResiduals, SwitchedSystem, residuals
 
@@ -160,7 +161,6 @@ def test_switched_system_validation():
 
 
 def test_works_with_the_noise_module():
-    noise = pytest.importorskip("robust_imdp.noise")
     s = SwitchedSystem([AffineMap.zero(2)], [lambda z: 0 * z], noise.TruncatedGaussianNoise([0.01, 0.02], [0.01, 0.02]))
     d = s.sample_dataset(300, [0, 0], [1, 1], rng=4)
     assert np.all(np.abs(d.x_next) <= [0.01, 0.02])  # x_next = v exactly, truncated at the bound

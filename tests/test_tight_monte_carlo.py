@@ -240,6 +240,7 @@ def simulated(corridor):
     return hits, n, capped, inside_low, inside_up
 
 
+@pytest.mark.slow
 def test_frequencies_lie_in_tight_brackets(corridor, simulated):
     """Every cell's satisfaction frequency lies in [p_low, p_up] (z = 4.5, module doc), at least
     20 cells have 0 < p_low < 1 with a detectable 1 % error, and no run hit the step cap."""
@@ -252,6 +253,7 @@ def test_frequencies_lie_in_tight_brackets(corridor, simulated):
     assert inside_up.sum() == 1  # the trap cell (every other p_up is 1, 0 or a floor-sized ~1e-7)
 
 
+@pytest.mark.slow
 def test_one_percent_errors_of_p_low_and_p_up_are_caught(corridor, simulated):
     """The same check with p_low x 1.01 / p_up x 0.99 (unsound by 1 % where the bracket is tight).
 
