@@ -48,6 +48,13 @@ class ProblemFileError(InvalidInputError):
 
 
 # --------------------------------------------------------------------------- run-time failures
+class AssumptionError(InvalidInputError):
+    """The data refute a stated assumption (e.g. no function of RKHS norm <= B explains them).
+
+    Raised before any result is written: the guarantees would rest on a false premise.
+    """
+
+
 class ConvergenceError(RobustImdpError, RuntimeError):
     """An iterative solver or optimiser did not reach the requested precision."""
 
@@ -82,6 +89,7 @@ __all__ = [
     "FormulaSyntaxError",
     "UnknownAtomError",
     "OutsideDomainError",
+    "AssumptionError",
     "ProblemFileError",
     "ConvergenceError",
     "SoundnessError",

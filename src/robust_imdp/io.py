@@ -8,8 +8,10 @@ Problem file contract (keys in ``[brackets]`` are tables; ``?`` marks optional k
     [data]          path                             (.csv or .npz, relative to the problem file)
     [modes.NAME]    A (n x n), b (n)                 (known affine part f_u(x) = A x + b)
     [noise]         kind = "truncated_gaussian" (sigma, bound) | "gaussian" (sigma) | "uniform" (bound)
-    [gp]            rkhs_bound, lengthscale?, signal_variance? (number or "tune"), optimize?,
-                    info_gain? ("data" | "trivial"), bound_tol? (1e-3), bound_max_boxes? (2000)
+    [gp]            rkhs_bound, lengthscale?, error_bound? ("optimal" | "ridge" | "chowdhury"),
+                    misspecification? (0), iid_noise? (false);
+                    only with error_bound = "chowdhury": signal_variance? (number or "tune"),
+                    optimize?, info_gain? ("data" | "trivial"), bound_tol? (1e-3), bound_max_boxes? (2000)
     [abstraction]?  eta?, eps_rule?, combine?, guarantee? ("confidence" | "paper"), confidence?
 
 Data files: ``.csv`` with header ``x_1..x_n,u,x_next_1..x_next_n`` (``u`` holds mode names), or
@@ -35,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from robust_imdp.errors import ProblemFileError
-from robust_imdp.pipeline import GUARANTEES  # the one definition of the guarantee modes
+from robust_imdp.pipeline import ERROR_BOUNDS, GUARANTEES  # the one definition of these modes
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -62,8 +64,8 @@ _SCHEMA: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "spec": (("formula", "threshold"), ("horizon",)),
     "data": (("path",), ()),
     "noise": (("kind",), ("sigma", "bound")),
-    "gp": (("rkhs_bound",), ("lengthscale", "signal_variance", "optimize", "info_gain", "bound_tol",
-                      "bound_max_boxes")),
+    "gp": (("rkhs_bound",), ("lengthscale", "error_bound", "misspecification", "iid_noise", "signal_variance",
+                             "optimize", "info_gain", "bound_tol", "bound_max_boxes")),
     "abstraction": ((), ("eta", "eps_rule", "combine", "guarantee", "confidence")),
 }
 _TOP_REQUIRED = ("space", "regions", "spec", "data", "modes", "noise", "gp")
@@ -74,6 +76,8 @@ _NOISE_KEYS = {
     "uniform": ("bound",),
 }
 EPS_RULES = ("optimized", "paper")
+#: [gp] keys that configure a GP posterior (error_bound = "chowdhury" only).
+_GP_ONLY_KEYS = ("signal_variance", "optimize", "info_gain", "bound_tol", "bound_max_boxes")
 COMBINE_RULES = ("product", "union")
 
 
@@ -283,6 +287,23 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
         gp["info_gain"] = gp_in["info_gain"]
     if "bound_tol" in gp_in:
         gp["bound_tol"] = float(_number(gp_in["bound_tol"], "[gp].bound_tol", where, lo=1e-12))
+    gp["error_bound"] = gp_in.get("error_bound", "optimal")
+    if gp["error_bound"] not in ERROR_BOUNDS:
+        raise ProblemFileError(
+            f"{where}: [gp].error_bound must be one of {', '.join(ERROR_BOUNDS)}; got {gp['error_bound']!r}"
+            + (_suggest(str(gp["error_bound"]), ERROR_BOUNDS) if isinstance(gp["error_bound"], str) else ""))
+    if gp["error_bound"] != "chowdhury":
+        gp_only = [k for k in _GP_ONLY_KEYS if k in gp_in]
+        if gp_only:
+            raise ProblemFileError(
+                f"{where}: [gp].{gp_only[0]} applies only to error_bound = \"chowdhury\" (a GP posterior); "
+                f"error_bound = \"{gp['error_bound']}\" uses the unit-amplitude kernel with the given lengthscale "
+                "only: remove the key or set error_bound = \"chowdhury\"")
+    gp["misspecification"] = float(_number(gp_in.get("misspecification", 0.0), "[gp].misspecification", where,
+                                           lo=0.0))
+    gp["iid_noise"] = gp_in.get("iid_noise", False)
+    if not isinstance(gp["iid_noise"], bool):
+        raise ProblemFileError(f"{where}: [gp].iid_noise must be true or false; got {gp_in['iid_noise']!r}")
 
     ab_in = doc.get("abstraction", {})
     ab: dict[str, Any] = {"eta": None, "eps_rule": "optimized", "combine": "product",
@@ -364,6 +385,9 @@ def load_problem(path):
         )
     gp = dict(spec["gp"])
     rkhs_bound = gp.pop("rkhs_bound")
+    error_bound = gp.pop("error_bound")
+    misspecification = gp.pop("misspecification")
+    iid_noise = gp.pop("iid_noise")
     bound_tol = gp.pop("bound_tol", 1e-3)
     bound_max_boxes = gp.pop("bound_max_boxes", 2000)
     ab = spec["abstraction"]
@@ -374,7 +398,8 @@ def load_problem(path):
         mode_names=tuple(names), maps=tuple(AffineMap(A, b) for A, b in spec["modes"].values()),
         noise=make_noise(spec["noise"]), rkhs_bound=rkhs_bound, gp_options=gp,
         bound_tol=bound_tol, bound_max_boxes=bound_max_boxes, eta=ab["eta"], eps_rule=ab["eps_rule"], combine=ab["combine"],
-        guarantee=ab["guarantee"], confidence=ab["confidence"],
+        guarantee=ab["guarantee"], confidence=ab["confidence"], error_bound=error_bound,
+        misspecification=misspecification, iid_noise=iid_noise,
     )
 
 
@@ -583,6 +608,13 @@ def result_to_dict(result) -> dict[str, Any]:
         Per cell ``"yes"`` (p_low >= threshold), ``"no"`` (p_up < threshold) or ``"maybe"``.
     formula, threshold, horizon, parameters, timings
         What was solved, with which settings, and stage times in seconds.
+    diagnostics : dict
+        Why cells are undecided: ``confidence`` (probability over the data with which every
+        bound holds; 1 for bounded noise with the deterministic bound) and ``statement``,
+        ``eps`` (per mode and component: median and max error radius, and the median over
+        the cell half-width), ``successors_per_row`` (mean listed successors per IMDP row) and
+        ``assumption`` (rkhs_bound, lengthscale, misspecification and the data-implied
+        minimum RKHS norm per mode and component).
 
     How to run the controller without the library: start in cell q0 with DFA state
     ``s = delta[initial][L(q0)]``; while s is neither accepting nor a sink, apply
@@ -631,6 +663,7 @@ def result_to_dict(result) -> dict[str, Any]:
         "threshold": result.threshold,
         "horizon": result.horizon,
         "parameters": result.parameters,
+        "diagnostics": getattr(result, "diagnostics", {}) or {},
         "timings": result.timings,
     })
 

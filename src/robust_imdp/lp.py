@@ -1,10 +1,13 @@
-"""Linear-programming cross-checks of the interval solver (cvxpy + Clarabel).
+"""Convex programs (cvxpy + Clarabel): LP cross-checks of the interval solver, SOCPs of the
+RKHS bounds.
 
 This is the only module of robust_imdp that imports cvxpy / clarabel, and it imports them
-inside the functions, so ``import robust_imdp`` never pays for them.  Everything here is a
-*checker* for small models: rows with a floor are densified (``IMDP.to_dense``, memory
-R x n), and the LPs are solved by an interior-point method whose answers are accurate to
-about the solver tolerances (1e-10 here), not proofs.
+inside the functions, so ``import robust_imdp`` never pays for them.  The LPs are *checkers*
+for small models: rows with a floor are densified (``IMDP.to_dense``, memory R x n), and the
+LPs are solved by an interior-point method whose answers are accurate to about the solver
+tolerances (1e-10 here), not proofs.  The SOCPs (:func:`rkhs_min_norm_socp`,
+:func:`rkhs_vertex_socp`) only *propose* dual weights; ``robust_imdp.rkhs`` turns weights into
+certified bounds, so an inaccurate solve costs tightness, never soundness.
 
 Contents
 --------
@@ -467,3 +470,101 @@ __all__ = [
     "nature_maximises",
     "ordering_inner_dense",
 ]
+
+
+# ----------------------------------------------------------------------------- RKHS SOCPs
+def _psd_factor(G: np.ndarray, rel_tol: float = 1e-13) -> np.ndarray:
+    """``F`` with ``F.T @ F ~= G`` for a PSD Gram matrix (eigenvalues below ``rel_tol * max`` dropped)."""
+    lam, V = np.linalg.eigh((G + G.T) / 2)
+    keep = lam > rel_tol * max(lam.max(), 1e-300)
+    return (V[:, keep] * np.sqrt(lam[keep])).T
+
+
+def _solve_socp(problem, what: str) -> None:
+    import cvxpy as cp
+
+    try:
+        problem.solve(solver=cp.CLARABEL)
+    except cp.error.SolverError as exc:
+        raise ConvergenceError(f"CLARABEL failed on the {what} SOCP: {exc}") from None
+    if problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+        raise ConvergenceError(f"CLARABEL did not solve the {what} SOCP: status {problem.status!r}")
+
+
+def rkhs_min_norm_socp(K, y, bound) -> np.ndarray:
+    """Dual weights of the smallest RKHS norm that explains the data within ``bound``.
+
+    Program (primal, in the coordinates ``beta`` of the data span, ``K ~= M M^T``)::
+
+        minimise  ||beta||_2   subject to   -bound <= M beta - y <= bound
+
+    which is ``min { ||f||_H : |f(x_i) - y_i| <= bound }`` by the representer theorem. Its
+    dual variables ``w = lambda_lower - lambda_upper`` give, for EVERY function with
+    ``|f(x_i) - y_i| <= bound``, ``||f|| >= (w.y - bound ||w||_1) / sqrt(w.K w)`` (Cauchy-Schwarz
+    on ``<f, Phi* w>``); ``rkhs.min_rkhs_norm`` evaluates that certificate with outward
+    rounding, so the solver's accuracy only affects how large the certified minimum is.
+
+    Parameters
+    ----------
+    K : (m, m) float array (kernel matrix)
+    y : (m,) float array
+    bound : float >= 0
+
+    Returns
+    -------
+    w : (m,) float array
+        The dual weights (zeros if the solver failed; the caller then falls back).
+    value : float
+        The solver's primal optimum (nan if it failed): the norm of a function in the
+        eigen-truncated data span that meets the constraints to the solver's accuracy, an
+        approximate *upper* bound of the minimum (used by the tests as the other side).
+    """
+    import cvxpy as cp
+
+    K = np.asarray(K, float)
+    y = np.asarray(y, float)
+    M = _psd_factor(K).T  # (m, r): K ~= M M^T
+    beta = cp.Variable(M.shape[1])
+    upper = M @ beta - y <= bound
+    lower = y - M @ beta <= bound
+    prob = cp.Problem(cp.Minimize(cp.norm(beta)), [upper, lower])
+    try:
+        _solve_socp(prob, "minimum-norm")
+    except ConvergenceError:
+        return np.zeros_like(y), float("nan")
+    return np.asarray(lower.dual_value - upper.dual_value, float), float(prob.value)
+
+
+def rkhs_vertex_socp(K, y, b, s0, noise, rkhs_bound, side: int = 1):
+    """The optimal certificate of one vertex functional (cross-check of ``rkhs._active_set``).
+
+    Program::
+
+        minimise over w in R^m   side * w.y + noise ||w||_1 + B || phi - Phi* w ||_H
+
+    with ``||phi - Phi* w||^2 = s0 - 2 w.b + w.K w`` written as ``||F [w; 1]||`` for a factor
+    ``F`` of the PSD Gram matrix ``[[K, -b], [-b^T, s0]]``. It is the conic dual of
+    ``max { side <h, phi> : ||h|| <= B, |h(x_i) - y_i| <= noise }`` (Scharnhorst et al., IEEE TAC
+    2022), so its optimum is the tightest bound of ``side <h, phi>`` given the data.
+
+    Returns
+    -------
+    value : float
+        The solver's optimum (not certified).
+    w : (m,) float array
+    """
+    import cvxpy as cp
+
+    K = np.asarray(K, float)
+    m = K.shape[0]
+    Gm = np.zeros((m + 1, m + 1))
+    Gm[:m, :m] = K
+    Gm[:m, m] = -np.asarray(b, float)
+    Gm[m, :m] = -np.asarray(b, float)
+    Gm[m, m] = float(s0)
+    F = _psd_factor(Gm)
+    w = cp.Variable(m)
+    obj = side * (np.asarray(y, float) @ w) + noise * cp.norm1(w) + rkhs_bound * cp.norm(F @ cp.hstack([w, np.ones(1)]))
+    prob = cp.Problem(cp.Minimize(obj))
+    _solve_socp(prob, "vertex-bound")
+    return float(prob.value), np.asarray(w.value, float)

@@ -5,10 +5,14 @@
 1. **specify** -- LTLf formula to a minimal DFA (``dfa.ltlf_to_dfa``); checked first, so an
    unknown region fails before any expensive work;
 2. **partition** -- grid over X respecting the labelled regions (``geometry.Partition``);
-3. **learn** -- one GP per mode and output on the residual ``x_next - f_u(x)`` with the RKHS
-   error bound of Chowdhury & Gopalan (2017, Thm 2) (``gp.learn``);
-4. **bound** -- certified bounds of the image ``f_u + mu`` and of the posterior std over every
-   cell (``bounds.bound_image``);
+3. **check** -- the data-implied minimum RKHS norm of every mode and output
+   (``rkhs.check_assumption``): a ``rkhs_bound`` the data refute is refused before any work;
+4. **learn + bound** -- certified image boxes of ``f_u + g_u`` over every cell. Default
+   (``error_bound="optimal"``): the optimal deterministic bound under bounded noise
+   (``rkhs.image_ranges``; ``"ridge"`` is its cheaper closed form). ``"chowdhury"``: one GP
+   per mode and output with the error bound of Chowdhury & Gopalan (2017, Thm 2)
+   (``gp.learn``) and certified bounds of ``f_u + mu`` and of the posterior std
+   (``bounds.bound_image``);
 5. **abstract** -- the interval MDP of the paper's Thm 1 (``abstraction.abstract``);
 6. **synthesize** -- product with the DFA, robust strategy, ``p_low``, ``p_up``, ``p_up_star``,
    ``error`` and the classes Q_yes / Q_no / Q_? (``synthesis.synthesize``).
@@ -23,6 +27,7 @@ also when only eta, the eps rule or the combination rule change.
 from __future__ import annotations
 
 import hashlib
+import json
 import sys
 import time
 from dataclasses import dataclass, field, fields, is_dataclass
@@ -38,6 +43,10 @@ __all__ = ["Problem", "Result", "synthesize_from_data", "resynthesize", "abstrac
 
 CLASS_NAMES = ("yes", "no", "maybe")
 GUARANTEES = ("confidence", "paper")
+#: How the unknown part is bounded over a cell (see :class:`Problem`).
+ERROR_BOUNDS = ("optimal", "ridge", "chowdhury")
+#: Failure probability allowed to the assumption check's noise bound when the noise is unbounded.
+CHECK_DELTA = 1e-6
 
 
 @dataclass(frozen=True, eq=False)
@@ -83,9 +92,23 @@ class Problem:
         bound; that mixes a probability over the data into the transition probabilities and is
         kept to reproduce the paper (see docs/soundness_audit.md, finding F2).
     confidence : float in (0, 1)
-        Data-confidence level of ``guarantee="confidence"``.
+        Data-confidence level of ``guarantee="confidence"`` and of the probabilistic events of
+        the other error bounds (unbounded noise, ``iid_noise``); bounded noise without
+        ``iid_noise`` needs none (the bounds then hold with probability 1).
     eps_rule : {"optimized", "paper"}
     combine : {"product", "union"}
+    error_bound : {"optimal", "ridge", "chowdhury"}
+        ``"optimal"`` (default): the tightest cell bounds consistent with ``||g|| <= B`` and the
+        data under bounded noise (``rkhs.py``); ``"ridge"``: the same certificate with kernel-ridge
+        weights (cheaper, looser); ``"chowdhury"``: GP posterior and the Chowdhury-Gopalan
+        error bound (for reproducing the paper).
+    misspecification : float >= 0
+        tau: each unknown component is within tau (sup norm on X) of a function of RKHS norm
+        <= B. Widens the bounds by about tau; makes constants and linear parts honest.
+    iid_noise : bool
+        The data noise is independent across samples, zero-mean and sub-Gaussian, and the
+        inputs were chosen independently of it: intersect with the sub-Gaussian bound (holds
+        with probability ``confidence`` over the data).
     """
 
     space_lower: np.ndarray
@@ -108,6 +131,9 @@ class Problem:
     combine: str = "product"
     guarantee: str = "confidence"
     confidence: float = 0.99
+    error_bound: str = "optimal"
+    misspecification: float = 0.0
+    iid_noise: bool = False
 
     def __post_init__(self):
         if self.guarantee not in GUARANTEES:
@@ -115,6 +141,20 @@ class Problem:
         c = float(self.confidence)
         if not 0.0 < c < 1.0:
             raise InvalidInputError(f"confidence must lie in (0, 1); got {self.confidence!r}")
+        if self.error_bound not in ERROR_BOUNDS:
+            raise InvalidInputError(f"error_bound must be one of {ERROR_BOUNDS}; got {self.error_bound!r}")
+        if self.guarantee == "paper" and self.error_bound != "chowdhury":
+            raise InvalidInputError(
+                f"guarantee 'paper' (Thm 1 as printed) needs error_bound 'chowdhury'; got {self.error_bound!r}")
+        tau = float(self.misspecification)
+        if not (np.isfinite(tau) and tau >= 0):
+            raise InvalidInputError(f"misspecification must be a finite float >= 0; got {self.misspecification!r}")
+        if self.error_bound != "chowdhury":
+            extra = sorted(set(self.gp_options) - {"lengthscale"})
+            if extra:
+                raise InvalidInputError(
+                    f"gp_options {extra} apply only to error_bound 'chowdhury' (a GP posterior); error_bound "
+                    f"{self.error_bound!r} uses the unit-amplitude kernel with the given lengthscale only")
 
     def replace(self, **changes) -> "Problem":
         """A copy with some attributes changed (e.g. ``formula=...``)."""
@@ -147,6 +187,10 @@ class Result:
         The settings that produced the result (JSON-able).
     from_cache : bool
         Whether the abstraction was reused.
+    diagnostics : dict
+        Why cells are undecided (JSON-able): the stated confidence, the error radius ``eps``
+        per mode and output (median, max, against the cell half-width), the mean number of
+        successors per IMDP row and the assumption check (data-implied minimum RKHS norms).
     """
 
     problem: Problem
@@ -158,6 +202,7 @@ class Result:
     timings: dict
     parameters: dict
     from_cache: bool = False
+    diagnostics: dict = field(default_factory=dict)
 
     # Convenience views used by io.result_to_dict and plotting.
     @property
@@ -197,15 +242,19 @@ class Result:
         c = self.counts()
         n = len(self.class_names)
         times = ", ".join(f"{k} {v:.2f} s" for k, v in self.timings.items())
-        return "\n".join([
+        lines = [
             f"formula {self.formula!r}, threshold {self.threshold:g}"
             + (f", horizon {self.horizon}" if self.horizon is not None else ""),
             f"cells: {n}  Q_yes {c['yes']}  Q_no {c['no']}  Q_? {c['maybe']}",
             f"mean p_low {np.mean(self.synthesis.p_low):.4f}  mean error "
             f"{np.mean(self.synthesis.error):.4f}  (abstraction "
             f"{'reused from cache' if self.from_cache else 'built'})",
-            f"stage times: {times}",
-        ])
+        ]
+        why = diagnostics_line(self.diagnostics)
+        if why:
+            lines.append(why)
+        lines.append(f"stage times: {times}")
+        return "\n".join(lines)
 
 
 # --------------------------------------------------------------------------- helpers
@@ -279,7 +328,8 @@ def bounds_key(problem: Problem) -> str:
         np.asarray(d.x, float), np.asarray(d.u), np.asarray(d.x_next, float),
         list(problem.mode_names), [(np.asarray(m.A, float), np.asarray(m.b, float)) for m in problem.maps],
         problem.noise, float(problem.rkhs_bound), problem.gp_options, float(problem.bound_tol),
-        int(problem.bound_max_boxes),
+        int(problem.bound_max_boxes), problem.error_bound, float(problem.misspecification),
+        bool(problem.iid_noise), float(problem.confidence) if problem.error_bound != "chowdhury" else None,
     ])
     return h.hexdigest()[:20]
 
@@ -296,10 +346,18 @@ def abstraction_key(problem: Problem) -> str:
 _EB_FIELDS = ("rkhs_bound", "sub_gaussian", "regulariser", "info_gain", "n_samples")
 
 
-def _save_bounds(path: Path, cell_bounds, error_models) -> None:
-    arrays = {k: np.asarray(getattr(cell_bounds, k)) for k in ("image_lower", "image_upper", "std_upper")}
-    for f in _EB_FIELDS:
-        arrays[f"eb_{f}"] = np.array([[getattr(e, f) for e in row] for row in error_models])
+def _save_bounds(path: Path, cell_bounds, error_models, diagnostics: dict) -> None:
+    import json
+
+    from robust_imdp.io import _jsonable
+
+    arrays = {k: np.asarray(getattr(cell_bounds, k)) for k in ("image_lower", "image_upper")}
+    if cell_bounds.std_upper is not None:
+        arrays["std_upper"] = np.asarray(cell_bounds.std_upper)
+    if error_models is not None:
+        for f in _EB_FIELDS:
+            arrays[f"eb_{f}"] = np.array([[getattr(e, f) for e in row] for row in error_models])
+    arrays["diagnostics"] = np.array(json.dumps(_jsonable(diagnostics)))
     tmp = path.with_name(path.name + ".part")
     with open(tmp, "wb") as fh:
         np.savez(fh, **arrays)
@@ -307,17 +365,22 @@ def _save_bounds(path: Path, cell_bounds, error_models) -> None:
 
 
 def _load_bounds(path: Path):
+    import json
+
     from robust_imdp.abstraction import CellBounds
     from robust_imdp.gp import RKHSErrorBound
 
     with np.load(path, allow_pickle=False) as z:
-        cb = CellBounds(z["image_lower"], z["image_upper"], z["std_upper"])
-        cols = {f: z[f"eb_{f}"] for f in _EB_FIELDS}
+        cb = CellBounds(z["image_lower"], z["image_upper"], z["std_upper"] if "std_upper" in z else None)
+        cols = {f: z[f"eb_{f}"] for f in _EB_FIELDS} if "eb_rkhs_bound" in z else None
+        diagnostics = json.loads(str(z["diagnostics"])) if "diagnostics" in z else {}
+    if cols is None:
+        return cb, None, diagnostics
     n_modes, n = cols["rkhs_bound"].shape
     models = tuple(tuple(RKHSErrorBound(**{f: (int(cols[f][u, i]) if f == "n_samples"
                                                else float(cols[f][u, i])) for f in _EB_FIELDS})
                          for i in range(n)) for u in range(n_modes))
-    return cb, models
+    return cb, models, diagnostics
 
 
 def _parameters(problem: Problem, abstraction) -> dict:
@@ -339,6 +402,9 @@ def _parameters(problem: Problem, abstraction) -> dict:
         "combine": problem.combine,
         "guarantee": problem.guarantee,
         "confidence": float(problem.confidence) if problem.guarantee == "confidence" else None,
+        "error_bound": problem.error_bound,
+        "misspecification": float(problem.misspecification),
+        "iid_noise": bool(problem.iid_noise),
         "abstraction_key": abstraction_key(problem),
     }
     from robust_imdp.io import _jsonable
@@ -362,6 +428,7 @@ def _check_atoms(dfa, problem: Problem) -> None:
 
 
 def _build_abstraction(problem: Problem, partition, log: _Log, cache_dir=None):
+    """Learn + bound (or load them from the cache) and abstract; returns (abstraction, diagnostics)."""
     from robust_imdp.abstraction import abstract, confidence_cell_bounds
 
     bounds_file = None
@@ -369,27 +436,151 @@ def _build_abstraction(problem: Problem, partition, log: _Log, cache_dir=None):
         bounds_file = Path(cache_dir) / f"bounds-{bounds_key(problem)}.npz"
     if bounds_file is not None and bounds_file.exists():
         with log.stage("load_bounds"):
-            cell_bounds, error_models = _load_bounds(bounds_file)
+            cell_bounds, error_models, diagnostics = _load_bounds(bounds_file)
         log.info(f"reused learned cell bounds {bounds_file.name}")
     else:
-        cell_bounds, error_models = _learn_and_bound(problem, partition, log)
+        cell_bounds, error_models, diagnostics = _learn_and_bound(problem, partition, log)
         if bounds_file is not None:
             bounds_file.parent.mkdir(parents=True, exist_ok=True)
-            _save_bounds(bounds_file, cell_bounds, error_models)
+            _save_bounds(bounds_file, cell_bounds, error_models, diagnostics)
     with log.stage("abstract"):
-        if problem.guarantee == "confidence":
+        if problem.guarantee == "confidence" and error_models is not None:
             # One data-confidence event for all GPs: the error is folded into the image boxes
             # and the abstraction is built as for known dynamics (eps = 0, P_g = 1).
             cell_bounds = confidence_cell_bounds(cell_bounds, error_models, problem.confidence)
             error_models = None
         abstraction = abstract(partition, cell_bounds, problem.noise, error_models,
                                eta=problem.eta, eps_rule=problem.eps_rule, combine=problem.combine)
+    diagnostics = dict(diagnostics)
+    diagnostics["successors_per_row"] = float(np.mean(abstraction.nnz_per_row))
     log.info(f"IMDP: {abstraction.imdp.n_states} states, {int(np.sum(abstraction.nnz_per_row))} "
-             "listed transitions")
-    return abstraction
+             f"listed transitions ({diagnostics['successors_per_row']:.1f} per row)")
+    return abstraction, diagnostics
+
+
+def _residual_data(problem: Problem):
+    """Per mode: inputs, residuals ``x_next - f_u(x)`` and the samples' rows in the data set."""
+    u = np.asarray(problem.data.u)
+    out = []
+    for m in range(len(problem.mode_names)):
+        x, xn = problem.data.by_mode(m)
+        out.append((x, xn - problem.maps[m](x), np.flatnonzero(u == m)))
+    return out
+
+
+def _failure_budget(problem: Problem):
+    """Split ``1 - confidence`` between the data-noise bound and the iid event (route 'optimal'/'ridge')."""
+    fail = 1.0 - float(problem.confidence)
+    bounded = bool(getattr(problem.noise, "bounded", False))
+    if bounded:
+        return 0.0, (fail if problem.iid_noise else 0.0)
+    return (fail / 2, fail / 2) if problem.iid_noise else (fail, 0.0)
+
+
+def _check_assumption(problem: Problem, data, log: _Log):
+    from robust_imdp.rkhs import check_assumption, noise_bound_at_confidence
+
+    m_total = sum(x.shape[0] for x, _, _ in data)
+    nb, _ = noise_bound_at_confidence(problem.noise, m_total, CHECK_DELTA)
+    with log.stage("check"):
+        checks = check_assumption([(x, y) for x, y, _ in data],
+                                  lengthscale=problem.gp_options.get("lengthscale", 1.0),
+                                  rkhs_bound=problem.rkhs_bound, noise_bound=nb,
+                                  misspecification=problem.misspecification, mode_names=problem.mode_names,
+                                  sample_index=[idx for _, _, idx in data])
+    worst = max(checks, key=lambda c: c.minimum)
+    log.info(f"assumption check: the data need RKHS norm >= {worst.minimum:.4g} (mode "
+             f"{problem.mode_names[worst.mode]}, component {worst.output + 1}); rkhs_bound = {problem.rkhs_bound:g}")
+    return checks, nb
+
+
+def _diagnostics(problem: Problem, partition, eps, checks, check_noise, confidence: float, statement: str) -> dict:
+    half = 0.5 * np.asarray(problem.cell_size, float)
+    rows = []
+    for u, name in enumerate(problem.mode_names):
+        for i in range(eps.shape[2]):
+            e = eps[u, :, i]
+            rows.append({"mode": name, "component": i + 1, "median": float(np.median(e)), "max": float(np.max(e)),
+                         "median_over_half_cell": float(np.median(e) / half[i])})
+    return {
+        "error_bound": problem.error_bound,
+        "confidence": float(confidence),
+        "statement": statement,
+        "cell_half_width": half.tolist(),
+        "eps": rows,
+        "assumption": {
+            "rkhs_bound": float(problem.rkhs_bound),
+            "lengthscale": np.broadcast_to(np.asarray(problem.gp_options.get("lengthscale", 1.0), float),
+                                           (len(half),)).tolist(),
+            "misspecification": float(problem.misspecification),
+            "check_noise_bound": np.asarray(check_noise, float).tolist(),
+            "min_norm": [{"mode": problem.mode_names[c.mode], "component": c.output + 1, "minimum": c.minimum,
+                          "n_points": c.n_points} for c in checks],
+        },
+    }
+
+
+def diagnostics_line(diag: dict) -> str:
+    """One line saying why cells may be undecided (error radius, successors, assumption margin)."""
+    if not diag or "eps" not in diag:
+        return ""
+    med = max(r["median"] for r in diag["eps"])
+    mx = max(r["max"] for r in diag["eps"])
+    half = min(diag["cell_half_width"])
+    text = (f"error radius eps: median {med:.3g}, max {mx:.3g} (cell half-width {half:.3g})")
+    if "successors_per_row" in diag:
+        text += f"; {diag['successors_per_row']:.1f} successors per row"
+    mins = [r["minimum"] for r in diag["assumption"]["min_norm"]]
+    if mins:
+        text += f"; data need ||g|| >= {max(mins):.3g} of B = {diag['assumption']['rkhs_bound']:g}"
+    conf = diag.get("confidence")
+    if conf is not None:
+        text += "; holds with probability 1" if conf >= 1.0 else f"; holds with confidence {conf:g} over the data"
+    return text
 
 
 def _learn_and_bound(problem: Problem, partition, log: _Log):
+    from robust_imdp.abstraction import CellBounds
+
+    data = _residual_data(problem)
+    checks, check_noise = _check_assumption(problem, data, log)
+    if problem.error_bound == "chowdhury":
+        return _learn_and_bound_gp(problem, partition, log, checks, check_noise)
+    from robust_imdp.rkhs import image_ranges, noise_bound_at_confidence
+
+    data_fail, iid_delta = _failure_budget(problem)
+    m_total = sum(x.shape[0] for x, _, _ in data)
+    noise_bound, _ = noise_bound_at_confidence(problem.noise, m_total, data_fail if data_fail > 0 else 0.5)
+    n_modes, n = len(problem.mode_names), len(problem.space_lower)
+    with log.stage("bound"):
+        ranges = image_ranges([(x, y) for x, y, _ in data], problem.maps, partition.cells_lower,
+                              partition.cells_upper, lengthscale=problem.gp_options.get("lengthscale", 1.0),
+                              rkhs_bound=problem.rkhs_bound, noise_bound=noise_bound,
+                              misspecification=problem.misspecification, method=problem.error_bound,
+                              iid_theta=problem.noise.sub_gaussian_parameter() if problem.iid_noise else None,
+                              iid_delta=iid_delta, data_failure=data_fail, progress=log.info)
+    log.info(f"bounded images of {partition.n_cells} cells x {n_modes} modes x {n} outputs "
+             f"({problem.error_bound} weights)")
+    if ranges.confidence >= 1.0:
+        statement = ("with probability 1, if every unknown component is within the misspecification of a "
+                     "function of RKHS norm <= rkhs_bound and the data noise is within its bound")
+    else:
+        events = []
+        if data_fail > 0:
+            events.append(f"the data noise within {np.round(noise_bound, 6).tolist()} (probability >= "
+                          f"{1 - data_fail:g})")
+        if iid_delta > 0:
+            events.append(f"the sub-Gaussian bound of independent noise (probability >= {1 - iid_delta:g})")
+        statement = (f"with probability >= {ranges.confidence:g} over the data ({'; '.join(events)}), if every "
+                     "unknown component is within the misspecification of a function of RKHS norm <= rkhs_bound")
+    diag = _diagnostics(problem, partition, ranges.eps, checks, check_noise, ranges.confidence, statement)
+    diag["support_median"] = float(np.median(ranges.support))
+    if ranges.n_unconverged:
+        diag["unconverged_vertex_problems"] = int(ranges.n_unconverged)
+    return CellBounds(ranges.lower, ranges.upper, None), None, diag
+
+
+def _learn_and_bound_gp(problem: Problem, partition, log: _Log, checks, check_noise):
     from robust_imdp.abstraction import CellBounds
     from robust_imdp.bounds import bound_image
     from robust_imdp.gp import learn
@@ -411,7 +602,22 @@ def _learn_and_bound(problem: Problem, partition, log: _Log):
         image_upper=np.stack([im.upper for im in images]),
         std_upper=np.stack([im.std_upper for im in images]),
     )
-    return cell_bounds, learned.error_bounds
+    # Error radius at the paper's level 0.99 per GP (diagnostic only).
+    eps = np.stack([np.stack([learned.error_bounds[u][i].eps_for_prob(0.99, cell_bounds.std_upper[u, :, i])
+                              for i in range(n)], axis=1) for u in range(n_modes)])
+    if problem.guarantee == "confidence":
+        statement = (f"with probability >= {problem.confidence:g} over the data (Chowdhury-Gopalan error bound, "
+                     "union bound over the GPs), if every unknown component has RKHS norm <= rkhs_bound")
+        conf = float(problem.confidence)
+    else:
+        statement = ("Thm 1 as printed: mixes a probability over the data into the transition bounds; not a "
+                     "guarantee for one fixed system (docs/soundness_audit.md, F2)")
+        conf = None
+    diag = _diagnostics(problem, partition, eps, checks, check_noise, conf if conf is not None else float("nan"),
+                        statement)
+    if conf is None:
+        diag["confidence"] = None
+    return cell_bounds, learned.error_bounds, diag
 
 
 def _synthesize(problem: Problem, partition, abstraction, dfa, log: _Log):
@@ -469,29 +675,41 @@ def synthesize_from_data(problem: Problem, *, progress: bool = True,
                               _region_objects(problem))
     log.info(f"partition: {partition.n_cells} cells")
 
-    abstraction, from_cache = None, False
-    cache_file = None
+    abstraction, from_cache, diagnostics = None, False, {}
+    cache_file = diag_file = None
     if abstraction_cache is not None:
         cache_file = Path(abstraction_cache) / f"abstraction-{abstraction_key(problem)}.npz"
+        diag_file = cache_file.with_suffix(".json")
         if cache_file.exists():
             from robust_imdp.abstraction import Abstraction
 
             with log.stage("load_abstraction"):
                 abstraction = Abstraction.load(cache_file)
+                if diag_file.exists():
+                    diagnostics = json.loads(diag_file.read_text())
             from_cache = True
             log.info(f"reused abstraction {cache_file.name}")
     if abstraction is None:
-        abstraction = _build_abstraction(problem, partition, log, abstraction_cache)
+        abstraction, diagnostics = _build_abstraction(problem, partition, log, abstraction_cache)
         if cache_file is not None:  # write under a temporary name, then rename (atomic)
+            from robust_imdp.io import _jsonable
+
             cache_file.parent.mkdir(parents=True, exist_ok=True)
+            tmp = diag_file.with_name(diag_file.stem + ".part.json")
+            tmp.write_text(json.dumps(_jsonable(diagnostics)))
+            tmp.replace(diag_file)
             tmp = cache_file.with_name(cache_file.stem + ".part.npz")
             abstraction.save(tmp)
             tmp.replace(cache_file)
+    why = diagnostics_line(diagnostics)
+    if why:
+        log.info(why)
     syn, classes = _synthesize(problem, partition, abstraction, dfa, log)
     log.timings["total"] = time.perf_counter() - log.t0
     result = Result(problem=problem, partition=partition, abstraction=abstraction, dfa=dfa,
                     synthesis=syn, class_names=classes, timings=dict(log.timings),
-                    parameters=_parameters(problem, abstraction), from_cache=from_cache)
+                    parameters=_parameters(problem, abstraction), from_cache=from_cache,
+                    diagnostics=diagnostics)
     return result
 
 
@@ -516,5 +734,5 @@ def resynthesize(result: Result, *, formula: str | None = None, threshold: float
     log.timings["total"] = time.perf_counter() - log.t0
     out = Result(problem=problem, partition=result.partition, abstraction=result.abstraction,
                  dfa=dfa, synthesis=syn, class_names=classes, timings=dict(log.timings),
-                 parameters=result.parameters, from_cache=True)
+                 parameters=result.parameters, from_cache=True, diagnostics=result.diagnostics)
     return out
