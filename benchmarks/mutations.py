@@ -51,6 +51,7 @@ RAW = ROOT / "benchmarks" / "results" / "mutations.json"
 _ABS = "src/robust_imdp/abstraction.py"
 _BOUNDS = "src/robust_imdp/bounds.py"
 _GP = "src/robust_imdp/gp.py"
+_RKHS = "src/robust_imdp/rkhs.py"
 _SOLVE = "src/robust_imdp/solve.py"
 _SYN = "src/robust_imdp/synthesis.py"
 
@@ -118,6 +119,33 @@ MUTATIONS = [
          original="        return _round_up(beta * (1 + 16 * _EPS))",
          replacement="        return _round_up(beta * (1 - 1e-3))",
          description="Chowdhury-Gopalan beta(delta) x (1 - 1e-3)"),
+    # ------------------------------------------------------------------ RKHS cell bounds (rkhs.py, issue 9)
+    dict(name="rkhs-taylor-shrink-1e-3", file=_RKHS,
+         original="    return _up(np.sqrt(R))",
+         replacement="    return _up(np.sqrt(R)) * (1 - 1e-3)",
+         description="feature-map Taylor remainder sqrt(R(t)) of (eq. T) x (1 - 1e-3)"),
+    dict(name="rkhs-radius-shrink-1e-3", file=_RKHS,
+         original="    radius = (a1 * l1_up + a2 * l2_up + G * r_up) * (1.0 + 8.0 * u)",
+         replacement="    radius = (a1 * l1_up + a2 * l2_up + G * r_up) * (1.0 - 1e-3)",
+         description="certified radius of (eq. W) (noise and RKHS terms of the weights) x (1 - 1e-3)"),
+    dict(name="rkhs-cell-range-shrink-1e-3", file=_RKHS,
+         original=("    return CellRange(lower=lower_c, upper=upper_c, eps=eps, support=support, vertex_lower=vl, "
+                   "vertex_upper=vu,"),
+         replacement=("    return CellRange(lower=lower_c + 1e-3 * (upper_c - lower_c), upper=upper_c - 1e-3 * "
+                      "(upper_c - lower_c), eps=eps, support=support, vertex_lower=vl, vertex_upper=vu,"),
+         description="certified cell range of f_u + g (eq. C): each side moved inward by 1e-3 of its width"),
+    dict(name="rkhs-tau-not-in-noise", file=_RKHS,
+         original="    dbar = float(_up(float(noise_bound) + tau))  # |h(x_i) - y_i| <= dbar + tau",
+         replacement="    dbar = float(_up(float(noise_bound)))",
+         description="misspecification tau left out of the data-noise bound dbar' = dbar + tau"),
+    dict(name="rkhs-tau-not-added", file=_RKHS,
+         original="        tay = _up(_up(G * rho) + tau, 4 * _U * (G * rho + tau))",
+         replacement="        tay = _up(G * rho)",
+         description="misspecification tau not added to the cell range (eq. C)"),
+    dict(name="rkhs-hoeffding-shrink-1e-3", file=_RKHS,
+         original="    return float(_up(math.sqrt(2.0 * math.log(2.0 * int(n_events) / float(delta))) * (1 + 1e-12)))",
+         replacement="    return float(math.sqrt(2.0 * math.log(2.0 * int(n_events) / float(delta))) * (1 - 1e-3))",
+         description="iid route: union-bound factor sqrt(2 ln(2N/delta)) x (1 - 1e-3)"),
     # ------------------------------------------------------------------ value iteration (solve.py)
     dict(name="vi-upper-x0.99", file=_SOLVE, original=_VI_RETURN,
          replacement=_VI_RETURN.replace("upper=up,", "upper=up * 0.99,"),
