@@ -205,9 +205,9 @@ def _git_commit() -> str | None:
     try:
         out = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"],
                              capture_output=True, text=True, check=True)
-        dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--", "src"],
+        dirty = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--", "src", "examples/problems"],
                                capture_output=True, text=True, check=True).stdout.strip()
-        return out.stdout.strip() + (" + uncommitted src changes" if dirty else "")
+        return out.stdout.strip() + (" + uncommitted changes in src/ or examples/problems/" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
         return None
 
