@@ -130,7 +130,7 @@ def test_run_end_to_end_on_a_coarse_problem(tmp_path, capsys):
     write_data_file(tmp_path / "d.csv", x, u, xn, modes=case.system.mode_names)
     text = problem_toml(case, "G !obs & F des", "d.csv").replace(
         "cell_size = [0.125, 0.125]", "cell_size = [0.5, 0.5]")
-    (tmp_path / "p.toml").write_text(text + "bound_tol = 0.01\nbound_max_boxes = 200\n")
+    (tmp_path / "p.toml").write_text(text)
     out = tmp_path / "out"
     code, stdout, err = _run(["run", str(tmp_path / "p.toml"), "--out", str(out)], capsys)
     assert code == 0, err

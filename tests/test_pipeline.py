@@ -25,12 +25,18 @@ def tiny_problem(formula="G !obs & F des", **changes):
         cell_size=np.array([0.5, 0.5]), regions=CASE.regions, formula=formula, threshold=0.9,
         horizon=None, data=Dataset(x, u, x_next, modes=sysm.mode_names),
         mode_names=sysm.mode_names, maps=tuple(AffineMap.zero(2) for _ in range(3)),
-        noise=TruncatedGaussianNoise(sysm.sigma, sysm.bound), rkhs_bound=10.0,
-        gp_options={"lengthscale": 4.0, "signal_variance": 10.0}, bound_tol=1e-2,
-        bound_max_boxes=200,
+        noise=TruncatedGaussianNoise(sysm.sigma, sysm.bound), rkhs_bound=CASE.rkhs_bound,
+        gp_options={"lengthscale": 2.0}, misspecification=CASE.misspecification,
     )
     values.update(changes)
     return Problem(**values)
+
+
+def tiny_gp_problem(**changes):
+    """The same data with the GP route (Chowdhury-Gopalan error bound) of the paper."""
+    return tiny_problem(error_bound="chowdhury", rkhs_bound=10.0, misspecification=0.0,
+                        gp_options={"lengthscale": 4.0, "signal_variance": 10.0}, bound_tol=1e-2,
+                        bound_max_boxes=200, **changes)
 
 
 @pytest.fixture(scope="module")
@@ -53,15 +59,24 @@ def test_end_to_end_bounds_and_classes(run):
     assert np.all(syn.p_low[in_des] == 1.0)
     obs_bit = 1 << res.partition.atoms.index("obs")
     assert np.all(syn.p_up[(res.partition.labels & obs_bit) > 0] == 0.0)  # starts in an obstacle
-    for stage in ("specify", "partition", "learn", "bound", "abstract", "synthesize", "total"):
+    for stage in ("specify", "partition", "check", "bound", "abstract", "synthesize", "total"):
         assert res.timings[stage] >= 0.0
     assert "Q_yes" in res.summary() and not res.from_cache
+    # the "why undecided" line: error radius against the cell, successors, assumption margin
+    assert "error radius eps" in res.summary() and "data need ||g|| >=" in res.summary()
+    diag = res.diagnostics
+    assert diag["confidence"] == 1.0 and diag["error_bound"] == "optimal"
+    assert len(diag["eps"]) == 3 * 2 and all(0 < r["median"] <= r["max"] for r in diag["eps"])
+    mins = [r["minimum"] for r in diag["assumption"]["min_norm"]]
+    assert len(mins) == 6 and 0 < max(mins) <= res.problem.rkhs_bound
+    assert diag["successors_per_row"] >= 1.0
 
 
 def test_cache_reused_for_a_new_formula(run):
     res, cache = run
     again = synthesize_from_data(tiny_problem("F des"), progress=False, abstraction_cache=cache)
-    assert again.from_cache and "learn" not in again.timings
+    assert again.from_cache and "bound" not in again.timings
+    assert again.diagnostics == res.diagnostics  # kept with the cached abstraction
     mem = resynthesize(res, formula="F des", progress=False)
     np.testing.assert_array_equal(again.synthesis.p_low, mem.synthesis.p_low)
     # F des is implied by G !obs & F des, so its lower bound can only be larger
@@ -133,10 +148,12 @@ def test_guarantee_modes_and_validation():
     abstractions, so their cache keys differ (also across confidence levels) and neither reuses
     the other's cache; unknown guarantee names and confidences outside (0, 1) are refused.
     (The brackets of the confidence mode are checked end to end by the tests above.)"""
-    p = tiny_problem()
+    p = tiny_gp_problem()
     assert p.guarantee == "confidence" and p.confidence == 0.99
     assert abstraction_key(p) != abstraction_key(p.replace(guarantee="paper"))
     assert abstraction_key(p) != abstraction_key(p.replace(confidence=0.9))
+    with pytest.raises(InvalidInputError, match="guarantee 'paper'.*needs error_bound 'chowdhury'"):
+        tiny_problem(guarantee="paper")
     with pytest.raises(InvalidInputError, match="guarantee must be one of"):
         p.replace(guarantee="bogus")
     with pytest.raises(InvalidInputError, match="confidence must lie in"):
