@@ -284,13 +284,13 @@ def _first_failure(output: str) -> str | None:
     return f[0] if f else None
 
 
-def run_one(m: dict | None, files, timeout: float, deselect=()) -> dict:
-    """Copy, mutate (``m`` None: baseline), check the import path, run pytest; a result dict."""
+def run_one(m: dict | None, snapshot: Path, timeout: float, deselect=()) -> dict:
+    """Copy the snapshot, mutate (``m`` None: baseline), check the import path, run pytest."""
     name = "baseline" if m is None else m["name"]
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix=f"mut-{name}-") as tmp:
         dest = Path(tmp)
-        _copy_tree(dest, files)
+        shutil.copytree(snapshot, dest, symlinks=True, dirs_exist_ok=True)  # copy2: mtimes kept
         if m is not None:
             _apply(dest, m)
         env = _env(dest)
@@ -397,10 +397,40 @@ def main(argv=None) -> int:
     files = _tree_files() if args.source == "worktree" else "HEAD"
     code = _commit(args.source)
     t0 = time.perf_counter()
+    # One snapshot for all runs: others may edit the working tree while the mutations run.
+    with tempfile.TemporaryDirectory(prefix="mut-snapshot-") as snap:
+        snapshot = Path(snap)
+        _copy_tree(snapshot, files)
+        problems = []
+        for m in selected:  # the tree may have changed since the check above
+            n = (snapshot / m["file"]).read_text().count(m["original"])
+            if n != 1:
+                problems.append(f"{m['name']}: original text occurs {n} times in the snapshot's {m['file']}")
+        if problems:
+            print("the mutation list is out of date:\n  " + "\n  ".join(problems), file=sys.stderr)
+            return 2
+        out = _run_all(args, selected, snapshot)
+        if isinstance(out, int):
+            return out
+        results, baseline, deselected = out
+    elapsed = time.perf_counter() - t0
+    caught = sum(r["status"] == "caught" for r in results)
+    print(f"{caught} of {len(results)} mutations caught ({elapsed / 60:.1f} min)")
+    if not args.no_write:
+        write_doc(results, baseline, command, elapsed, deselected, code)
+        RAW.parent.mkdir(parents=True, exist_ok=True)
+        RAW.write_text(json.dumps({"command": command, "code": code, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+                                   "baseline": baseline, "deselected": deselected, "results": results},
+                                  indent=1))
+    return 0 if caught == len(results) else 1
+
+
+def _run_all(args, selected, snapshot):
+    """Baseline, then every mutation: (results, baseline, deselected) or an exit status."""
     baseline = {"status": "not run", "summary": "skipped"}
     deselected = []
     if not args.no_baseline:
-        baseline = run_one(None, files, args.timeout)
+        baseline = run_one(None, snapshot, args.timeout)
         print(f"baseline: {baseline['summary']} ({baseline['seconds']:.0f} s)", flush=True)
         if baseline["status"] != "not caught":
             deselected = baseline["failures"] or []
@@ -412,22 +442,13 @@ def main(argv=None) -> int:
                   file=sys.stderr, flush=True)
 
     def one(m):
-        r = run_one(m, files, args.timeout, deselected)
+        r = run_one(m, snapshot, args.timeout, deselected)
         print(f"{r['name']:32s} {r['status']:12s} {r['first_failure'] or '-'} ({r['seconds']:.0f} s)", flush=True)
         return r
 
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
         results = list(pool.map(one, selected))
-    elapsed = time.perf_counter() - t0
-    caught = sum(r["status"] == "caught" for r in results)
-    print(f"{caught} of {len(results)} mutations caught ({elapsed / 60:.1f} min)")
-    if not args.no_write:
-        write_doc(results, baseline, command, elapsed, deselected, code)
-        RAW.parent.mkdir(parents=True, exist_ok=True)
-        RAW.write_text(json.dumps({"command": command, "code": code, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-                                   "baseline": baseline, "deselected": deselected, "results": results},
-                                  indent=1))
-    return 0 if caught == len(results) else 1
+    return results, baseline, deselected
 
 
 if __name__ == "__main__":
