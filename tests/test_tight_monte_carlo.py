@@ -4,8 +4,8 @@ Why a special problem. A Monte-Carlo check can only catch ``p_low x 1.01`` where
 satisfaction probability is within 1 % of ``p_low``. Thm 1 gives such bounds only in one
 situation: the image of a cell is a point centred in the target cell, so the exact probability
 ``P[|v| <= margin]`` of staying in the target is the printed lower bound (an image of positive
-width w loses about ``2 phi(m/sigma) w/sigma`` of it; a target hit off-centre keeps only the
-smaller margin). The problem below is built from exactly that.
+width w loses about ``phi(m/sigma) w/sigma`` of it at the worst point; a target hit off-centre
+keeps only the smaller margin). The problem below is built from exactly that.
 
 True system (2-D, known, "move to a cell centre"): ``x' = c(x) + d_u + v`` where ``c(x)`` is
 the centre of x's cell (a sample-and-hold on the grid), ``d_fwd1 = (1, 0)``, ``d_fwd2 = (2, 0)``
