@@ -70,7 +70,9 @@ def certificates():
     out = {}
     for name in NAMES:
         ls, _B, tau = _assumption(get_case_study(name))
-        out[name] = assumption_certificate(name, ls, tau)
+        # a check grid of 1/128: at tau = 0.001 the interpolation remainder of the default 1/64
+        # grid takes about a tenth of tau (the certificate then still holds but is less tight)
+        out[name] = assumption_certificate(name, ls, tau, check_spacing=1 / 128)
     return out
 
 
@@ -103,7 +105,7 @@ def test_sup_error_against_dense_sampling(certificates, name):
     for r, sampled in zip(rows, _sampled_errors(case, rows, x)):
         assert sampled <= r["sup_error_upper"], (r["mode"], r["output"], sampled, r["sup_error_upper"])
         # the fit equioscillates at about tau_fit = 0.8 tau, so sampling gets close to the bound
-        # (measured: 0.93-0.98 of it); a claim tau = 0.9 x certified would be refuted
+        # (measured at tau = 0.002: 0.93-0.98 of it); a claim tau = 0.9 x certified would be refuted
         assert sampled > 0.9 * r["sup_error_upper"], (r["mode"], r["output"], sampled)
         assert sampled > 0.9 * r["tau_fit"]
 

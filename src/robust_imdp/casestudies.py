@@ -297,7 +297,7 @@ class CaseStudy:
     # of each case study is within tau of a function of norm < B).
     gp: tuple = (("lengthscale", 2.0),)
     rkhs_bound: float = 6.0
-    misspecification: float = 0.002
+    misspecification: float = 0.001
 
 
 _SIGMA = np.array([0.01, 0.01])
@@ -332,7 +332,7 @@ _FOUR = CaseStudy(
               ((0.75, 0.75), (1.75, 1.75))],
     },
     formulas=("F des", "G !o & F d1 & F d2"),
-    rkhs_bound=3.0,
+    rkhs_bound=2.5,
 )
 
 CASE_STUDIES = {c.name: c for c in (_THREE, _FOUR)}
