@@ -391,7 +391,8 @@ def test_active_set_matches_the_socp_optimum():
         signs = rkhs.vertex_signs(model.d)
         vp = rkhs.vertex_problems(model, c, r, signs)
         val, sup, stat = rkhs._optimal_cells(model.X, model.y, model.K, model.K_err, model.inv_l2, c, r, signs,
-                                             0.02, 2.0, model.m, 2000, 1e-10, 4)
+                                             0.02, 2.0, model.m, 2000, 1e-10, 4,
+                                             np.zeros((1, signs.shape[0])), False)
         for j in range(signs.shape[0]):
             for side, col in ((1, 0), (-1, 1)):
                 ref, _ = rkhs_vertex_socp(model.K, model.y, vp["b"][0, j], vp["s0"][0, j], 0.02, 2.0, side)
@@ -405,11 +406,15 @@ def test_ridge_certificates_are_sound_but_never_tighter_than_optimal():
     for seed in range(4):
         model, x = _point_problem(200 + seed, m=50)
         lo, up = grid_cells(2, -1.0, 1.0, 0.25)
-        opt = rkhs.cell_ranges(model, lo, up, rkhs_bound=2.0, noise_bound=0.02, method="optimal")
+        opt = rkhs.cell_ranges(model, lo, up, rkhs_bound=2.0, noise_bound=0.02, method="optimal", prune=False)
         rid = rkhs.cell_ranges(model, lo, up, rkhs_bound=2.0, noise_bound=0.02, method="ridge")
         assert np.all(rid.vertex_upper >= opt.vertex_upper - 1e-9)
         assert np.all(rid.vertex_lower <= opt.vertex_lower + 1e-9)
         assert np.median(rid.upper - rid.lower) > np.median(opt.upper - opt.lower)
+        # pruning keeps certified neighbour values where they cannot change the cell bound
+        pr = rkhs.cell_ranges(model, lo, up, rkhs_bound=2.0, noise_bound=0.02, method="optimal")
+        assert np.all(pr.vertex_upper >= opt.vertex_upper - 1e-9)
+        assert np.max(pr.upper - opt.upper) < 1e-3 and np.max(opt.lower - pr.lower) < 1e-3
     del rng
 
 

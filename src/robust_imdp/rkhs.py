@@ -624,7 +624,7 @@ def _active_set(K, ys, b, s0, dbar, G, S, sg, w, nS, cap, max_iter, tol, bS_idx,
                 bw[p] = w[p]
         else:
             stall += 1
-            if stall >= 8:
+            if stall >= 4:
                 status = 5
                 break
         worst = tol
@@ -682,11 +682,17 @@ def optimal_weights(model: KernelModel, b, s0: float, *, noise: float, rkhs_boun
 
 
 @numba.njit(cache=True, parallel=True)
-def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, tol, chunk):  # pragma: no cover
+def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, tol, chunk, lin,
+                   prune):  # pragma: no cover - compiled
     """Certified bounds of ``<h, phi_v>`` (eq. W) with optimal weights, all cells, vertices, sides.
 
-    Returns ``val (n, V, 2)`` (side 0: upper bound, side 1: lower bound; certified by
-    :func:`_certify`), ``support (n, V, 2)`` and ``status (n, V, 2)`` of the optimiser.
+    Per cell and side, every vertex first gets the (certified) value of the neighbouring problem's
+    weights; vertices are then optimised in the order of those values, and with ``prune`` a vertex
+    whose certified value (plus ``lin``, the float known part) cannot exceed the best vertex found
+    so far keeps it (status 6): the cell's bound is a maximum (upper side) or a minimum (lower side)
+    over vertices, so optimising it would not change the cell bound, and any certified value is
+    sound. Returns ``val (n, V, 2)`` (side 0: upper bound, side 1: lower bound),
+    ``support (n, V, 2)`` and ``status (n, V, 2)``.
     """
     n, d = c.shape
     V = signs.shape[0]
@@ -700,36 +706,68 @@ def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, 
         sg = np.zeros((2, cap))
         w = np.zeros((2, cap))
         nS = np.zeros(2, dtype=np.int64)
+        lastS = np.zeros((2, cap), dtype=np.int64)
+        lastw = np.zeros((2, cap))
+        lastn = np.zeros(2, dtype=np.int64)
         bidx = np.zeros(cap, dtype=np.int64)
         bw = np.zeros(cap)
-        b = np.empty(m)
-        eb = np.empty(m)
+        B = np.empty((V, m))
+        EB = np.empty((V, m))
+        s0 = np.empty(V)
+        cheap = np.empty(V)
         ys = np.empty(m)
         v = np.empty(d)
         for q in range(ch * chunk, min(n, (ch + 1) * chunk)):
             for jv in range(V):
                 for a in range(d):
                     v[a] = signs[jv, a] * r[q, a]
-                z = _vertex_b(X, inv_l2, c[q], v, b, eb)
+                z = _vertex_b(X, inv_l2, c[q], v, B[jv], EB[jv])
                 kerr = _kernel_rel_err_nb(z, d)
                 for i in range(m):
-                    eb[i] += abs(b[i]) * kerr
-                s0 = 1.0
+                    EB[jv, i] += abs(B[jv, i]) * kerr
+                t = 1.0
                 for a in range(d):
-                    s0 += v[a] * v[a] * inv_l2[a]
-                s0 = s0 * (1.0 + (d + 8) * 2.220446049250313e-16)  # upper bound of <phi_v, phi_v>
-                for side in range(2):
-                    sgn = 1.0 if side == 0 else -1.0
-                    for i in range(m):
-                        ys[i] = sgn * y[i]
-                    res = _active_set(K, ys, b, s0, dbar, G, S[side], sg[side], w[side], nS[side], cap,
+                    t += v[a] * v[a] * inv_l2[a]
+                s0[jv] = t * (1.0 + (d + 8) * 2.220446049250313e-16)  # upper bound of <phi_v, phi_v>
+            for side in range(2):
+                sgn = 1.0 if side == 0 else -1.0
+                for i in range(m):
+                    ys[i] = sgn * y[i]
+                for jv in range(V):
+                    cheap[jv] = _certify(lastS[side], lastw[side], lastn[side], y, B[jv], EB[jv], K, K_err, s0[jv],
+                                         dbar, 0.0, G, sgn)[0]
+                order = np.argsort(-sgn * (lin[q] + cheap))
+                best = -np.inf
+                for k in range(V):
+                    jv = order[k]
+                    if prune and k > 0 and sgn * (lin[q, jv] + cheap[jv]) <= best:
+                        val[q, jv, side] = cheap[jv]
+                        sup[q, jv, side] = lastn[side]
+                        stat[q, jv, side] = 6
+                        continue
+                    res = _active_set(K, ys, B[jv], s0[jv], dbar, G, S[side], sg[side], w[side], nS[side], cap,
                                       max_iter, tol, bidx, bw)
                     nS[side] = res[0]
                     nb = res[1]
                     stat[q, jv, side] = res[3]
                     # the certificate: the best weights met (any weights are sound; none -> w = 0)
-                    val[q, jv, side] = _certify(bidx, bw, nb, y, b, eb, K, K_err, s0, dbar, 0.0, G, sgn)[0]
+                    cv = _certify(bidx, bw, nb, y, B[jv], EB[jv], K, K_err, s0[jv], dbar, 0.0, G, sgn)[0]
+                    if sgn * cv > sgn * cheap[jv]:  # the neighbour's weights were better: keep them
+                        cv = cheap[jv]
+                    val[q, jv, side] = cv
                     sup[q, jv, side] = nb
+                    if sgn * (lin[q, jv] + cv) > best:
+                        best = sgn * (lin[q, jv] + cv)
+                    lastn[side] = nb
+                    for p in range(nb):
+                        lastS[side, p] = bidx[p]
+                        lastw[side, p] = bw[p]
+                    if prune:  # the weights just found certify the remaining vertices of this cell too
+                        for k2 in range(k + 1, V):
+                            j2 = order[k2]
+                            c2 = _certify(bidx, bw, nb, y, B[j2], EB[j2], K, K_err, s0[j2], dbar, 0.0, G, sgn)[0]
+                            if sgn * c2 < sgn * cheap[j2]:
+                                cheap[j2] = c2
                     if res[3] == 2 or res[3] == 3:
                         # inconsistent or ill-conditioned support: restart cold next time
                         nS[side] = 0
@@ -909,7 +947,7 @@ def _combine_vertices(lin_v, lin_err, su, sl, t_max, G: float, tau: float):
 def cell_ranges(model: KernelModel, cells_lower, cells_upper, *, rkhs_bound: float, noise_bound: float,
                 misspecification: float = 0.0, known_row=None, known_offset: float = 0.0,
                 method: str = "optimal", iid_factor: float | None = None, iid_theta: float = 0.0,
-                chunk: int = 16, max_iter: int = 2000, tol: float = 1e-9) -> CellRange:
+                chunk: int = 16, max_iter: int = 2000, tol: float = 1e-9, prune: bool = True) -> CellRange:
     """Certified range of ``known_row . x + known_offset + g(x)`` over every cell (eq. C).
 
     Parameters
@@ -932,6 +970,9 @@ def cell_ranges(model: KernelModel, cells_lower, cells_upper, *, rkhs_bound: flo
         parameter ``iid_theta``, independent across samples, inputs independent of it).
     chunk, max_iter, tol
         Optimiser settings (cells per parallel chunk, active-set iterations, optimality tolerance).
+    prune : bool
+        Skip optimising vertices whose certified neighbour value cannot change the cell bound
+        (their values stay certified; ``vertex_lower``/``vertex_upper`` are then not all optimal).
 
     Returns
     -------
@@ -964,10 +1005,10 @@ def cell_ranges(model: KernelModel, cells_lower, cells_upper, *, rkhs_bound: flo
     if method == "optimal":
         cap = int(min(model.m, MAX_SUPPORT))
         val, sup, stat = _optimal_cells(model.X, model.y, model.K, model.K_err, model.inv_l2, c, r, signs, dbar,
-                                        G_eff, cap, int(max_iter), float(tol), int(chunk))
+                                        G_eff, cap, int(max_iter), float(tol), int(chunk), lin_v, bool(prune))
         su, sl = val[:, :, 0], val[:, :, 1]
         support = sup.max(axis=(1, 2))
-        n_unconv = int(np.sum((stat != 0) & (stat != 5)))
+        n_unconv = int(np.sum((stat != 0) & (stat != 5) & (stat != 6)))
     else:
         su, sl = _ridge_vertex_bounds(model, c, r, signs, dbar, 0.0, G_eff)
         support = np.full(lower.shape[0], model.m)
