@@ -149,6 +149,10 @@ class Problem:
         tau = float(self.misspecification)
         if not (np.isfinite(tau) and tau >= 0):
             raise InvalidInputError(f"misspecification must be a finite float >= 0; got {self.misspecification!r}")
+        if self.error_bound == "chowdhury" and (tau > 0 or self.iid_noise):
+            raise InvalidInputError(
+                "misspecification and iid_noise apply to error_bound 'optimal' or 'ridge' only; the GP route "
+                f"(error_bound 'chowdhury') has neither; got misspecification={tau!r}, iid_noise={self.iid_noise!r}")
         if self.error_bound != "chowdhury":
             extra = sorted(set(self.gp_options) - {"lengthscale"})
             if extra:
