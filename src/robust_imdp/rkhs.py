@@ -1007,10 +1007,12 @@ def cell_ranges(model: KernelModel, cells_lower, cells_upper, *, rkhs_bound: flo
         val, sup, stat = _optimal_cells(model.X, model.y, model.K, model.K_err, model.inv_l2, c, r, signs, dbar,
                                         G_eff, cap, int(max_iter), float(tol), int(chunk), lin_v, bool(prune))
         su, sl = val[:, :, 0], val[:, :, 1]
+        optimised = (stat[:, :, 0] != 6) & (stat[:, :, 1] != 6)
         support = sup.max(axis=(1, 2))
         n_unconv = int(np.sum((stat != 0) & (stat != 5) & (stat != 6)))
     else:
         su, sl = _ridge_vertex_bounds(model, c, r, signs, dbar, 0.0, G_eff)
+        optimised = None
         support = np.full(lower.shape[0], model.m)
     if iid_factor is not None:
         a2 = float(_up(float(iid_factor) * float(iid_theta) * (1 + 4 * _U)))
@@ -1020,7 +1022,11 @@ def cell_ranges(model: KernelModel, cells_lower, cells_upper, *, rkhs_bound: flo
     lower_c, upper_c, taylor = _combine_vertices(lin_v, lin_err, su, sl, t_max, G_eff, tau)
     vu = _up(lin_v + su, lin_err + 2 * _U * (np.abs(lin_v) + np.abs(su)))
     vl = _down(lin_v + sl, lin_err + 2 * _U * (np.abs(lin_v) + np.abs(sl)))
-    eps = np.max(0.5 * (vu - vl), axis=1) + taylor
+    # Error radius (a diagnostic): half the vertex interval, over the vertices optimised on both
+    # sides (a pruned vertex keeps a looser neighbour value that says nothing about the data).
+    half = 0.5 * (su - sl)
+    solved = np.ones_like(half, dtype=bool) if optimised is None else optimised
+    eps = np.where(solved.any(axis=1), np.max(np.where(solved, half, -np.inf), axis=1), half.min(axis=1)) + taylor
     return CellRange(lower=lower_c, upper=upper_c, eps=eps, support=support, vertex_lower=vl, vertex_upper=vu,
                      taylor=taylor, n_unconverged=n_unconv)
 
