@@ -86,7 +86,7 @@ __all__ = [
     "KernelModel", "NormCheck", "CellRange", "ImageRanges", "METHODS",
     "taylor_remainder_sqrt_up", "cell_centres", "vertex_signs", "unit_kernel",
     "certify_weights", "vertex_problems", "optimal_weights", "cell_ranges", "min_rkhs_norm", "check_assumption",
-    "image_ranges", "noise_bound_at_confidence", "hoeffding_factor",
+    "image_ranges", "bound_chunk", "check_ranges", "CELL_BLOCK", "noise_bound_at_confidence", "hoeffding_factor",
 ]
 
 log = logging.getLogger(__name__)
@@ -1239,10 +1239,82 @@ class ImageRanges:
     seconds: float
 
 
+#: Cells per numba work unit: warm starts restart at every multiple of this global cell index, so
+#: results do not depend on how the cells are split into tasks (task sizes are multiples of it).
+CELL_BLOCK = 16
+
+
+def bound_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_bound: float, noise_bound,
+                misspecification: float = 0.0, method: str = "optimal", iid_factor: float | None = None,
+                iid_theta=None, threads: int | None = None) -> dict:
+    """Certified image boxes of one mode over a chunk of cells (all outputs): a pure function.
+
+    The unit of work of the bound stage (``pipeline`` runs it on a scheduler). Its result
+    depends only on its arguments; a chunk must start at a multiple of :data:`CELL_BLOCK` of the
+    global cell index for the result to be independent of the chunking.
+
+    Parameters
+    ----------
+    X : (m, d) float array
+    Y : (m, n) float array
+        Residuals ``x_next - f_u(x)`` of this mode.
+    A : (n, d) float array, b : (n,) float array
+        Known affine part of this mode.
+    cells_lower, cells_upper : (k, d) float arrays
+    lengthscale, rkhs_bound, noise_bound (n,), misspecification, method, iid_factor, iid_theta (n,)
+        As in :func:`cell_ranges` (per output where an array).
+    threads : int, optional
+        numba threads for this call (1 inside a scheduler's worker process).
+
+    Returns
+    -------
+    dict with ``lower``, ``upper``, ``eps`` ((k, n) float arrays), ``support`` ((k, n) int array),
+    ``n_unconverged`` (int) and ``seconds`` (float).
+    """
+    t0 = time.perf_counter()
+    if threads is not None:
+        numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
+    Y = np.asarray(Y, float).reshape(np.shape(X)[0], -1)
+    n = Y.shape[1]
+    nb = np.broadcast_to(np.asarray(noise_bound, float), (n,))
+    th = None if iid_theta is None else np.broadcast_to(np.asarray(iid_theta, float), (n,))
+    k = np.shape(cells_lower)[0]
+    out = {key: np.empty((k, n)) for key in ("lower", "upper", "eps")}
+    out["support"] = np.empty((k, n), dtype=np.int64)
+    unconv = 0
+    A = np.asarray(A, float)
+    b = np.asarray(b, float)
+    for i in range(n):
+        model = KernelModel(X, Y[:, i], lengthscale)
+        cr = cell_ranges(model, cells_lower, cells_upper, rkhs_bound=rkhs_bound, noise_bound=float(nb[i]),
+                         misspecification=misspecification, known_row=A[i], known_offset=float(b[i]), method=method,
+                         iid_factor=iid_factor, iid_theta=0.0 if th is None else float(th[i]), chunk=CELL_BLOCK)
+        out["lower"][:, i], out["upper"][:, i], out["eps"][:, i] = cr.lower, cr.upper, cr.eps
+        out["support"][:, i] = cr.support
+        unconv += cr.n_unconverged
+    out["n_unconverged"] = unconv
+    out["seconds"] = time.perf_counter() - t0
+    return out
+
+
+def check_ranges(lower, upper, mode: int) -> None:
+    """Raise :class:`AssumptionError` where a certified range is empty (the data refute the assumption)."""
+    bad = np.argwhere(lower > upper)
+    if bad.size:
+        q, i = (int(v) for v in bad[0])
+        raise AssumptionError(
+            f"the data contradict the assumption: the certified range of mode {mode}, component {i + 1} is "
+            f"empty on {len(bad)} cells (e.g. cell {q}: [{lower[q, i]:.6g}, {upper[q, i]:.6g}]); "
+            "no function allowed by [gp].rkhs_bound, the lengthscale and the noise bound explains them")
+
+
 def image_ranges(data, known_maps, cells_lower, cells_upper, *, lengthscale, rkhs_bound: float, noise_bound,
                  misspecification: float = 0.0, method: str = "optimal", iid_theta=None, iid_delta: float = 0.0,
-                 data_failure: float = 0.0, progress: Callable[[str], None] | None = None) -> ImageRanges:
-    """Certified image boxes ``f_u + g_u`` of all modes and outputs over all cells.
+                 data_failure: float = 0.0, progress: Callable[[str], None] | None = None,
+                 chunk_cells: int | None = None) -> ImageRanges:
+    """Certified image boxes ``f_u + g_u`` of all modes and outputs over all cells (in this process).
+
+    The pipeline runs the same :func:`bound_chunk` tasks on a scheduler; this is the serial form.
 
     Parameters
     ----------
@@ -1261,7 +1333,9 @@ def image_ranges(data, known_maps, cells_lower, cells_upper, *, lengthscale, rkh
     data_failure : float
         Probability that ``noise_bound`` fails (0 for bounded noise), for the stated confidence.
     progress : callable(str), optional
-        Receives one line per (mode, output) with its time and error radius.
+        Receives one line per mode with its time and error radius.
+    chunk_cells : int, optional
+        Cells per call of :func:`bound_chunk` (rounded up to a multiple of :data:`CELL_BLOCK`).
 
     Returns
     -------
@@ -1272,39 +1346,27 @@ def image_ranges(data, known_maps, cells_lower, cells_upper, *, lengthscale, rkh
     lower, upper = _check_cells(cells_lower, cells_upper, np.shape(data[0][0])[1])
     N, d = lower.shape
     n = len(np.atleast_1d(noise_bound))
-    nb = np.broadcast_to(np.asarray(noise_bound, float), (n,))
-    iid_factor = None
-    if iid_theta is not None:
-        iid_factor = hoeffding_factor(M * n * N * 2 ** d, iid_delta)
-        theta = np.broadcast_to(np.asarray(iid_theta, float), (n,))
+    iid_factor = None if iid_theta is None else hoeffding_factor(M * n * N * 2 ** d, iid_delta)
+    step = N if chunk_cells is None else max(CELL_BLOCK, -(-int(chunk_cells) // CELL_BLOCK) * CELL_BLOCK)
     out_lo = np.empty((M, N, n))
     out_up = np.empty((M, N, n))
     eps = np.empty((M, N, n))
     sup = np.empty((M, N, n), dtype=np.int64)
     unconv = 0
     for u, (X, Y) in enumerate(data):
-        Y = np.asarray(Y, float).reshape(np.shape(X)[0], -1)
-        A = np.asarray(known_maps[u].A, float)
-        bvec = np.asarray(known_maps[u].b, float)
-        for i in range(n):
-            t = time.perf_counter()
-            model = KernelModel(X, Y[:, i], lengthscale)
-            cr = cell_ranges(model, lower, upper, rkhs_bound=rkhs_bound, noise_bound=float(nb[i]),
-                             misspecification=misspecification, known_row=A[i], known_offset=float(bvec[i]),
-                             method=method, iid_factor=iid_factor,
-                             iid_theta=0.0 if iid_factor is None else float(theta[i]))
-            bad = np.flatnonzero(cr.lower > cr.upper)
-            if bad.size:
-                raise AssumptionError(
-                    f"the data contradict the assumption: the certified range of mode {u}, component {i + 1} is "
-                    f"empty on {bad.size} cells (e.g. cell {bad[0]}: [{cr.lower[bad[0]]:.6g}, {cr.upper[bad[0]]:.6g}]); "
-                    "no function allowed by [gp].rkhs_bound, the lengthscale and the noise bound explains them")
-            out_lo[u, :, i], out_up[u, :, i], eps[u, :, i], sup[u, :, i] = cr.lower, cr.upper, cr.eps, cr.support
-            unconv += cr.n_unconverged
-            line = (f"bound: mode {u} output {i + 1}: {N} cells in {time.perf_counter() - t:.2f} s, eps median "
-                    f"{np.median(cr.eps):.4g} max {np.max(cr.eps):.4g}, support median {int(np.median(cr.support))}")
-            log.info(line)
-            if progress is not None:
-                progress(line)
+        t = time.perf_counter()
+        for s0 in range(0, N, step):
+            sl = slice(s0, min(N, s0 + step))
+            r = bound_chunk(X, Y, known_maps[u].A, known_maps[u].b, lower[sl], upper[sl], lengthscale=lengthscale,
+                            rkhs_bound=rkhs_bound, noise_bound=noise_bound, misspecification=misspecification,
+                            method=method, iid_factor=iid_factor, iid_theta=iid_theta)
+            out_lo[u, sl], out_up[u, sl], eps[u, sl], sup[u, sl] = r["lower"], r["upper"], r["eps"], r["support"]
+            unconv += r["n_unconverged"]
+        check_ranges(out_lo[u], out_up[u], u)
+        line = (f"bound: mode {u}: {N} cells x {n} outputs in {time.perf_counter() - t:.2f} s, eps median "
+                f"{np.median(eps[u]):.4g} max {np.max(eps[u]):.4g}")
+        log.info(line)
+        if progress is not None:
+            progress(line)
     confidence = 1.0 - float(data_failure) - (float(iid_delta) if iid_factor is not None else 0.0)
     return ImageRanges(out_lo, out_up, eps, sup, (), confidence, unconv, time.perf_counter() - t0)
