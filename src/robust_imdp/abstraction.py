@@ -79,7 +79,8 @@ from robust_imdp.geometry import Partition
 from robust_imdp.imdp import IMDP
 from robust_imdp.noise import NoiseModel
 
-__all__ = ["CellBounds", "Abstraction", "abstract", "confidence_cell_bounds", "EPS_LEVELS"]
+__all__ = ["CellBounds", "Abstraction", "AbstractionRows", "abstract", "abstract_rows", "assemble_abstraction",
+           "confidence_cell_bounds", "EPS_LEVELS"]
 
 #: Probability levels at which candidate eps are proposed (``eps_for_prob(level, std)``).
 EPS_LEVELS = 1.0 - np.array(
@@ -532,6 +533,46 @@ def abstract(partition: Partition, cell_bounds: CellBounds, noise: NoiseModel, e
     SoundnessError
         A row violates ``sum(lower) <= 1 <= sum(upper) + floor * n_unlisted`` after rounding.
     """
+    return assemble_abstraction(partition, [abstract_rows(
+        partition, cell_bounds, noise, error_models, eta=eta, eps_rule=eps_rule, combine=combine,
+        floor_tol=floor_tol, block_size=block_size, _chunk=False)])
+
+
+@dataclass(frozen=True, eq=False)
+class AbstractionRows:
+    """The IMDP rows of a chunk of cells (all modes), in cell order: the unit of :func:`assemble_abstraction`.
+
+    Rows are ``q * M + u`` for the chunk's local cell index q; columns are global cell indices
+    (``n_cells`` is the outside state).
+    """
+
+    row_len: np.ndarray
+    col: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    floor: np.ndarray
+    lower_eps: np.ndarray
+    lower_eta: np.ndarray
+    containing: np.ndarray
+    floor_eps: np.ndarray
+    floor_eta: np.ndarray
+    n_modes: int
+    eps_rule: str
+    combine: str
+    eta: np.ndarray | None
+    floor_tol: float
+
+
+def abstract_rows(partition: Partition, cell_bounds: CellBounds, noise: NoiseModel, error_models=None, *,
+                  eta=None, eps_rule: str = "optimized", combine: str = "product", floor_tol: float = 1e-6,
+                  block_size: int = 4096, _chunk: bool = True) -> AbstractionRows:
+    """The rows of :func:`abstract` for the cells whose image boxes ``cell_bounds`` holds (a chunk).
+
+    A pure function of its arguments: each row depends only on its own cell's image box (and the
+    partition), so computing the rows chunk by chunk and concatenating them in cell order
+    (:func:`assemble_abstraction`) gives exactly :func:`abstract`'s IMDP. Parameters as in
+    :func:`abstract`, except that ``cell_bounds`` may hold any number of cells.
+    """
     if not isinstance(partition, Partition):
         raise InvalidInputError(f"partition must be a Partition; got {type(partition).__name__}")
     if not isinstance(cell_bounds, CellBounds):
@@ -545,7 +586,7 @@ def abstract(partition: Partition, cell_bounds: CellBounds, noise: NoiseModel, e
     if not (0 < floor_tol < 1):
         raise InvalidInputError(f"floor_tol must lie in (0, 1); got {floor_tol!r}")
     M, N, d = cell_bounds.n_modes, cell_bounds.n_cells, cell_bounds.dim
-    if N != partition.n_cells or d != partition.dim:
+    if (N != partition.n_cells and not _chunk) or d != partition.dim:
         raise DimensionError(
             f"cell_bounds must have shape (n_modes, {partition.n_cells}, {partition.dim}) for this partition; "
             f"got {cell_bounds.image_lower.shape}"
@@ -591,7 +632,7 @@ def abstract(partition: Partition, cell_bounds: CellBounds, noise: NoiseModel, e
         floors[u] = _complement_up(_combine_down(md.floor_p, md.floor_pv, combine))
     n_listed = np.prod(cnt, axis=2)  # (M, N); 0 when Im ⊕ e_f misses X
     cnt[n_listed == 0] = 0
-    row_len = np.concatenate([(n_listed + 1).T.ravel(), np.ones(M, dtype=np.int64)])  # rows q*M + u
+    row_len = (n_listed + 1).T.ravel()  # rows q*M + u (the outside state's rows: assemble_abstraction)
     row_ptr = np.zeros(row_len.size + 1, dtype=np.int64)
     np.cumsum(row_len, out=row_ptr[1:])
     nnz = int(row_ptr[-1])
@@ -683,25 +724,53 @@ def abstract(partition: Partition, cell_bounds: CellBounds, noise: NoiseModel, e
             upper[dest] = _complement_up(G)
             lower[dest] = low
             dout = row_ptr[grow + 1] - 1
-            col[dout] = N
+            col[dout] = partition.n_cells  # the outside state (global index)
             upper[dout] = up_out
             lower[dout] = low_out
-    # outside-state rows: absorbing self-loops [1, 1]
-    out_rows = np.arange(N * M, N * M + M)
-    col[row_ptr[out_rows]] = N
-    lower[row_ptr[out_rows]] = 1.0
-    upper[row_ptr[out_rows]] = 1.0
-    floor = np.concatenate([floors.T.ravel(), np.zeros(M)])
+    return AbstractionRows(
+        row_len=(n_listed + 1).T.ravel(), col=col, lower=lower, upper=upper, floor=floors.T.ravel(),
+        lower_eps=lower_eps, lower_eta=lower_eta, containing=containing,
+        floor_eps=np.stack([md.floor_eps for md in modes]), floor_eta=np.stack([md.floor_eta for md in modes]),
+        n_modes=M, eps_rule=eps_rule, combine=combine, eta=None if eta_fixed is None else np.array(eta_fixed),
+        floor_tol=float(floor_tol))
 
+
+def assemble_abstraction(partition: Partition, chunks) -> Abstraction:
+    """Concatenate :func:`abstract_rows` results (in cell order, covering every cell once) into the IMDP.
+
+    Adds the absorbing outside state and checks every row (``sum(lower) <= 1 <= sum(upper) +
+    floor x unlisted``).
+    """
+    chunks = list(chunks)
+    if not chunks:
+        raise InvalidInputError("chunks must hold at least one AbstractionRows; got none")
+    M = chunks[0].n_modes
+    N = partition.n_cells
+    n_rows = sum(c.row_len.size for c in chunks)
+    if n_rows != N * M or any(c.n_modes != M for c in chunks):
+        raise DimensionError(f"chunks must cover the {N} cells x {M} modes of the partition once; got {n_rows} rows")
+    row_len = np.concatenate([c.row_len for c in chunks] + [np.ones(M, dtype=np.int64)])
+    row_ptr = np.zeros(row_len.size + 1, dtype=np.int64)
+    np.cumsum(row_len, out=row_ptr[1:])
+    col = np.concatenate([c.col for c in chunks] + [np.full(M, N, dtype=np.int64)])
+    lower = np.concatenate([c.lower for c in chunks] + [np.ones(M)])
+    upper = np.concatenate([c.upper for c in chunks] + [np.ones(M)])
+    # outside-state rows: absorbing self-loops [1, 1], floor 0
+    floor = np.concatenate([c.floor for c in chunks] + [np.zeros(M)])
     _check_rows(row_ptr, lower, upper, floor, N + 1, M)
     state_ptr = np.arange(0, (N + 1) * M + 1, M, dtype=np.int64)
     actions = np.tile(np.arange(M, dtype=np.int64), N + 1)
     imdp = IMDP.from_csr(state_ptr, row_ptr, col, lower, upper, floor=floor, actions=actions)
+    first = chunks[0]
+
+    def cat(name, axis=1):
+        return np.concatenate([getattr(c, name) for c in chunks], axis=axis)
+
     return Abstraction(
-        imdp=imdp, partition=partition, eps_rule=eps_rule, combine=combine,
-        eta=None if eta_fixed is None else np.array(eta_fixed), floor_tol=float(floor_tol),
-        floor_eps=np.stack([md.floor_eps for md in modes]), floor_eta=np.stack([md.floor_eta for md in modes]),
-        lower_eps=lower_eps, lower_eta=lower_eta, containing_cell=containing, nnz_per_row=row_len,
+        imdp=imdp, partition=partition, eps_rule=first.eps_rule, combine=first.combine, eta=first.eta,
+        floor_tol=first.floor_tol, floor_eps=cat("floor_eps"), floor_eta=cat("floor_eta"),
+        lower_eps=cat("lower_eps"), lower_eta=cat("lower_eta"), containing_cell=cat("containing"),
+        nnz_per_row=row_len,
     )
 
 

@@ -43,6 +43,14 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--threshold", type=float, default=None, help="override [spec].threshold")
     run.add_argument("--no-figures", action="store_true", help="do not write PNG figures")
     run.add_argument("--quiet", action="store_true", help="no progress lines")
+    run.add_argument("--workers", type=int, default=None,
+                     help="local cores (default: all; 1 = in this process on one core, N > 1 = a local "
+                          "Dask cluster of N processes)")
+    run.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                     help="run the bound and abstraction stages on a running Dask cluster "
+                          "(e.g. tcp://host:8786)")
+    run.add_argument("--yes", action="store_true",
+                     help="run even when the pre-flight estimate says the run does not fit the machine")
 
     sim = sub.add_parser("simulate", help="validate a result by simulating a true system",
                          description="Simulate the true system under the result's controller "
@@ -87,7 +95,10 @@ def _cmd_run(args) -> int:
     if changes:
         problem = problem.replace(**changes)
     cache = args.cache if args.cache is not None else out / "cache"
-    result = synthesize_from_data(problem, progress=not args.quiet, abstraction_cache=cache)
+    args.interrupt_note = (f"interrupted; the finished chunks are saved in {cache}: run the same command again "
+                           "to resume")
+    result = synthesize_from_data(problem, progress=not args.quiet, abstraction_cache=cache,
+                                  workers=args.workers, scheduler=args.scheduler, check_resources=not args.yes)
     figures = not args.no_figures and len(problem.space_lower) == 2  # plots are 2-D only
     if figures:
         from robust_imdp.plotting import save_figures
@@ -146,7 +157,16 @@ def main(argv=None) -> int:
     try:
         return {"run": _cmd_run, "simulate": _cmd_simulate, "example": _cmd_example}[
             args.command](args)
+    except KeyboardInterrupt:
+        if args.debug:
+            raise
+        print(f"robust-imdp: {getattr(args, 'interrupt_note', 'interrupted')}", file=sys.stderr)
+        return 130
     except (RobustImdpError, ValueError, OSError, KeyError) as exc:
+        if type(exc).__name__ == "KilledWorker":  # distributed: a worker was lost for good
+            print(f"robust-imdp: a Dask worker was lost ({exc}); "
+                  f"{getattr(args, 'interrupt_note', 'interrupted')}", file=sys.stderr)
+            return 130
         if args.debug:
             raise
         msg = str(exc) if not isinstance(exc, KeyError) else f"missing entry {exc}"

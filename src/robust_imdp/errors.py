@@ -55,6 +55,10 @@ class AssumptionError(InvalidInputError):
     """
 
 
+class ResourceError(RobustImdpError, MemoryError):
+    """A run would not fit the machine (pre-flight estimate); raised before any heavy work."""
+
+
 class ConvergenceError(RobustImdpError, RuntimeError):
     """An iterative solver or optimiser did not reach the requested precision."""
 
@@ -91,6 +95,7 @@ __all__ = [
     "OutsideDomainError",
     "AssumptionError",
     "ProblemFileError",
+    "ResourceError",
     "ConvergenceError",
     "SoundnessError",
     "RobustImdpWarning",

@@ -39,7 +39,7 @@ import numpy as np
 from robust_imdp.errors import InvalidInputError, UnknownAtomError
 
 __all__ = ["Problem", "Result", "synthesize_from_data", "resynthesize", "abstraction_key",
-           "bounds_key"]
+           "bounds_key", "estimate_resources"]
 
 CLASS_NAMES = ("yes", "no", "maybe")
 GUARANTEES = ("confidence", "paper")
@@ -289,6 +289,41 @@ class _Log:
         if self.enabled:
             print(f"[robust-imdp]   {text}", file=sys.stderr, flush=True)
 
+    def progress(self, what: str, done: int, total: int, t0: float, every: float = 2.0) -> None:
+        """A progress line (count, elapsed time, estimate of the rest), at most every ``every`` s."""
+        now = time.perf_counter()
+        if not self.enabled or (done < total and now - getattr(self, "_last", 0.0) < every):
+            return
+        self._last = now
+        el = now - t0
+        rest = f", about {el / max(done, 1) * (total - done):.0f} s left" if 0 < done < total else ""
+        print(f"[robust-imdp]   {what}: {done}/{total} ({100 * done / max(total, 1):.0f} %), {el:.1f} s{rest}",
+              file=sys.stderr, flush=True)
+
+
+class _Run:
+    """Scheduler options of one run; the scheduler is started on first use and closed at the end."""
+
+    def __init__(self, client=None, workers=None, scheduler=None, chunk_cells=None, check_resources=True):
+        self.client, self.workers, self.scheduler_address = client, workers, scheduler
+        self.chunk_cells = chunk_cells
+        self.check_resources = check_resources
+        self.sched = None
+
+    def scheduler(self, work_seconds: float | None, log: "_Log"):
+        from robust_imdp.parallel import open_scheduler
+
+        if self.sched is None:
+            self.sched = open_scheduler(workers=self.workers, scheduler=self.scheduler_address, client=self.client,
+                                        work_seconds=work_seconds)
+            log.info(f"scheduler: {self.sched.description}")
+        return self.sched
+
+    def close(self) -> None:
+        if self.sched is not None:
+            self.sched.close()
+            self.sched = None
+
 
 def _fingerprint(h, obj) -> None:
     """Feed a canonical description of ``obj`` into the hash ``h`` (arrays by value)."""
@@ -431,9 +466,47 @@ def _check_atoms(dfa, problem: Problem) -> None:
         )
 
 
-def _build_abstraction(problem: Problem, partition, log: _Log, cache_dir=None):
+def _abstract_task(partition, cell_bounds, noise, *, threads=1, **options):
+    """One chunk of the abstraction stage (a module-level function, so that workers can import it)."""
+    from robust_imdp.abstraction import abstract_rows
+
+    return abstract_rows(partition, cell_bounds, noise, None, **options)
+
+
+def _chunked_abstract(problem: Problem, partition, cell_bounds, log: _Log, run: _Run, chunk: int):
+    """``abstraction.abstract`` for known image boxes, chunk by chunk on the run's scheduler."""
+    from robust_imdp.abstraction import CellBounds, assemble_abstraction
+
+    N = partition.n_cells
+    starts = list(range(0, N, chunk))
+    sched = run.scheduler(None, log) if run.sched is not None else None
+    opts = {"eta": problem.eta, "eps_rule": problem.eps_rule, "combine": problem.combine}
+    args = []
+    part = partition if sched is None else sched.share(partition)
+    for s0 in starts:
+        sl = slice(s0, min(N, s0 + chunk))
+        args.append((part, CellBounds(cell_bounds.image_lower[:, sl], cell_bounds.image_upper[:, sl], None),
+                     problem.noise))
+    pieces = [None] * len(args)
+    t0 = time.perf_counter()
+    runner = sched if sched is not None else _serial()
+    for i, piece in runner.run(_abstract_task, args, opts):
+        pieces[i] = piece
+        log.progress("abstract", sum(p is not None for p in pieces), len(pieces), t0)
+    return assemble_abstraction(partition, pieces)
+
+
+def _serial():
+    from robust_imdp.parallel import InProcess
+
+    return InProcess(threads=1)
+
+
+def _build_abstraction(problem: Problem, partition, log: _Log, cache_dir=None, run: "_Run | None" = None):
     """Learn + bound (or load them from the cache) and abstract; returns (abstraction, diagnostics)."""
     from robust_imdp.abstraction import abstract, confidence_cell_bounds
+
+    run = run if run is not None else _Run()
 
     bounds_file = None
     if cache_dir is not None:
@@ -443,7 +516,7 @@ def _build_abstraction(problem: Problem, partition, log: _Log, cache_dir=None):
             cell_bounds, error_models, diagnostics = _load_bounds(bounds_file)
         log.info(f"reused learned cell bounds {bounds_file.name}")
     else:
-        cell_bounds, error_models, diagnostics = _learn_and_bound(problem, partition, log)
+        cell_bounds, error_models, diagnostics = _learn_and_bound(problem, partition, log, run, cache_dir)
         if bounds_file is not None:
             bounds_file.parent.mkdir(parents=True, exist_ok=True)
             _save_bounds(bounds_file, cell_bounds, error_models, diagnostics)
@@ -453,8 +526,12 @@ def _build_abstraction(problem: Problem, partition, log: _Log, cache_dir=None):
             # and the abstraction is built as for known dynamics (eps = 0, P_g = 1).
             cell_bounds = confidence_cell_bounds(cell_bounds, error_models, problem.confidence)
             error_models = None
-        abstraction = abstract(partition, cell_bounds, problem.noise, error_models,
-                               eta=problem.eta, eps_rule=problem.eps_rule, combine=problem.combine)
+        if error_models is None:
+            abstraction = _chunked_abstract(problem, partition, cell_bounds, log, run,
+                                            _chunk_cells(run, partition.n_cells, 4096))
+        else:
+            abstraction = abstract(partition, cell_bounds, problem.noise, error_models,
+                                   eta=problem.eta, eps_rule=problem.eps_rule, combine=problem.combine)
     diagnostics = dict(diagnostics)
     diagnostics["successors_per_row"] = float(np.mean(abstraction.nnz_per_row))
     log.info(f"IMDP: {abstraction.imdp.n_states} states, {int(np.sum(abstraction.nnz_per_row))} "
@@ -543,29 +620,98 @@ def diagnostics_line(diag: dict) -> str:
     return text
 
 
-def _learn_and_bound(problem: Problem, partition, log: _Log):
+def _chunk_cells(run: "_Run", n_cells: int, default: int) -> int:
+    """Cells per task: a multiple of rkhs.CELL_BLOCK (so the result does not depend on it)."""
+    from robust_imdp.rkhs import CELL_BLOCK
+
+    c = default if run.chunk_cells is None else int(run.chunk_cells)
+    if c < 1:
+        raise InvalidInputError(f"chunk_cells must be a positive integer; got {run.chunk_cells!r}")
+    return max(CELL_BLOCK, -(-min(c, max(n_cells, 1)) // CELL_BLOCK) * CELL_BLOCK)
+
+
+def _bound_task(X, Y, A, b, lower, upper, *, threads=1, **settings):
+    from robust_imdp.rkhs import bound_chunk
+
+    return bound_chunk(X, Y, A, b, lower, upper, threads=threads, **settings)
+
+
+def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" = None, cache_dir=None):
     from robust_imdp.abstraction import CellBounds
 
+    run = run if run is not None else _Run()
     data = _residual_data(problem)
     checks, check_noise = _check_assumption(problem, data, log)
     if problem.error_bound == "chowdhury":
         return _learn_and_bound_gp(problem, partition, log, checks, check_noise)
-    from robust_imdp.rkhs import image_ranges, noise_bound_at_confidence
+    from robust_imdp.rkhs import CELL_BLOCK, bound_chunk, check_ranges, hoeffding_factor, noise_bound_at_confidence
 
     data_fail, iid_delta = _failure_budget(problem)
     m_total = sum(x.shape[0] for x, _, _ in data)
     noise_bound, _ = noise_bound_at_confidence(problem.noise, m_total, data_fail if data_fail > 0 else 0.5)
-    n_modes, n = len(problem.mode_names), len(problem.space_lower)
+    M, n, N = len(problem.mode_names), len(problem.space_lower), partition.n_cells
+    lo, up = partition.cells_lower, partition.cells_upper
+    iid_theta = problem.noise.sub_gaussian_parameter() if problem.iid_noise else None
+    settings = {"lengthscale": problem.gp_options.get("lengthscale", 1.0), "rkhs_bound": problem.rkhs_bound,
+                "noise_bound": noise_bound, "misspecification": problem.misspecification,
+                "method": problem.error_bound, "iid_theta": iid_theta,
+                "iid_factor": None if iid_theta is None else hoeffding_factor(M * n * N * 2 ** n, iid_delta)}
+    chunk = _chunk_cells(run, N, 256)
+    tasks = [(u, s0) for u in range(M) for s0 in range(0, N, chunk)]
+    parts_dir = None if cache_dir is None else Path(cache_dir) / f"bounds-{bounds_key(problem)}.parts"
+    results: dict = {}
+    if parts_dir is not None and parts_dir.exists():
+        for u, s0 in tasks:
+            f = parts_dir / f"m{u}-c{s0}-{chunk}.npz"
+            if f.exists():
+                with np.load(f, allow_pickle=False) as z:
+                    results[(u, s0)] = {k: z[k] for k in z.files}
+        if results:
+            log.info(f"resumed: {len(results)} of {len(tasks)} bound chunks from {parts_dir}")
+    missing = [t for t in tasks if t not in results]
     with log.stage("bound"):
-        ranges = image_ranges([(x, y) for x, y, _ in data], problem.maps, partition.cells_lower,
-                              partition.cells_upper, lengthscale=problem.gp_options.get("lengthscale", 1.0),
-                              rkhs_bound=problem.rkhs_bound, noise_bound=noise_bound,
-                              misspecification=problem.misspecification, method=problem.error_bound,
-                              iid_theta=problem.noise.sub_gaussian_parameter() if problem.iid_noise else None,
-                              iid_delta=iid_delta, data_failure=data_fail, progress=log.info)
-    log.info(f"bounded images of {partition.n_cells} cells x {n_modes} modes x {n} outputs "
-             f"({problem.error_bound} weights)")
-    if ranges.confidence >= 1.0:
+        work = None
+        if missing:
+            # Pre-flight: time one block of cells in this process (1 thread) and extrapolate.
+            x0, y0, _ = data[0]
+            pilot = bound_chunk(x0, y0, problem.maps[0].A, problem.maps[0].b, lo[:CELL_BLOCK], up[:CELL_BLOCK],
+                                threads=1, **settings)
+            per_cell = pilot["seconds"] / min(CELL_BLOCK, N)
+            work = per_cell * N * M * len(missing) / len(tasks)
+            sched = run.scheduler(work, log)
+            log.info(f"pre-flight: {N:,} cells x {M} modes x {n} outputs = {N * M * n:,} cell bounds; about "
+                     f"{work:.0f} s of work ({per_cell * 1e3:.2f} ms per cell and mode), "
+                     f"about {work / sched.n_workers:.0f} s on {sched.n_workers} core{'s' if sched.n_workers > 1 else ''}")
+            shared = [(sched.share(np.ascontiguousarray(x)), sched.share(np.ascontiguousarray(y)))
+                      for x, y, _ in data]  # sent to the workers once
+            args = [(*shared[u], problem.maps[u].A, problem.maps[u].b, lo[s0:s0 + chunk], up[s0:s0 + chunk])
+                    for u, s0 in missing]
+            t0 = time.perf_counter()
+            if parts_dir is not None:
+                parts_dir.mkdir(parents=True, exist_ok=True)
+            for i, res in sched.run(_bound_task, args, settings):
+                key = missing[i]
+                results[key] = res
+                if parts_dir is not None:  # saved as it completes: an interrupted run resumes from here
+                    tmp = parts_dir / f".m{key[0]}-c{key[1]}-{chunk}.npz"
+                    with open(tmp, "wb") as fh:
+                        np.savez(fh, **{k: np.asarray(v) for k, v in res.items()})
+                    tmp.replace(parts_dir / f"m{key[0]}-c{key[1]}-{chunk}.npz")
+                log.progress("bound", len(results), len(tasks), t0)
+    lower = np.empty((M, N, n))
+    upper = np.empty((M, N, n))
+    eps = np.empty((M, N, n))
+    support = np.empty((M, N, n), dtype=np.int64)
+    unconv = 0
+    for (u, s0), r in results.items():
+        sl = slice(s0, min(N, s0 + chunk))
+        lower[u, sl], upper[u, sl], eps[u, sl], support[u, sl] = r["lower"], r["upper"], r["eps"], r["support"]
+        unconv += int(r["n_unconverged"])
+    for u in range(M):
+        check_ranges(lower[u], upper[u], u)
+    confidence = 1.0 - data_fail - (iid_delta if iid_theta is not None else 0.0)
+    log.info(f"bounded images of {N} cells x {M} modes x {n} outputs ({problem.error_bound} weights)")
+    if confidence >= 1.0:
         statement = ("with probability 1, if every unknown component is within the misspecification of a "
                      "function of RKHS norm <= rkhs_bound and the data noise is within its bound")
     else:
@@ -575,13 +721,13 @@ def _learn_and_bound(problem: Problem, partition, log: _Log):
                           f"{1 - data_fail:g})")
         if iid_delta > 0:
             events.append(f"the sub-Gaussian bound of independent noise (probability >= {1 - iid_delta:g})")
-        statement = (f"with probability >= {ranges.confidence:g} over the data ({'; '.join(events)}), if every "
+        statement = (f"with probability >= {confidence:g} over the data ({'; '.join(events)}), if every "
                      "unknown component is within the misspecification of a function of RKHS norm <= rkhs_bound")
-    diag = _diagnostics(problem, partition, ranges.eps, checks, check_noise, ranges.confidence, statement)
-    diag["support_median"] = float(np.median(ranges.support))
-    if ranges.n_unconverged:
-        diag["unconverged_vertex_problems"] = int(ranges.n_unconverged)
-    return CellBounds(ranges.lower, ranges.upper, None), None, diag
+    diag = _diagnostics(problem, partition, eps, checks, check_noise, confidence, statement)
+    diag["support_median"] = float(np.median(support))
+    if unconv:
+        diag["unconverged_vertex_problems"] = int(unconv)
+    return CellBounds(lower, upper, None), None, diag
 
 
 def _learn_and_bound_gp(problem: Problem, partition, log: _Log, checks, check_noise):
@@ -648,32 +794,112 @@ def _class_names(classes, syn, threshold) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- entry points
-def synthesize_from_data(problem: Problem, *, progress: bool = True,
-                         abstraction_cache=None) -> Result:
+def estimate_resources(problem: Problem, n_dfa_states: int = 4) -> dict:
+    """Pre-flight estimate of a run's size and peak memory, before any heavy work.
+
+    The cell count is that of the plain grid (regions that do not fit it add a few cells).
+    Memory: IMDP rows of ``~3^n`` listed successors (24 bytes each: column, lower, upper) held
+    about three times during assembly, the image boxes and their error radii, the partition, and
+    the product solver's value arrays. Calibrated on the case studies and the 3-D study
+    (``benchmarks/scale.py``) to over-estimate.
+
+    Returns
+    -------
+    dict with ``n_cells``, ``n_modes``, ``n_outputs``, ``bytes`` (estimated peak) and
+    ``available`` (bytes the machine has free now, or None if unknown).
+    """
+    lo, up, cs = (np.asarray(a, float) for a in (problem.space_lower, problem.space_upper, problem.cell_size))
+    n = lo.size
+    N = int(np.prod(np.ceil((up - lo) / cs - 1e-9)))
+    M = len(problem.mode_names)
+    succ = 3 ** n + 1
+    imdp = N * M * (succ * 24 + 48)
+    boxes = N * M * n * 8 * 8
+    part = N * n * 8 * 6
+    solver = N * M * max(int(n_dfa_states), 1) * 8 * 6
+    return {"n_cells": N, "n_modes": M, "n_outputs": n, "bytes": int(3 * imdp + boxes + part + solver + 2e8),
+            "available": _available_memory()}
+
+
+def _available_memory() -> int | None:
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:  # pragma: no cover - non-Linux
+        pass
+    return None
+
+
+def _preflight(problem: Problem, dfa, log: _Log, run: _Run) -> None:
+    from robust_imdp.errors import ResourceError
+
+    est = estimate_resources(problem, dfa.n_states)
+    gb = est["bytes"] / 1e9
+    avail = est["available"]
+    log.info(f"pre-flight: {est['n_cells']:,} cells x {est['n_modes']} modes x {est['n_outputs']} outputs, "
+             f"peak memory about {gb:.2f} GB" + (f" of {avail / 1e9:.1f} GB available" if avail else ""))
+    if run.check_resources and avail is not None and est["bytes"] > 0.9 * avail:
+        coarser = np.round(np.asarray(problem.cell_size, float) * 2, 6).tolist()
+        raise ResourceError(
+            f"pre-flight: {est['n_cells']:,} cells x {est['n_modes']} modes need about {gb:.1f} GB, more than the "
+            f"{avail / 1e9:.1f} GB available: use a coarser [space].cell_size (e.g. {coarser}, which divides the "
+            f"cells by {2 ** est['n_outputs']}); --scheduler moves the bound stage to a Dask cluster but not the "
+            "abstraction; --yes runs anyway")
+
+
+def synthesize_from_data(problem: Problem, *, progress: bool = True, abstraction_cache=None, client=None,
+                         workers: int | None = None, scheduler: str | None = None, chunk_cells: int | None = None,
+                         check_resources: bool = True) -> Result:
     """Learn, bound, abstract and synthesize: data and formula in, guarantees out.
 
     Parameters
     ----------
     problem : Problem
     progress : bool
-        Print one line per stage (and counts) to stderr.
+        Print one line per stage (and counts, progress, time estimates) to stderr.
     abstraction_cache : str or Path, optional
         Directory where the abstraction is saved as ``abstraction-<key>.npz``; an existing file
         with the same key (see :func:`abstraction_key`) is loaded instead of re-running learn,
-        bound and abstract.
+        bound and abstract. Finished chunks of the bound stage are saved there as they complete,
+        so an interrupted run resumes where it stopped.
+    client : distributed.Client, optional
+        Run the chunked stages on this Dask cluster (the data are sent to the workers once).
+    workers : int, optional
+        Local cores: 1 runs in this process on one core, N > 1 starts a local Dask cluster of N
+        processes; None uses all cores (in process when the work is small).
+    scheduler : str, optional
+        Address of a running Dask scheduler (``"tcp://host:8786"``).
+    chunk_cells : int, optional
+        Cells per task (rounded up to a multiple of 16). The result does not depend on it, nor
+        on the number of workers.
+    check_resources : bool
+        Refuse (``ResourceError``) when the pre-flight memory estimate exceeds the memory free.
 
     Returns
     -------
     Result
     """
     from robust_imdp.dfa import ltlf_to_dfa
-    from robust_imdp.geometry import Box, Partition
 
     log = _Log(progress)
+    run = _Run(client=client, workers=workers, scheduler=scheduler, chunk_cells=chunk_cells,
+               check_resources=check_resources)
     with log.stage("specify"):
         dfa = ltlf_to_dfa(problem.formula)
         _check_atoms(dfa, problem)
     log.info(f"DFA: {dfa.n_states} states over atoms {list(dfa.atoms)}")
+    _preflight(problem, dfa, log, run)
+    try:
+        return _synthesize_run(problem, dfa, log, run, abstraction_cache)
+    finally:
+        run.close()
+
+
+def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cache) -> Result:
+    from robust_imdp.geometry import Box, Partition
+
     with log.stage("partition"):
         partition = Partition(Box(problem.space_lower, problem.space_upper), problem.cell_size,
                               _region_objects(problem))
@@ -694,7 +920,7 @@ def synthesize_from_data(problem: Problem, *, progress: bool = True,
             from_cache = True
             log.info(f"reused abstraction {cache_file.name}")
     if abstraction is None:
-        abstraction, diagnostics = _build_abstraction(problem, partition, log, abstraction_cache)
+        abstraction, diagnostics = _build_abstraction(problem, partition, log, abstraction_cache, run)
         if cache_file is not None:  # write under a temporary name, then rename (atomic)
             from robust_imdp.io import _jsonable
 
