@@ -46,12 +46,48 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from robust_imdp.errors import DimensionError, InvalidInputError, InvalidModelError, OutsideDomainError
+from robust_imdp.errors import (DimensionError, InvalidInputError, InvalidModelError, OutsideDomainError,
+                                 UnknownAtomError)
 
-__all__ = ["Controller", "RUNNING", "SATISFIED", "VIOLATED"]
+__all__ = ["Controller", "remap_letters", "RUNNING", "SATISFIED", "VIOLATED"]
 
 RUNNING, SATISFIED, VIOLATED = "running", "satisfied", "violated"
 FORMAT = "robust_imdp.controller"
+
+
+def remap_letters(labels: Any, atoms: Sequence[str], dfa_atoms: Sequence[str]) -> np.ndarray:
+    """Re-express letters over ``atoms`` as letters over ``dfa_atoms`` (extra atoms are dropped).
+
+    Parameters
+    ----------
+    labels : (n,) int array
+        Bit ``i`` set iff ``atoms[i]`` holds.
+    atoms : sequence of str
+        Atom order of ``labels`` (e.g. the partition's region names).
+    dfa_atoms : sequence of str
+        Target order; every name must be in ``atoms``.
+
+    Returns
+    -------
+    (n,) int64 array, bit ``j`` set iff ``dfa_atoms[j]`` holds.
+
+    Raises
+    ------
+    UnknownAtomError
+        If a DFA atom is not among ``atoms`` (names them and lists the known labels).
+    """
+    atoms = tuple(atoms)
+    index = {a: i for i, a in enumerate(atoms)}
+    unknown = [a for a in dfa_atoms if a not in index]
+    if unknown:
+        raise UnknownAtomError(
+            f"the formula uses atoms {unknown} that no region defines; known labels are {list(atoms)}"
+        )
+    lab = np.asarray(labels, dtype=np.int64)
+    out = np.zeros(lab.shape, dtype=np.int64)
+    for j, a in enumerate(dfa_atoms):  # loop over atoms (a handful), vectorised over cells
+        out |= ((lab >> index[a]) & 1) << j
+    return out
 
 
 def _sinks(delta: np.ndarray, accepting: np.ndarray) -> np.ndarray:
@@ -202,8 +238,6 @@ class Controller:
         DimensionError, InvalidInputError
             If the partition's cells or labels do not match the result.
         """
-        from robust_imdp.synthesis import remap_letters  # deployment never needs this path
-
         if partition.n_cells != result.n_cells:
             raise DimensionError(
                 f"partition must have the result's {result.n_cells} cells; got {partition.n_cells}"

@@ -35,8 +35,9 @@ from typing import Any, Sequence
 import numpy as np
 
 from robust_imdp import product as _product
+from robust_imdp.controller import Controller, remap_letters  # below synthesis: numpy only
 from robust_imdp.dfa import DFA
-from robust_imdp.errors import DimensionError, InvalidInputError, SoundnessError, UnknownAtomError
+from robust_imdp.errors import DimensionError, InvalidInputError, SoundnessError
 from robust_imdp.imdp import IMDP
 
 __all__ = ["SolverRun", "SynthesisResult", "synthesize", "remap_letters"]
@@ -137,47 +138,10 @@ class SynthesisResult:
         mode_names : sequence of str, optional
             Names returned by :meth:`Controller.act` instead of mode indices.
         """
-        from robust_imdp.controller import Controller
-
         return Controller.from_result(self, partition, mode_names=mode_names)
 
 
 # --------------------------------------------------------------------------- helpers
-def remap_letters(labels: Any, atoms: Sequence[str], dfa_atoms: Sequence[str]) -> np.ndarray:
-    """Re-express letters over ``atoms`` as letters over ``dfa_atoms`` (extra atoms are dropped).
-
-    Parameters
-    ----------
-    labels : (n,) int array
-        Bit ``i`` set iff ``atoms[i]`` holds.
-    atoms : sequence of str
-        Atom order of ``labels`` (e.g. the partition's region names).
-    dfa_atoms : sequence of str
-        Target order; every name must be in ``atoms``.
-
-    Returns
-    -------
-    (n,) int64 array, bit ``j`` set iff ``dfa_atoms[j]`` holds.
-
-    Raises
-    ------
-    UnknownAtomError
-        If a DFA atom is not among ``atoms`` (names them and lists the known labels).
-    """
-    atoms = tuple(atoms)
-    index = {a: i for i, a in enumerate(atoms)}
-    unknown = [a for a in dfa_atoms if a not in index]
-    if unknown:
-        raise UnknownAtomError(
-            f"the formula uses atoms {unknown} that no region defines; known labels are {list(atoms)}"
-        )
-    lab = np.asarray(labels, dtype=np.int64)
-    out = np.zeros(lab.shape, dtype=np.int64)
-    for j, a in enumerate(dfa_atoms):  # loop over atoms (a handful), vectorised over cells
-        out |= ((lab >> index[a]) & 1) << j
-    return out
-
-
 def _check_labels(labels: Any, atoms: Sequence[str]) -> np.ndarray:
     lab = np.asarray(labels)
     if lab.ndim != 1:
