@@ -39,6 +39,7 @@ is "there is a dual witness with ``lam + u.a - l.b <= x_s``", which is linear in
 from __future__ import annotations
 
 import itertools
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -337,9 +338,36 @@ def _pick_strategy(lo, up, row_state, state_ptr, x, target, nature_max: bool, ct
     return choice - state_ptr[:-1]
 
 
-def _result(x, strategy, iterations, target):
-    from robust_imdp.solve import ReachabilityResult
+@dataclass(frozen=True)
+class LPReachability:
+    """LP values of a reachability problem, bracketed by the solver accuracy (not a proof).
 
+    The fields of :class:`robust_imdp.solve.ReachabilityResult`, which ``solve_reachability(...,
+    method="lp")`` turns this into: lp.py sits below solve.py and does not import it.
+
+    Attributes
+    ----------
+    lower, upper : (n,) float arrays
+        The LP value -/+ ``10 * LP_TOL * n``, clamped to [0, 1].
+    strategy : (n,) int array
+        Choice index within each state.
+    iterations : int
+        Interior-point iterations (summed over LPs).
+    precision : float
+        ``max(upper - lower)``.
+    converged : bool
+        Always True (an LP that is not solved raises ConvergenceError).
+    """
+
+    lower: np.ndarray
+    upper: np.ndarray
+    strategy: np.ndarray
+    iterations: int
+    precision: float
+    converged: bool
+
+
+def _result(x, strategy, iterations, target):
     # the LP value is accurate to about LP_TOL (interior point); the bracket is widened by
     # 10 * LP_TOL per state and clamped to [0, 1] -- safe because every reachability
     # probability lies in [0, 1].  This is a cross-check, not a proof.
@@ -347,7 +375,7 @@ def _result(x, strategy, iterations, target):
     x = np.where(target, 1.0, x)
     lower = np.clip(x - eps, 0.0, 1.0)
     upper = np.clip(x + eps, 0.0, 1.0)
-    return ReachabilityResult(
+    return LPReachability(
         lower=lower, upper=upper, strategy=np.asarray(strategy, dtype=np.int64), iterations=int(iterations),
         precision=float(np.max(upper - lower)) if x.size else 0.0, converged=True,
     )
@@ -382,7 +410,7 @@ def evaluate_strategy_lp(imdp, target, strategy, *, avoid=None, adversary="pessi
 
     Returns
     -------
-    ReachabilityResult
+    LPReachability
     """
     n = imdp.n_states
     tgt, avd = _target_avoid(n, target, avoid)
@@ -414,7 +442,7 @@ def solve_reachability_lp(imdp, target, *, avoid=None, adversary="pessimistic", 
 
     Returns
     -------
-    ReachabilityResult
+    LPReachability
         ``lower``/``upper`` bracket the LP value by ``10 * LP_TOL * n`` (solver accuracy,
         not a proof); ``iterations`` are interior-point iterations (summed over LPs).
 
@@ -463,6 +491,7 @@ def solve_reachability_lp(imdp, target, *, avoid=None, adversary="pessimistic", 
 
 __all__ = [
     "LP_TOL",
+    "LPReachability",
     "MAX_STRATEGIES",
     "inner_lp",
     "solve_reachability_lp",

@@ -961,9 +961,10 @@ def solve_reachability(imdp: IMDP, target, *, avoid=None, adversary="pessimistic
         When ``max_iterations`` is hit; the returned bracket is still sound.
     """
     if method == "lp":
-        from robust_imdp import lp  # lazy: cvxpy is imported only there
+        from robust_imdp import lp  # lazy: cvxpy is imported only there (lp is below solve)
 
-        return lp.solve_reachability_lp(imdp, target, avoid=avoid, adversary=adversary, objective=objective)
+        r = lp.solve_reachability_lp(imdp, target, avoid=avoid, adversary=adversary, objective=objective)
+        return ReachabilityResult(r.lower, r.upper, r.strategy, r.iterations, r.precision, r.converged)
     if method != "vi":
         raise InvalidInputError(f"method must be 'vi' or 'lp'; got {method!r}")
     adv_max = adversary_maximises(adversary, objective)
