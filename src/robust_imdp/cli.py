@@ -114,7 +114,8 @@ def _cmd_simulate(args) -> int:
     import numpy as np
 
     from robust_imdp.casestudies import true_system
-    from robust_imdp.io import _jsonable, load_result
+    from robust_imdp.io import load_result
+    from robust_imdp.jsonable import jsonable
     from robust_imdp.validate import simulate, validate
 
     res = load_result(args.result)
@@ -127,7 +128,7 @@ def _cmd_simulate(args) -> int:
         "cells", "n_per_cell", "max_steps", "confidence", "satisfied", "capped", "empirical",
         "wilson_low", "wilson_up", "p_low", "p_up", "outside", "containment_rate",
         "expected_outside")}
-    (out / "validation.json").write_text(json.dumps(_jsonable(doc), indent=1))
+    (out / "validation.json").write_text(json.dumps(jsonable(doc), indent=1))
     if not args.no_figures and args.paths > 0 and len(res.space_lower) == 2:
         from robust_imdp.plotting import plot_trajectories
         import matplotlib.pyplot as plt

@@ -9,7 +9,8 @@ Problem file contract (keys in ``[brackets]`` are tables; ``?`` marks optional k
     [modes.NAME]    A (n x n), b (n)                 (known affine part f_u(x) = A x + b)
     [noise]         kind = "truncated_gaussian" (sigma, bound) | "gaussian" (sigma) | "uniform" (bound)
     [gp]            rkhs_bound, lengthscale?, error_bound? ("optimal" | "ridge" | "chowdhury"),
-                    misspecification? (0), iid_noise? (false);
+                    misspecification? (0), iid_noise? (false), local_points? (all points up to 1000
+                    per mode, else 100);
                     only with error_bound = "chowdhury": signal_variance? (number or "tune"),
                     optimize?, info_gain? ("data" | "trivial"), bound_tol? (1e-3), bound_max_boxes? (2000)
     [abstraction]?  eta?, eps_rule?, combine?, guarantee? ("confidence" | "paper"), confidence?
@@ -31,12 +32,14 @@ import json
 import os
 import sys
 import tempfile
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from robust_imdp.errors import ProblemFileError
+from robust_imdp.errors import DimensionError, InvalidInputError, ProblemFileError
+from robust_imdp.jsonable import jsonable as _jsonable
 from robust_imdp.pipeline import ERROR_BOUNDS, GUARANTEES  # the one definition of these modes
 
 if sys.version_info >= (3, 11):
@@ -55,6 +58,8 @@ __all__ = [
     "result_to_dict",
     "save_result",
     "load_result",
+    "ResultFile",
+    "as_result_file",
 ]
 
 # --------------------------------------------------------------------------- schema
@@ -64,7 +69,8 @@ _SCHEMA: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "spec": (("formula", "threshold"), ("horizon",)),
     "data": (("path",), ()),
     "noise": (("kind",), ("sigma", "bound")),
-    "gp": (("rkhs_bound",), ("lengthscale", "error_bound", "misspecification", "iid_noise", "signal_variance",
+    "gp": (("rkhs_bound",), ("lengthscale", "error_bound", "misspecification", "iid_noise", "local_points",
+                             "signal_variance",
                              "optimize", "info_gain", "bound_tol", "bound_max_boxes")),
     "abstraction": ((), ("eta", "eps_rule", "combine", "guarantee", "confidence")),
 }
@@ -301,6 +307,11 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
                 "only: remove the key or set error_bound = \"chowdhury\"")
     gp["misspecification"] = float(_number(gp_in.get("misspecification", 0.0), "[gp].misspecification", where,
                                            lo=0.0))
+    gp["local_points"] = None
+    if "local_points" in gp_in:
+        if gp["error_bound"] == "chowdhury":
+            raise ProblemFileError(f"{where}: [gp].local_points applies to error_bound = \"optimal\" or \"ridge\" only")
+        gp["local_points"] = _number(gp_in["local_points"], "[gp].local_points", where, lo=1, integer=True)
     gp["iid_noise"] = gp_in.get("iid_noise", False)
     if not isinstance(gp["iid_noise"], bool):
         raise ProblemFileError(f"{where}: [gp].iid_noise must be true or false; got {gp_in['iid_noise']!r}")
@@ -388,6 +399,7 @@ def load_problem(path):
     error_bound = gp.pop("error_bound")
     misspecification = gp.pop("misspecification")
     iid_noise = gp.pop("iid_noise")
+    local_points = gp.pop("local_points")
     bound_tol = gp.pop("bound_tol", 1e-3)
     bound_max_boxes = gp.pop("bound_max_boxes", 2000)
     ab = spec["abstraction"]
@@ -399,7 +411,7 @@ def load_problem(path):
         noise=make_noise(spec["noise"]), rkhs_bound=rkhs_bound, gp_options=gp,
         bound_tol=bound_tol, bound_max_boxes=bound_max_boxes, eta=ab["eta"], eps_rule=ab["eps_rule"], combine=ab["combine"],
         guarantee=ab["guarantee"], confidence=ab["confidence"], error_bound=error_bound,
-        misspecification=misspecification, iid_noise=iid_noise,
+        misspecification=misspecification, iid_noise=iid_noise, local_points=local_points,
     )
 
 
@@ -561,20 +573,6 @@ def _atomic_write(path: Path, write) -> None:
         raise
 
 
-def _jsonable(obj):
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, float) and not np.isfinite(obj):
-        return None
-    return obj
-
-
 RESULT_FORMAT = "robust_imdp.result/1"
 CLASS_NAMES = ("yes", "no", "maybe")
 
@@ -709,8 +707,6 @@ def save_result(result, out_dir) -> Path:
 
 def load_result(path):
     """Read a ``result.json`` (or the directory holding it) into a :class:`ResultFile`."""
-    from robust_imdp.validate import ResultFile  # the table-driven controller lives there
-
     path = Path(path)
     if path.is_dir():
         path = path / "result.json"
@@ -726,3 +722,161 @@ def load_result(path):
             f"got {doc.get('format') if isinstance(doc, dict) else type(doc).__name__!r}"
         )
     return ResultFile.from_dict(doc)
+
+
+# --------------------------------------------------------------------------- result tables (read back)
+@dataclass(frozen=True, eq=False)
+class ResultFile:
+    """The ``result.json`` contract as arrays (see :func:`robust_imdp.io.result_to_dict`).
+
+    Attributes
+    ----------
+    space_lower, space_upper : (n,) float arrays
+    cells_lower, cells_upper : (n_cells, n) float arrays
+    label_letters : (n_cells,) int array, bit i = ``dfa_atoms[i]`` holds in the cell
+    labels : tuple of tuple of str
+    modes : tuple of str
+    dfa_atoms : tuple of str
+    dfa_initial : int
+    dfa_accepting : (S,) bool array
+    dfa_delta : (S, 2**len(dfa_atoms)) int array
+    strategy : (n_cells, S) int array of mode indices (-1 where undefined)
+    strategy_by_time : (k, n_cells, S) int array or None (k-step results: mode at step t)
+    p_low, p_up, p_up_star, error : (n_cells,) float arrays
+    classes : (n_cells,) str array ("yes" / "no" / "maybe")
+    formula : str
+    threshold : float
+    horizon : int or None
+    parameters, timings : dict
+    """
+
+    space_lower: np.ndarray
+    space_upper: np.ndarray
+    cells_lower: np.ndarray
+    cells_upper: np.ndarray
+    label_letters: np.ndarray
+    labels: tuple
+    modes: tuple
+    dfa_atoms: tuple
+    dfa_initial: int
+    dfa_accepting: np.ndarray
+    dfa_delta: np.ndarray
+    strategy: np.ndarray
+    p_low: np.ndarray
+    p_up: np.ndarray
+    p_up_star: np.ndarray
+    error: np.ndarray
+    classes: np.ndarray
+    formula: str
+    threshold: float
+    horizon: int | None
+    parameters: dict = field(default_factory=dict)
+    timings: dict = field(default_factory=dict)
+    strategy_by_time: np.ndarray | None = None
+
+    @property
+    def n_cells(self) -> int:
+        return self.cells_lower.shape[0]
+
+    @classmethod
+    def from_dict(cls, doc: dict[str, Any]) -> "ResultFile":
+        """Build from a parsed ``result.json`` document (validating shapes)."""
+        try:
+            cl = np.asarray(doc["cells"]["lower"], dtype=float)
+            cu = np.asarray(doc["cells"]["upper"], dtype=float)
+            modes = tuple(doc["modes"])
+            dfa = doc["dfa"]
+            atoms = tuple(dfa["atoms"])
+            delta = np.asarray(dfa["delta"], dtype=np.int64)
+            n_states = delta.shape[0]
+            accepting = np.zeros(n_states, dtype=bool)
+            accepting[np.asarray(dfa["accepting"], dtype=np.int64)] = True
+            index = {m: i for i, m in enumerate(modes)}
+            def table(rows):
+                return np.array([[index[m] if m is not None else -1 for m in row] for row in rows],
+                                dtype=np.int64)
+
+            strategy = table(doc["strategy"])
+            by_time = doc.get("strategy_by_time")
+            by_time = None if by_time is None else np.stack([table(t) for t in by_time])
+            labels = tuple(tuple(lab) for lab in doc["labels"])
+            bit = {a: 1 << i for i, a in enumerate(atoms)}
+            letters = np.array([sum(bit.get(a, 0) for a in lab) for lab in labels], dtype=np.int64)
+            out = cls(
+                space_lower=np.asarray(doc["space"]["lower"], dtype=float),
+                space_upper=np.asarray(doc["space"]["upper"], dtype=float),
+                cells_lower=cl, cells_upper=cu, label_letters=letters, labels=labels,
+                modes=modes, dfa_atoms=atoms, dfa_initial=int(dfa["initial"]),
+                dfa_accepting=accepting, dfa_delta=delta, strategy=strategy,
+                p_low=np.asarray(doc["p_low"], dtype=float),
+                p_up=np.asarray(doc["p_up"], dtype=float),
+                p_up_star=np.asarray(doc["p_up_star"], dtype=float),
+                error=np.asarray(doc["error"], dtype=float),
+                classes=np.asarray(doc["classes"], dtype=str),
+                formula=str(doc["formula"]), threshold=float(doc["threshold"]),
+                horizon=doc.get("horizon"),
+                parameters=dict(doc.get("parameters") or {}),
+                timings=dict(doc.get("timings") or {}),
+                strategy_by_time=by_time,
+            )
+        except (KeyError, TypeError, IndexError, ValueError) as exc:
+            raise InvalidInputError(
+                f"result document does not follow the result.json contract ({type(exc).__name__}: {exc})"
+            ) from None
+        c = out.n_cells
+        if (cu.shape != cl.shape or len(labels) != c or strategy.shape != (c, n_states)
+                or delta.shape[1] != 2 ** len(atoms) or out.p_low.shape != (c,)):
+            raise DimensionError(
+                f"result document: inconsistent shapes (cells {cl.shape}/{cu.shape}, labels "
+                f"{len(labels)}, strategy {strategy.shape}, delta {delta.shape}, p_low {out.p_low.shape})"
+            )
+        return out
+
+    # ----------------------------------------------------------------- controller tables
+    def dfa_sink(self) -> np.ndarray:
+        """(S,) bool: DFA states from which no accepting state is reachable."""
+        reach = self.dfa_accepting.copy()
+        while True:  # backward reachability; at most S rounds
+            new = reach | np.any(reach[self.dfa_delta], axis=1)
+            if np.array_equal(new, reach):
+                return ~reach
+            reach = new
+
+    def locator(self):
+        """A vectorised ``locate(x (k, n)) -> (k,) cell index or -1 (outside X)``.
+
+        Cells are boxes aligned to the breakpoints (all cell faces); every elementary box of
+        the breakpoint grid belongs to exactly one cell, so a per-dimension ``searchsorted``
+        followed by a table lookup finds the cell.
+        """
+        n = self.cells_lower.shape[1]
+        bps = [np.unique(np.concatenate([self.cells_lower[:, i], self.cells_upper[:, i]]))
+               for i in range(n)]
+        shape = tuple(len(b) - 1 for b in bps)
+        table = np.full(shape, -1, dtype=np.int64)
+        lo_idx = [np.searchsorted(bps[i], self.cells_lower[:, i]) for i in range(n)]
+        hi_idx = [np.searchsorted(bps[i], self.cells_upper[:, i]) for i in range(n)]
+        for q in range(self.n_cells):  # set-up only, once per result
+            table[tuple(slice(lo_idx[i][q], hi_idx[i][q]) for i in range(n))] = q
+        slo, sup = self.space_lower, self.space_upper
+
+        def locate(x):
+            x = np.atleast_2d(np.asarray(x, dtype=float))
+            inside = np.all((x >= slo) & (x <= sup), axis=1)
+            idx = [np.clip(np.searchsorted(bps[i], x[:, i], side="right") - 1, 0, shape[i] - 1)
+                   for i in range(n)]
+            cell = table[tuple(idx)]
+            return np.where(inside, cell, -1)
+
+        return locate
+
+
+def as_result_file(result) -> "ResultFile":
+    """A :class:`ResultFile` from a ResultFile, a pipeline ``Result``, a result dict or a path."""
+    if isinstance(result, ResultFile):
+        return result
+    if isinstance(result, dict):
+        return ResultFile.from_dict(result)
+    if isinstance(result, (str, bytes)) or hasattr(result, "__fspath__"):
+        return load_result(result)
+    return ResultFile.from_dict(result_to_dict(result))

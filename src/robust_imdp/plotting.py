@@ -1,6 +1,6 @@
 """Figures (the only matplotlib importer; nothing else in the library imports this module).
 
-Every function takes a result (a :class:`~robust_imdp.validate.ResultFile`, a pipeline
+Every function takes a result (a :class:`~robust_imdp.io.ResultFile`, a pipeline
 ``Result``, a result dict or a path to ``result.json``) and an optional ``ax``; it draws and
 returns the Axes. :func:`save_figures` writes the standard set of PNGs. Only 2-D state spaces
 are drawn.
@@ -20,7 +20,7 @@ from matplotlib.patheffects import withStroke
 from scipy import ndimage
 
 from robust_imdp.errors import DimensionError
-from robust_imdp.validate import ResultFile, _as_result_file
+from robust_imdp.io import ResultFile, as_result_file as _as_result_file
 
 __all__ = [
     "plot_partition",

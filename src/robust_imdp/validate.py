@@ -13,20 +13,20 @@ checking ``p_low`` and **as not satisfied** when checking ``p_up``, so a reporte
 real one whatever the capped runs would have done. For k-step formulas (``horizon`` set) the cap
 is the horizon and capped runs are exactly the non-satisfying ones.
 
-The controller is driven from the result tables (``result.json`` contract), independently of
-``controller.py``: locate the cell, look the mode up in ``strategy[q][s]``, step the DFA with
+The controller is driven from the result tables (``result.json`` contract, read by
+:class:`robust_imdp.io.ResultFile`), independently of ``controller.py``: locate the cell, look the mode up in ``strategy[q][s]``, step the DFA with
 the new cell's label. Leaving X is a violation (the abstraction's absorbing outside state).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.stats import norm
 
 from robust_imdp.errors import DimensionError, InvalidInputError, OutsideDomainError
+from robust_imdp.io import ResultFile, as_result_file as _as_result_file  # noqa: F401 (re-exported)
 
 __all__ = [
     "ResultFile",
@@ -74,153 +74,6 @@ def wilson_interval(successes, trials, confidence: float = 0.999):
     return np.clip(centre - half - slack, 0.0, 1.0), np.clip(centre + half + slack, 0.0, 1.0)
 
 
-# --------------------------------------------------------------------------- result tables
-@dataclass(frozen=True, eq=False)
-class ResultFile:
-    """The ``result.json`` contract as arrays (see :func:`robust_imdp.io.result_to_dict`).
-
-    Attributes
-    ----------
-    space_lower, space_upper : (n,) float arrays
-    cells_lower, cells_upper : (n_cells, n) float arrays
-    label_letters : (n_cells,) int array, bit i = ``dfa_atoms[i]`` holds in the cell
-    labels : tuple of tuple of str
-    modes : tuple of str
-    dfa_atoms : tuple of str
-    dfa_initial : int
-    dfa_accepting : (S,) bool array
-    dfa_delta : (S, 2**len(dfa_atoms)) int array
-    strategy : (n_cells, S) int array of mode indices (-1 where undefined)
-    strategy_by_time : (k, n_cells, S) int array or None (k-step results: mode at step t)
-    p_low, p_up, p_up_star, error : (n_cells,) float arrays
-    classes : (n_cells,) str array ("yes" / "no" / "maybe")
-    formula : str
-    threshold : float
-    horizon : int or None
-    parameters, timings : dict
-    """
-
-    space_lower: np.ndarray
-    space_upper: np.ndarray
-    cells_lower: np.ndarray
-    cells_upper: np.ndarray
-    label_letters: np.ndarray
-    labels: tuple
-    modes: tuple
-    dfa_atoms: tuple
-    dfa_initial: int
-    dfa_accepting: np.ndarray
-    dfa_delta: np.ndarray
-    strategy: np.ndarray
-    p_low: np.ndarray
-    p_up: np.ndarray
-    p_up_star: np.ndarray
-    error: np.ndarray
-    classes: np.ndarray
-    formula: str
-    threshold: float
-    horizon: int | None
-    parameters: dict = field(default_factory=dict)
-    timings: dict = field(default_factory=dict)
-    strategy_by_time: np.ndarray | None = None
-
-    @property
-    def n_cells(self) -> int:
-        return self.cells_lower.shape[0]
-
-    @classmethod
-    def from_dict(cls, doc: dict[str, Any]) -> "ResultFile":
-        """Build from a parsed ``result.json`` document (validating shapes)."""
-        try:
-            cl = np.asarray(doc["cells"]["lower"], dtype=float)
-            cu = np.asarray(doc["cells"]["upper"], dtype=float)
-            modes = tuple(doc["modes"])
-            dfa = doc["dfa"]
-            atoms = tuple(dfa["atoms"])
-            delta = np.asarray(dfa["delta"], dtype=np.int64)
-            n_states = delta.shape[0]
-            accepting = np.zeros(n_states, dtype=bool)
-            accepting[np.asarray(dfa["accepting"], dtype=np.int64)] = True
-            index = {m: i for i, m in enumerate(modes)}
-            def table(rows):
-                return np.array([[index[m] if m is not None else -1 for m in row] for row in rows],
-                                dtype=np.int64)
-
-            strategy = table(doc["strategy"])
-            by_time = doc.get("strategy_by_time")
-            by_time = None if by_time is None else np.stack([table(t) for t in by_time])
-            labels = tuple(tuple(lab) for lab in doc["labels"])
-            bit = {a: 1 << i for i, a in enumerate(atoms)}
-            letters = np.array([sum(bit.get(a, 0) for a in lab) for lab in labels], dtype=np.int64)
-            out = cls(
-                space_lower=np.asarray(doc["space"]["lower"], dtype=float),
-                space_upper=np.asarray(doc["space"]["upper"], dtype=float),
-                cells_lower=cl, cells_upper=cu, label_letters=letters, labels=labels,
-                modes=modes, dfa_atoms=atoms, dfa_initial=int(dfa["initial"]),
-                dfa_accepting=accepting, dfa_delta=delta, strategy=strategy,
-                p_low=np.asarray(doc["p_low"], dtype=float),
-                p_up=np.asarray(doc["p_up"], dtype=float),
-                p_up_star=np.asarray(doc["p_up_star"], dtype=float),
-                error=np.asarray(doc["error"], dtype=float),
-                classes=np.asarray(doc["classes"], dtype=str),
-                formula=str(doc["formula"]), threshold=float(doc["threshold"]),
-                horizon=doc.get("horizon"),
-                parameters=dict(doc.get("parameters") or {}),
-                timings=dict(doc.get("timings") or {}),
-                strategy_by_time=by_time,
-            )
-        except (KeyError, TypeError, IndexError, ValueError) as exc:
-            raise InvalidInputError(
-                f"result document does not follow the result.json contract ({type(exc).__name__}: {exc})"
-            ) from None
-        c = out.n_cells
-        if (cu.shape != cl.shape or len(labels) != c or strategy.shape != (c, n_states)
-                or delta.shape[1] != 2 ** len(atoms) or out.p_low.shape != (c,)):
-            raise DimensionError(
-                f"result document: inconsistent shapes (cells {cl.shape}/{cu.shape}, labels "
-                f"{len(labels)}, strategy {strategy.shape}, delta {delta.shape}, p_low {out.p_low.shape})"
-            )
-        return out
-
-    # ----------------------------------------------------------------- controller tables
-    def dfa_sink(self) -> np.ndarray:
-        """(S,) bool: DFA states from which no accepting state is reachable."""
-        reach = self.dfa_accepting.copy()
-        while True:  # backward reachability; at most S rounds
-            new = reach | np.any(reach[self.dfa_delta], axis=1)
-            if np.array_equal(new, reach):
-                return ~reach
-            reach = new
-
-    def locator(self):
-        """A vectorised ``locate(x (k, n)) -> (k,) cell index or -1 (outside X)``.
-
-        Cells are boxes aligned to the breakpoints (all cell faces); every elementary box of
-        the breakpoint grid belongs to exactly one cell, so a per-dimension ``searchsorted``
-        followed by a table lookup finds the cell.
-        """
-        n = self.cells_lower.shape[1]
-        bps = [np.unique(np.concatenate([self.cells_lower[:, i], self.cells_upper[:, i]]))
-               for i in range(n)]
-        shape = tuple(len(b) - 1 for b in bps)
-        table = np.full(shape, -1, dtype=np.int64)
-        lo_idx = [np.searchsorted(bps[i], self.cells_lower[:, i]) for i in range(n)]
-        hi_idx = [np.searchsorted(bps[i], self.cells_upper[:, i]) for i in range(n)]
-        for q in range(self.n_cells):  # set-up only, once per result
-            table[tuple(slice(lo_idx[i][q], hi_idx[i][q]) for i in range(n))] = q
-        slo, sup = self.space_lower, self.space_upper
-
-        def locate(x):
-            x = np.atleast_2d(np.asarray(x, dtype=float))
-            inside = np.all((x >= slo) & (x <= sup), axis=1)
-            idx = [np.clip(np.searchsorted(bps[i], x[:, i], side="right") - 1, 0, shape[i] - 1)
-                   for i in range(n)]
-            cell = table[tuple(idx)]
-            return np.where(inside, cell, -1)
-
-        return locate
-
-
 # --------------------------------------------------------------------------- simulation
 @dataclass(frozen=True, eq=False)
 class Trajectories:
@@ -236,18 +89,6 @@ class Trajectories:
     paths: list
     outcome: np.ndarray
     steps: np.ndarray
-
-
-def _as_result_file(result) -> ResultFile:
-    if isinstance(result, ResultFile):
-        return result
-    if isinstance(result, dict):
-        return ResultFile.from_dict(result)
-    from robust_imdp.io import load_result, result_to_dict
-
-    if isinstance(result, (str, bytes)) or hasattr(result, "__fspath__"):
-        return load_result(result)
-    return ResultFile.from_dict(result_to_dict(result))
 
 
 def simulate(result, true_system, x0, *, max_steps: int = 100, rng=None, record: bool = False):

@@ -1,0 +1,72 @@
+"""The layering of docs/ARCHITECTURE.md holds: every module imports only modules listed before it.
+
+The table of docs/ARCHITECTURE.md lists the modules bottom-up. Every ``import`` of a
+robust_imdp module, at module level or inside a function, must name a module listed earlier;
+so there is no import cycle, and the documented layers are the real ones (issue 12, item 12).
+"""
+
+import ast
+import re
+from pathlib import Path
+
+ROOT = Path(__file__).parents[1]
+SRC = ROOT / "src" / "robust_imdp"
+
+
+def table_order(text: str) -> list:
+    """Module names in the order of the table rows ``| `name.py` | ...``."""
+    return re.findall(r"^\| `([a-z_]+)\.py` \|", text, flags=re.M)
+
+
+def imports_of(source: str) -> dict:
+    """``{imported robust_imdp module: line}`` for every import in ``source`` (any nesting)."""
+    found = {}
+    for node in ast.walk(ast.parse(source)):
+        names = []
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            if node.module == "robust_imdp":  # from robust_imdp import lp, product as _product
+                names = [a.name for a in node.names]
+            elif node.module.startswith("robust_imdp."):
+                names = [node.module.split(".")[1]]
+        elif isinstance(node, ast.Import):
+            names = [a.name.split(".")[1] for a in node.names if a.name.startswith("robust_imdp.")]
+        for name in names:
+            found.setdefault(name, node.lineno)
+    return found
+
+
+def violations(order: list, sources: dict) -> list:
+    """``"a.py:LINE imports b (listed after a)"`` for every import that goes up or sideways."""
+    rank = {m: i for i, m in enumerate(order)}
+    out = []
+    for mod, src in sorted(sources.items()):
+        for dep, line in sorted(imports_of(src).items()):
+            if dep not in rank:
+                out.append(f"{mod}.py:{line} imports {dep}, which the table does not list")
+            elif rank[dep] >= rank[mod]:
+                out.append(f"{mod}.py:{line} imports {dep} (listed after {mod})")
+    return out
+
+
+def test_checker_finds_a_cycle_and_a_lazy_upward_import():
+    # The two shapes of the old cycles: a module-level import down plus a lazy import back up.
+    sources = {
+        "low": "import numpy\n\ndef f():\n    from robust_imdp.high import g\n",
+        "high": "from robust_imdp import low\n",
+    }
+    assert violations(["low", "high"], sources) == ["low.py:4 imports high (listed after low)"]
+    assert violations(["high", "low"], sources) == ["high.py:1 imports low (listed after high)"]
+    assert violations(["low"], {"low": "from robust_imdp.nowhere import x\n"}) == [
+        "low.py:1 imports nowhere, which the table does not list"]
+
+
+def test_every_module_is_in_the_table_once():
+    order = table_order((ROOT / "docs" / "ARCHITECTURE.md").read_text())
+    modules = sorted(p.stem for p in SRC.glob("*.py") if p.stem != "__init__")
+    assert sorted(order) == modules  # each module exactly once, none missing, none stale
+
+
+def test_imports_only_go_down_the_table():
+    order = table_order((ROOT / "docs" / "ARCHITECTURE.md").read_text())
+    sources = {p.stem: p.read_text() for p in SRC.glob("*.py") if p.stem != "__init__"}
+    assert violations(order, sources) == []
