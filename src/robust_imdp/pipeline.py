@@ -388,7 +388,7 @@ _EB_FIELDS = ("rkhs_bound", "sub_gaussian", "regulariser", "info_gain", "n_sampl
 def _save_bounds(path: Path, cell_bounds, error_models, diagnostics: dict) -> None:
     import json
 
-    from robust_imdp.io import _jsonable
+    from robust_imdp.jsonable import jsonable as _jsonable
 
     arrays = {k: np.asarray(getattr(cell_bounds, k)) for k in ("image_lower", "image_upper")}
     if cell_bounds.std_upper is not None:
@@ -446,7 +446,7 @@ def _parameters(problem: Problem, abstraction) -> dict:
         "iid_noise": bool(problem.iid_noise),
         "abstraction_key": abstraction_key(problem),
     }
-    from robust_imdp.io import _jsonable
+    from robust_imdp.jsonable import jsonable as _jsonable
 
     return _jsonable(params)
 
@@ -922,7 +922,7 @@ def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cac
     if abstraction is None:
         abstraction, diagnostics = _build_abstraction(problem, partition, log, abstraction_cache, run)
         if cache_file is not None:  # write under a temporary name, then rename (atomic)
-            from robust_imdp.io import _jsonable
+            from robust_imdp.jsonable import jsonable as _jsonable
 
             cache_file.parent.mkdir(parents=True, exist_ok=True)
             tmp = diag_file.with_name(diag_file.stem + ".part.json")
