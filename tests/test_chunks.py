@@ -129,7 +129,7 @@ def test_estimate_scales_with_the_grid():
 def test_open_scheduler_rules():
     s = parallel.open_scheduler(workers=1)
     assert isinstance(s, parallel.InProcess) and s.threads == 1
-    s = parallel.open_scheduler(workers=None, work_seconds=1.0)
+    s = parallel.open_scheduler(workers=None)  # the default never starts processes
     assert isinstance(s, parallel.InProcess) and s.threads == parallel.local_cores()
     with pytest.raises(ValueError, match="workers must be a positive integer"):
         parallel.open_scheduler(workers=0)

@@ -44,8 +44,8 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--no-figures", action="store_true", help="do not write PNG figures")
     run.add_argument("--quiet", action="store_true", help="no progress lines")
     run.add_argument("--workers", type=int, default=None,
-                     help="local cores (default: all; 1 = in this process on one core, N > 1 = a local "
-                          "Dask cluster of N processes)")
+                     help="local cores: 1 = in this process on one core, N > 1 = a local Dask cluster "
+                          "of N processes (default: this process, numba threads on all cores)")
     run.add_argument("--scheduler", default=None, metavar="ADDRESS",
                      help="run the bound and abstraction stages on a running Dask cluster "
                           "(e.g. tcp://host:8786)")

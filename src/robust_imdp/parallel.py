@@ -12,9 +12,12 @@ the scheduler, the number of workers or the order of completion.
   ``client``). Large inputs shared by many tasks are scattered once (:meth:`Scheduler.share`).
 
 :func:`open_scheduler` picks one: an explicit client or address wins; else ``workers=1`` runs in
-process on one core, ``workers=N`` starts a local cluster of N processes, and ``workers=None``
-(the default) uses all local cores, in process when the estimated work is small (a cluster takes
-seconds to start) and on a local cluster otherwise.
+process on one core, ``workers=N`` (N > 1) starts a local cluster of N processes, and
+``workers=None`` (the default) runs in process with numba threads on all local cores. The default
+never starts processes: a local cluster starts its workers with the ``spawn`` method, which
+re-imports the caller's main module, so a user's script without an ``if __name__ ==
+"__main__":`` guard would run again in every worker (the ``robust-imdp`` command is safe; so are
+scripts with the guard).
 """
 
 from __future__ import annotations
@@ -25,14 +28,9 @@ from typing import Any, Callable, Iterator, Sequence
 
 from robust_imdp.errors import InvalidInputError
 
-__all__ = ["Scheduler", "InProcess", "DaskScheduler", "open_scheduler", "local_cores", "SMALL_WORK_SECONDS"]
+__all__ = ["Scheduler", "InProcess", "DaskScheduler", "open_scheduler", "local_cores"]
 
 log = logging.getLogger(__name__)
-
-#: Below this estimated serial work (s), ``workers=None`` runs in process (a local cluster's
-#: start-up, ~2-5 s, would not pay).
-SMALL_WORK_SECONDS = 20.0
-
 
 def local_cores() -> int:
     """Cores this process may use (the affinity mask where the OS reports one)."""
@@ -123,20 +121,18 @@ class DaskScheduler(Scheduler):
                 cluster.close()
 
 
-def open_scheduler(*, workers: int | None = None, scheduler: str | None = None, client: Any = None,
-                   work_seconds: float | None = None) -> Scheduler:
+def open_scheduler(*, workers: int | None = None, scheduler: str | None = None, client: Any = None) -> Scheduler:
     """Pick and start a scheduler (see the module docstring).
 
     Parameters
     ----------
     workers : int, optional
-        Local worker processes (cores). None: all local cores.
+        1: in process on one core; N > 1: a local cluster of N worker processes; None: in process
+        with numba threads on all local cores.
     scheduler : str, optional
         Address of a running Dask scheduler, e.g. ``"tcp://host:8786"``.
     client : distributed.Client, optional
         An existing client (used as is, never closed here).
-    work_seconds : float, optional
-        Estimated serial work; with ``workers=None`` small work runs in process.
 
     Returns
     -------
@@ -152,10 +148,9 @@ def open_scheduler(*, workers: int | None = None, scheduler: str | None = None, 
         return DaskScheduler(Client(scheduler), owned=True)
     if workers is not None and (int(workers) != workers or int(workers) < 1):
         raise InvalidInputError(f"workers must be a positive integer; got {workers!r}")
-    cores = local_cores()
-    n = cores if workers is None else int(workers)
-    if n == 1 or (workers is None and (work_seconds is None or work_seconds < SMALL_WORK_SECONDS)):
-        return InProcess(threads=n)
+    if workers is None or int(workers) == 1:
+        return InProcess(threads=local_cores() if workers is None else 1)
+    n = int(workers)
     from distributed import Client, LocalCluster
 
     cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,

@@ -47,6 +47,9 @@ GUARANTEES = ("confidence", "paper")
 ERROR_BOUNDS = ("optimal", "ridge", "chowdhury")
 #: Failure probability allowed to the assumption check's noise bound when the noise is unbounded.
 CHECK_DELTA = 1e-6
+#: With ``local_points=None``: modes with more data points than this use local weights (100 points).
+LOCAL_AUTO = 1000
+LOCAL_DEFAULT = 100
 
 
 @dataclass(frozen=True, eq=False)
@@ -109,6 +112,10 @@ class Problem:
         The data noise is independent across samples, zero-mean and sub-Gaussian, and the
         inputs were chosen independently of it: intersect with the sub-Gaussian bound (holds
         with probability ``confidence`` over the data).
+    local_points : int or None
+        Let only the ``local_points`` data points nearest to each cell carry certificate weight
+        (``rkhs.local_pools``): the cost per cell no longer grows with the data, and no m x m
+        kernel matrix is built. None: all points up to ``LOCAL_AUTO`` points per mode, else 100.
     """
 
     space_lower: np.ndarray
@@ -134,6 +141,7 @@ class Problem:
     error_bound: str = "optimal"
     misspecification: float = 0.0
     iid_noise: bool = False
+    local_points: int | None = None
 
     def __post_init__(self):
         if self.guarantee not in GUARANTEES:
@@ -149,6 +157,8 @@ class Problem:
         tau = float(self.misspecification)
         if not (np.isfinite(tau) and tau >= 0):
             raise InvalidInputError(f"misspecification must be a finite float >= 0; got {self.misspecification!r}")
+        if self.local_points is not None and (int(self.local_points) != self.local_points or self.local_points < 1):
+            raise InvalidInputError(f"local_points must be a positive integer or None; got {self.local_points!r}")
         if self.error_bound == "chowdhury" and (tau > 0 or self.iid_noise):
             raise InvalidInputError(
                 "misspecification and iid_noise apply to error_bound 'optimal' or 'ridge' only; the GP route "
@@ -310,12 +320,11 @@ class _Run:
         self.check_resources = check_resources
         self.sched = None
 
-    def scheduler(self, work_seconds: float | None, log: "_Log"):
+    def scheduler(self, log: "_Log"):
         from robust_imdp.parallel import open_scheduler
 
         if self.sched is None:
-            self.sched = open_scheduler(workers=self.workers, scheduler=self.scheduler_address, client=self.client,
-                                        work_seconds=work_seconds)
+            self.sched = open_scheduler(workers=self.workers, scheduler=self.scheduler_address, client=self.client)
             log.info(f"scheduler: {self.sched.description}")
         return self.sched
 
@@ -369,6 +378,7 @@ def bounds_key(problem: Problem) -> str:
         problem.noise, float(problem.rkhs_bound), problem.gp_options, float(problem.bound_tol),
         int(problem.bound_max_boxes), problem.error_bound, float(problem.misspecification),
         bool(problem.iid_noise), float(problem.confidence) if problem.error_bound != "chowdhury" else None,
+        problem.local_points,
     ])
     return h.hexdigest()[:20]
 
@@ -444,6 +454,7 @@ def _parameters(problem: Problem, abstraction) -> dict:
         "error_bound": problem.error_bound,
         "misspecification": float(problem.misspecification),
         "iid_noise": bool(problem.iid_noise),
+        "local_points": problem.local_points,
         "abstraction_key": abstraction_key(problem),
     }
     from robust_imdp.jsonable import jsonable as _jsonable
@@ -479,7 +490,7 @@ def _chunked_abstract(problem: Problem, partition, cell_bounds, log: _Log, run: 
 
     N = partition.n_cells
     starts = list(range(0, N, chunk))
-    sched = run.scheduler(None, log) if run.sched is not None else None
+    sched = run.sched
     opts = {"eta": problem.eta, "eps_rule": problem.eps_rule, "combine": problem.combine}
     args = []
     part = partition if sched is None else sched.share(partition)
@@ -630,10 +641,34 @@ def _chunk_cells(run: "_Run", n_cells: int, default: int) -> int:
     return max(CELL_BLOCK, -(-min(c, max(n_cells, 1)) // CELL_BLOCK) * CELL_BLOCK)
 
 
-def _bound_task(X, Y, A, b, lower, upper, *, threads=1, **settings):
+def _bound_task(X, Y, A, b, lower, upper, local, *, threads=1, **settings):
+    """One chunk of the bound stage; ``local`` = (points, ridge lambda) of the mode or None."""
     from robust_imdp.rkhs import bound_chunk
 
+    if local is not None:
+        settings = dict(settings, local_points=local[0], local_lambda=local[1])
     return bound_chunk(X, Y, A, b, lower, upper, threads=threads, **settings)
+
+
+def _local_settings(problem: Problem, data, partition, noise_bound):
+    """Per mode: None (all points) or (points, ridge lambda) of the local weights."""
+    from robust_imdp.rkhs import local_lambda
+
+    out = []
+    for x, _, _ in data:
+        k = problem.local_points
+        if k is None:
+            k = None if x.shape[0] <= LOCAL_AUTO else LOCAL_DEFAULT
+        if k is None or k >= x.shape[0]:
+            out.append(None)
+            continue
+        lam = None
+        if problem.error_bound == "ridge":
+            lam = local_lambda(x, partition.cells_lower, partition.cells_upper,
+                               lengthscale=problem.gp_options.get("lengthscale", 1.0), rkhs_bound=problem.rkhs_bound,
+                               noise_l1=float(np.max(noise_bound)) + float(problem.misspecification), k=k)
+        out.append((int(k), lam))
+    return out
 
 
 def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" = None, cache_dir=None):
@@ -644,7 +679,7 @@ def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" 
     checks, check_noise = _check_assumption(problem, data, log)
     if problem.error_bound == "chowdhury":
         return _learn_and_bound_gp(problem, partition, log, checks, check_noise)
-    from robust_imdp.rkhs import CELL_BLOCK, bound_chunk, check_ranges, hoeffding_factor, noise_bound_at_confidence
+    from robust_imdp.rkhs import CELL_BLOCK, check_ranges, hoeffding_factor, noise_bound_at_confidence
 
     data_fail, iid_delta = _failure_budget(problem)
     m_total = sum(x.shape[0] for x, _, _ in data)
@@ -658,6 +693,11 @@ def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" 
                 "iid_factor": None if iid_theta is None else hoeffding_factor(M * n * N * 2 ** n, iid_delta)}
     chunk = _chunk_cells(run, N, 256)
     tasks = [(u, s0) for u in range(M) for s0 in range(0, N, chunk)]
+    local = _local_settings(problem, data, partition, noise_bound)
+    if any(loc is not None for loc in local):
+        log.info("local weights: " + ", ".join(f"mode {problem.mode_names[u]}: "
+                                               + ("all points" if loc is None else f"{loc[0]} nearest points")
+                                               for u, loc in enumerate(local)))
     parts_dir = None if cache_dir is None else Path(cache_dir) / f"bounds-{bounds_key(problem)}.parts"
     results: dict = {}
     if parts_dir is not None and parts_dir.exists():
@@ -674,18 +714,18 @@ def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" 
         if missing:
             # Pre-flight: time one block of cells in this process (1 thread) and extrapolate.
             x0, y0, _ = data[0]
-            pilot = bound_chunk(x0, y0, problem.maps[0].A, problem.maps[0].b, lo[:CELL_BLOCK], up[:CELL_BLOCK],
-                                threads=1, **settings)
+            pilot = _bound_task(x0, y0, problem.maps[0].A, problem.maps[0].b, lo[:CELL_BLOCK], up[:CELL_BLOCK],
+                                local[0], threads=1, **settings)
             per_cell = pilot["seconds"] / min(CELL_BLOCK, N)
             work = per_cell * N * M * len(missing) / len(tasks)
-            sched = run.scheduler(work, log)
+            sched = run.scheduler(log)
             log.info(f"pre-flight: {N:,} cells x {M} modes x {n} outputs = {N * M * n:,} cell bounds; about "
                      f"{work:.0f} s of work ({per_cell * 1e3:.2f} ms per cell and mode), "
                      f"about {work / sched.n_workers:.0f} s on {sched.n_workers} core{'s' if sched.n_workers > 1 else ''}")
             shared = [(sched.share(np.ascontiguousarray(x)), sched.share(np.ascontiguousarray(y)))
                       for x, y, _ in data]  # sent to the workers once
-            args = [(*shared[u], problem.maps[u].A, problem.maps[u].b, lo[s0:s0 + chunk], up[s0:s0 + chunk])
-                    for u, s0 in missing]
+            args = [(*shared[u], problem.maps[u].A, problem.maps[u].b, lo[s0:s0 + chunk], up[s0:s0 + chunk],
+                     local[u]) for u, s0 in missing]
             t0 = time.perf_counter()
             if parts_dir is not None:
                 parts_dir.mkdir(parents=True, exist_ok=True)
@@ -868,7 +908,8 @@ def synthesize_from_data(problem: Problem, *, progress: bool = True, abstraction
         Run the chunked stages on this Dask cluster (the data are sent to the workers once).
     workers : int, optional
         Local cores: 1 runs in this process on one core, N > 1 starts a local Dask cluster of N
-        processes; None uses all cores (in process when the work is small).
+        processes (call it under ``if __name__ == "__main__":`` in scripts); None (default) runs in
+        this process with numba threads on all cores.
     scheduler : str, optional
         Address of a running Dask scheduler (``"tcp://host:8786"``).
     chunk_cells : int, optional

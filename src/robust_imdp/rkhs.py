@@ -86,7 +86,7 @@ __all__ = [
     "KernelModel", "NormCheck", "CellRange", "ImageRanges", "METHODS",
     "taylor_remainder_sqrt_up", "cell_centres", "vertex_signs", "unit_kernel",
     "certify_weights", "vertex_problems", "optimal_weights", "cell_ranges", "min_rkhs_norm", "check_assumption",
-    "image_ranges", "bound_chunk", "check_ranges", "CELL_BLOCK", "noise_bound_at_confidence", "hoeffding_factor",
+    "image_ranges", "bound_chunk", "check_ranges", "CELL_BLOCK", "local_pools", "local_lambda", "noise_bound_at_confidence", "hoeffding_factor",
 ]
 
 log = logging.getLogger(__name__)
@@ -353,17 +353,14 @@ def vertex_problems(model: KernelModel, c, r, signs=None):
 
 # ============================================================================ certified evaluator
 @numba.njit(cache=True)
-def _certify(idx, w, n, y, b, eb, K, K_err, s0, a1, a2, G, side):  # pragma: no cover - compiled
-    """Certified ``w.y + side (a1 ||w||_1 + a2 ||w||_2 + G ||phi - Phi* w||)`` (eq. W).
+def _certified_norms(idx, w, n, b, eb, K, K_err, s0):  # pragma: no cover - compiled
+    """Upper bounds of ``||w||_1``, ``||w||_2`` and ``||phi - Phi* w||`` (the y-free part of eq. W).
 
     ``w`` is supported on ``idx[:n]``; ``b``/``eb`` are ``<k_{x_i}, phi>`` and their absolute
     errors, ``K`` the kernel matrix with relative entry error ``K_err``, ``s0`` an upper bound
-    of ``<phi, phi>``. Returns an upper bound (side = +1) or a lower bound (side = -1) of the
-    exact value for these weights, together with the radius ``a1||w||_1 + a2||w||_2 + G r``.
+    of ``<phi, phi>``.
     """
     u = 1.1102230246251565e-16
-    yw = 0.0
-    yw_abs = 0.0
     l1 = 0.0
     l2 = 0.0
     bw = 0.0
@@ -372,8 +369,6 @@ def _certify(idx, w, n, y, b, eb, K, K_err, s0, a1, a2, G, side):  # pragma: no 
     for p in range(n):
         i = idx[p]
         wi = w[p]
-        yw += wi * y[i]
-        yw_abs += abs(wi * y[i])
         l1 += abs(wi)
         l2 += wi * wi
         bw += wi * b[i]
@@ -407,17 +402,38 @@ def _certify(idx, w, n, y, b, eb, K, K_err, s0, a1, a2, G, side):  # pragma: no 
     g1 = (n + 2.0) * u / (1.0 - (n + 2.0) * u)
     l1_up = l1 * (1.0 + g1) * (1.0 + 2.0 * u)
     l2_up = math.sqrt(l2 * (1.0 + g1)) * (1.0 + 2.0 * u)
+    return l1_up, l2_up, r_up
+
+
+@numba.njit(cache=True)
+def _certified_value(idx, w, n, y, l1_up, l2_up, r_up, a1, a2, G, side):  # pragma: no cover - compiled
+    """Certified ``w.y + side (a1 ||w||_1 + a2 ||w||_2 + G ||phi - Phi* w||)`` from :func:`_certified_norms`."""
+    u = 1.1102230246251565e-16
+    yw = 0.0
+    yw_abs = 0.0
+    for p in range(n):
+        t = w[p] * y[idx[p]]
+        yw += t
+        yw_abs += abs(t)
     radius = (a1 * l1_up + a2 * l2_up + G * r_up) * (1.0 + 8.0 * u)
     total = yw + side * radius
     # yw: n-term sum; final addition: 1 ulp of |yw| + radius.
+    g1 = (n + 2.0) * u / (1.0 - (n + 2.0) * u)
     terr = g1 * yw_abs + 4.0 * u * (abs(yw) + radius) + 1e-300
     if side > 0:
-        val = total + terr
-        val = np.nextafter(val, np.inf)
-    else:
-        val = total - terr
-        val = np.nextafter(val, -np.inf)
-    return val, radius
+        return np.nextafter(total + terr, np.inf), radius
+    return np.nextafter(total - terr, -np.inf), radius
+
+
+@numba.njit(cache=True)
+def _certify(idx, w, n, y, b, eb, K, K_err, s0, a1, a2, G, side):  # pragma: no cover - compiled
+    """Certified ``w.y + side (a1 ||w||_1 + a2 ||w||_2 + G ||phi - Phi* w||)`` (eq. W).
+
+    The one certified evaluator: an upper bound (side = +1) or a lower bound (side = -1) of
+    the exact value for these weights, and the radius ``a1||w||_1 + a2||w||_2 + G r``.
+    """
+    l1_up, l2_up, r_up = _certified_norms(idx, w, n, b, eb, K, K_err, s0)
+    return _certified_value(idx, w, n, y, l1_up, l2_up, r_up, a1, a2, G, side)
 
 
 def certify_weights(model: KernelModel, b, b_err, s0, weights, *, noise_l1: float, rkhs_bound: float,
@@ -1239,6 +1255,182 @@ class ImageRanges:
     seconds: float
 
 
+# ============================================================================ local weights
+@numba.njit(cache=True)
+def _chol_factor(P, n, L, jitter):  # pragma: no cover - compiled
+    """Lower Cholesky factor of ``P[:n, :n] + jitter I`` into ``L``; False if not positive definite."""
+    for j in range(n):
+        s = P[j, j] + jitter
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not s > 0.0:
+            return False
+        L[j, j] = math.sqrt(s)
+        for i in range(j + 1, n):
+            t = P[i, j]
+            for k in range(j):
+                t -= L[i, k] * L[j, k]
+            L[i, j] = t / L[j, j]
+    return True
+
+
+@numba.njit(cache=True)
+def _chol_solve(L, n, rhs, out):  # pragma: no cover - compiled
+    for i in range(n):
+        t = rhs[i]
+        for k in range(i):
+            t -= L[i, k] * out[k]
+        out[i] = t / L[i, i]
+    for i in range(n - 1, -1, -1):
+        t = out[i]
+        for k in range(i + 1, n):
+            t -= L[k, i] * out[k]
+        out[i] = t / L[i, i]
+
+
+@numba.njit(cache=True, parallel=True)
+def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_iter, tol, chunk):  # pragma: no cover
+    """Certified bounds of ``<h, phi_v>`` (eq. W) with weights on each cell's pool of data points.
+
+    ``pools[q]`` are the data points allowed to carry weight for cell q (any weights are sound;
+    the pool only bounds the cost). Ridge weights ``(K_PP + lam I)^{-1} b`` (one factorisation
+    per cell, the same weights for every output: the radius does not involve y), or with
+    ``optimal`` the active-set weights per output and side (warm-started across the cell's
+    vertices). Returns ``val (n, V, n_out, 2)`` (side 0 upper, 1 lower) and the support sizes.
+    """
+    n, d = c.shape
+    V = signs.shape[0]
+    k = pools.shape[1]
+    n_out = Y.shape[1]
+    val = np.empty((n, V, n_out, 2))
+    sup = np.zeros((n, V, n_out, 2), dtype=np.int64)
+    n_chunks = (n + chunk - 1) // chunk
+    for ch in numba.prange(n_chunks):
+        Xp = np.empty((k, d))
+        Yp = np.empty((k, n_out))
+        L = np.empty((k, k))
+        b = np.empty(k)
+        eb = np.empty(k)
+        w = np.empty(k)
+        idx = np.arange(k)
+        v = np.empty(d)
+        ys = np.empty(k)
+        S = np.zeros((n_out, 2, k), dtype=np.int64)
+        sg = np.zeros((n_out, 2, k))
+        ws = np.zeros((n_out, 2, k))
+        nS = np.zeros((n_out, 2), dtype=np.int64)
+        bidx = np.zeros(k, dtype=np.int64)
+        bw = np.zeros(k)
+        for q in range(ch * chunk, min(n, (ch + 1) * chunk)):
+            for p in range(k):
+                for a in range(d):
+                    Xp[p, a] = X[pools[q, p], a]
+                for o in range(n_out):
+                    Yp[p, o] = Y[pools[q, p], o]
+            Kp, zmax = _kernel_matrix(Xp, Xp, inv_l2)
+            K_err = _kernel_rel_err_nb(zmax, d)
+            ok = True
+            if not optimal:
+                ok = _chol_factor(Kp, k, L, lam)
+            for o in range(n_out):
+                for sd in range(2):
+                    nS[o, sd] = 0  # a new pool: restart the warm starts
+            for jv in range(V):
+                for a in range(d):
+                    v[a] = signs[jv, a] * r[q, a]
+                z = _vertex_b(Xp, inv_l2, c[q], v, b, eb)
+                kerr = _kernel_rel_err_nb(z, d)
+                for i in range(k):
+                    eb[i] += abs(b[i]) * kerr
+                s0 = 1.0
+                for a in range(d):
+                    s0 += v[a] * v[a] * inv_l2[a]
+                s0 = s0 * (1.0 + (d + 8) * 2.220446049250313e-16)
+                if not optimal:
+                    if ok:
+                        _chol_solve(L, k, b, w)
+                    else:
+                        for i in range(k):
+                            w[i] = 0.0
+                    l1, l2, rr = _certified_norms(idx, w, k, b, eb, Kp, K_err, s0)
+                    for o in range(n_out):
+                        for i in range(k):
+                            ys[i] = Yp[i, o]
+                        val[q, jv, o, 0] = _certified_value(idx, w, k, ys, l1, l2, rr, a1[o], a2[o], G, 1.0)[0]
+                        val[q, jv, o, 1] = _certified_value(idx, w, k, ys, l1, l2, rr, a1[o], a2[o], G, -1.0)[0]
+                        sup[q, jv, o, 0] = k
+                        sup[q, jv, o, 1] = k
+                else:
+                    for o in range(n_out):
+                        for sd in range(2):
+                            sgn = 1.0 if sd == 0 else -1.0
+                            for i in range(k):
+                                ys[i] = sgn * Yp[i, o]
+                            res = _active_set(Kp, ys, b, s0, a1[o], G, S[o, sd], sg[o, sd], ws[o, sd], nS[o, sd], k,
+                                              max_iter, tol, bidx, bw)
+                            nS[o, sd] = res[0] if (res[3] != 2 and res[3] != 3) else 0
+                            nb = res[1]
+                            for i in range(k):
+                                ys[i] = Yp[i, o]
+                            val[q, jv, o, sd] = _certify(bidx, bw, nb, ys, b, eb, Kp, K_err, s0, a1[o], 0.0, G, sgn)[0]
+                            sup[q, jv, o, sd] = nb
+    return val, sup
+
+
+def local_pools(X, cells_lower, cells_upper, lengthscale, k: int) -> np.ndarray:
+    """The ``k`` data points nearest to every cell centre in the kernel's metric (``x / l``).
+
+    Parameters
+    ----------
+    X : (m, d) float array
+    cells_lower, cells_upper : (n_cells, d) float arrays
+    lengthscale : float or (d,) float array
+    k : int >= 1 (capped at m)
+
+    Returns
+    -------
+    (n_cells, min(k, m)) int array, sorted by distance
+    """
+    from scipy.spatial import cKDTree
+
+    X = np.asarray(X, float)
+    scale = np.sqrt(_inv_l2(lengthscale, X.shape[1]))
+    k = int(min(max(int(k), 1), X.shape[0]))
+    c = 0.5 * (np.asarray(cells_lower, float) + np.asarray(cells_upper, float))
+    _, idx = cKDTree(X * scale).query(c * scale, k=k)
+    return np.ascontiguousarray(np.asarray(idx, dtype=np.int64).reshape(c.shape[0], k))
+
+
+#: Ridge regularisers tried by :func:`local_lambda`.
+LOCAL_LAMBDAS = tuple(float(v) for v in np.logspace(-8, 0, 9))
+
+
+def local_lambda(X, cells_lower, cells_upper, *, lengthscale, rkhs_bound: float, noise_l1: float, k: int,
+                 noise_l2: float = 0.0, n_sample: int = 64) -> float:
+    """The ridge regulariser of the local weights: the one of :data:`LOCAL_LAMBDAS` with the
+    smallest median certified radius on up to ``n_sample`` evenly spaced cells.
+
+    A function of the inputs and the cells only (not of y), so it can be fixed before the data's
+    outputs are used (the iid route needs that) and is the same for every chunk of cells.
+    """
+    X = np.ascontiguousarray(X, float)
+    lo, up = _check_cells(cells_lower, cells_upper, X.shape[1])
+    sel = np.unique(np.linspace(0, lo.shape[0] - 1, min(int(n_sample), lo.shape[0])).astype(np.int64))
+    c, r = cell_centres(lo[sel], up[sel])
+    pools = local_pools(X, lo[sel], up[sel], lengthscale, k)
+    signs = vertex_signs(X.shape[1])
+    inv_l2 = _inv_l2(lengthscale, X.shape[1])
+    zeros = np.zeros((X.shape[0], 1))
+    best, best_lam = np.inf, LOCAL_LAMBDAS[0]
+    for lam in LOCAL_LAMBDAS:
+        val, _ = _local_cells(X, zeros, inv_l2, c, r, signs, pools, lam, np.array([noise_l1]), np.array([noise_l2]),
+                              float(rkhs_bound), False, 0, 0.0, CELL_BLOCK)
+        radius = float(np.median(val[:, :, 0, 0]))  # y = 0: the certified value is the radius
+        if radius < best:
+            best, best_lam = radius, lam
+    return best_lam
+
+
 #: Cells per numba work unit: warm starts restart at every multiple of this global cell index, so
 #: results do not depend on how the cells are split into tasks (task sizes are multiples of it).
 CELL_BLOCK = 16
@@ -1246,7 +1438,8 @@ CELL_BLOCK = 16
 
 def bound_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_bound: float, noise_bound,
                 misspecification: float = 0.0, method: str = "optimal", iid_factor: float | None = None,
-                iid_theta=None, threads: int | None = None) -> dict:
+                iid_theta=None, local_points: int | None = None, local_lambda: float | None = None,
+                threads: int | None = None) -> dict:
     """Certified image boxes of one mode over a chunk of cells (all outputs): a pure function.
 
     The unit of work of the bound stage (``pipeline`` runs it on a scheduler). Its result
@@ -1263,6 +1456,11 @@ def bound_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_bound
     cells_lower, cells_upper : (k, d) float arrays
     lengthscale, rkhs_bound, noise_bound (n,), misspecification, method, iid_factor, iid_theta (n,)
         As in :func:`cell_ranges` (per output where an array).
+    local_points : int, optional
+        Let only the ``local_points`` data points nearest to each cell (:func:`local_pools`)
+        carry weight: the cost per cell no longer grows with the data size and no m x m kernel
+        matrix is built (for large data sets). ``local_lambda`` is the ridge regulariser of
+        ``method="ridge"`` there (:func:`local_lambda`, chosen once for all chunks).
     threads : int, optional
         numba threads for this call (1 inside a scheduler's worker process).
 
@@ -1274,6 +1472,12 @@ def bound_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_bound
     t0 = time.perf_counter()
     if threads is not None:
         numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
+    if local_points is not None:
+        out = _local_chunk(X, Y, A, b, cells_lower, cells_upper, lengthscale=lengthscale, rkhs_bound=rkhs_bound,
+                           noise_bound=noise_bound, misspecification=misspecification, method=method,
+                           iid_factor=iid_factor, iid_theta=iid_theta, k=int(local_points), lam=local_lambda)
+        out["seconds"] = time.perf_counter() - t0
+        return out
     Y = np.asarray(Y, float).reshape(np.shape(X)[0], -1)
     n = Y.shape[1]
     nb = np.broadcast_to(np.asarray(noise_bound, float), (n,))
@@ -1294,6 +1498,55 @@ def bound_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_bound
         unconv += cr.n_unconverged
     out["n_unconverged"] = unconv
     out["seconds"] = time.perf_counter() - t0
+    return out
+
+
+def _local_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_bound, noise_bound, misspecification,
+                 method, iid_factor, iid_theta, k, lam):
+    """:func:`bound_chunk` with local weights (see its ``local_points``)."""
+    if method not in METHODS:
+        raise InvalidInputError(f"method must be one of {METHODS}; got {method!r}")
+    X = np.ascontiguousarray(X, float)
+    Y = np.ascontiguousarray(np.asarray(Y, float).reshape(X.shape[0], -1))
+    m, d = X.shape
+    n = Y.shape[1]
+    lower, upper = _check_cells(cells_lower, cells_upper, d)
+    inv_l2 = _inv_l2(lengthscale, d)
+    G_eff = float(_up(float(rkhs_bound) * _norm_inflation(d)))
+    tau = float(misspecification)
+    dbar = _up(np.broadcast_to(np.asarray(noise_bound, float), (n,)) + tau)
+    c, r = cell_centres(lower, upper)
+    signs = vertex_signs(d)
+    pools = local_pools(X, lower, upper, lengthscale, k)
+    if lam is None and method == "ridge":
+        lam = local_lambda(X, lower, upper, lengthscale=lengthscale, rkhs_bound=rkhs_bound, noise_l1=float(dbar.max()),
+                           k=k)
+    val, sup = _local_cells(X, Y, inv_l2, c, r, signs, pools, float(lam or 0.0), np.ascontiguousarray(dbar),
+                            np.zeros(n), G_eff, method == "optimal", 2000, 1e-9, CELL_BLOCK)
+    if iid_factor is not None:
+        th = np.broadcast_to(np.asarray(iid_theta, float), (n,))
+        a2 = _up(float(iid_factor) * th * (1 + 4 * _U))
+        lam2 = local_lambda(X, lower, upper, lengthscale=lengthscale, rkhs_bound=rkhs_bound, noise_l1=tau,
+                            noise_l2=float(a2.max()), k=k)
+        iv, _ = _local_cells(X, Y, inv_l2, c, r, signs, pools, lam2, np.full(n, tau), np.ascontiguousarray(a2),
+                             G_eff, False, 0, 0.0, CELL_BLOCK)
+        val[..., 0] = np.minimum(val[..., 0], iv[..., 0])  # both intervals hold: intersect
+        val[..., 1] = np.maximum(val[..., 1], iv[..., 1])
+    t_max = _up(np.sum(r * r * inv_l2, axis=1) * (1 + (d + 4) * _U))
+    A = np.asarray(A, float)
+    b = np.asarray(b, float)
+    v_all = signs[None, :, :] * r[:, None, :]
+    out = {key: np.empty((lower.shape[0], n)) for key in ("lower", "upper", "eps")}
+    for i in range(n):
+        lin_v = (c @ A[i] + b[i])[:, None] + v_all @ A[i]
+        lin_err = (2 * d + 4) * _U * 1.01 * ((np.abs(c) @ np.abs(A[i]) + abs(b[i]))[:, None]
+                                              + np.abs(v_all) @ np.abs(A[i])) + 1e-300
+        su, sl = val[:, :, i, 0], val[:, :, i, 1]
+        lo_i, up_i, taylor = _combine_vertices(lin_v, lin_err, su, sl, t_max, G_eff, tau)
+        out["lower"][:, i], out["upper"][:, i] = lo_i, up_i
+        out["eps"][:, i] = np.max(0.5 * (su - sl), axis=1) + taylor
+    out["support"] = sup.max(axis=(1, 3))
+    out["n_unconverged"] = 0
     return out
 
 
