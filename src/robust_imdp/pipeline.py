@@ -149,6 +149,15 @@ class Problem:
         c = float(self.confidence)
         if not 0.0 < c < 1.0:
             raise InvalidInputError(f"confidence must lie in (0, 1); got {self.confidence!r}")
+        try:  # checked here, not only in synthesize: a bad threshold must fail before the long stages
+            t_ok = not isinstance(self.threshold, bool) and 0.0 <= float(self.threshold) <= 1.0
+        except (TypeError, ValueError):
+            t_ok = False
+        if not t_ok:
+            raise InvalidInputError(f"threshold must be a probability in [0, 1]; got {self.threshold!r}")
+        h = self.horizon
+        if h is not None and (isinstance(h, bool) or not isinstance(h, (int, np.integer)) or h < 1):
+            raise InvalidInputError(f"horizon must be None (unbounded) or an integer >= 1; got {h!r}")
         if self.error_bound not in ERROR_BOUNDS:
             raise InvalidInputError(f"error_bound must be one of {ERROR_BOUNDS}; got {self.error_bound!r}")
         if self.guarantee == "paper" and self.error_bound != "chowdhury":
