@@ -112,13 +112,23 @@ def test_csv_round_trip_and_npz(tmp_path):
         assert modes == ("a", "b")
 
 
+HEAD = "x_1,x_2,u,x_next_1,x_next_2\n"
+
+
 @pytest.mark.parametrize("text,match", [
-    ("x_1,x_2,u,y_1,y_2\n0,0,a,0,0\n", r"header must be x_1,x_2,u,x_next_1,x_next_2"),
-    ("x_1,x_2,u,x_next_1,x_next_2\n0,nan,a,0,0\n", r"must be finite; 1 rows are not"),
-    ("x_1,x_2,u,x_next_1,x_next_2\n0,0,c,0,0\n", r"modes \['c'\] that are not in \[modes"),
-    ("x_1,x_2,u,x_next_1,x_next_2\n0,0,a,0\n", r"line 2 has 4 fields; expected 5"),
-    ("x_1,x_2,u,x_next_1,x_next_2\n0,zero,a,0,0\n", r"non-numeric"),
-    ("x_1,x_2,u,x_next_1,x_next_2\n", r"no data rows"),
+    ("x_1,x_2,u,y_1,y_2\n0,0,a,0,0\n", r"line 1: header must be x_1,x_2,u,x_next_1,x_next_2"),
+    # lines are 1-based and count the header and blank lines: the bad sample is on line 4
+    (HEAD + "0,0,a,0,0\n\n0,nan,a,0,0\n", r"must be finite; 1 sample is not \(line 4\)"),
+    (HEAD + "0,0,a,0,0\n0,0,a,0,0\n0,0,c,0,0\n", r"modes \['c'\] that are not in \[modes.*line 4\)"),
+    (HEAD + "0,0,a,0\n", r"line 2 has 4 fields; expected 5"),
+    (HEAD + "0,0,a,0,0\n0,zero,a,0,0\n", r"line 3, column x_2 is not a number: 'zero'"),
+    (HEAD + "0,0,a,,0\n", r"line 2, column x_next_1 is empty"),
+    (HEAD + "0,0,a,0,0\n0,0, ,0,0\n", r"line 3, column u is empty"),
+    (HEAD, r"no data rows"),
+    # a semicolon file: the hint names the dimension of [space] (2), not the 1 the header implies
+    ("x_1;x_2;u;x_next_1;x_next_2\n0;0;a;0;0\n",
+     r"header must be x_1,x_2,u,x_next_1,x_next_2 \(2 state dimensions like \[space\]\).*"
+     r"separated by ';': use commas"),
 ])
 def test_data_file_errors(tmp_path, text, match):
     with pytest.raises(ProblemFileError, match=match):
@@ -134,9 +144,16 @@ def test_data_file_other_errors(tmp_path):
     (tmp_path / "d.txt").write_text("x")
     with pytest.raises(ProblemFileError, match="expected a .csv or .npz"):
         read_data_file(tmp_path / "d.txt")
-    p = _csv(tmp_path, "x_1,u,x_next_1\n0,a,0\n")
-    with pytest.raises(ProblemFileError, match="must have 2 columns"):
+    p = _csv(tmp_path, "x_1,u,x_next_1\n0,a,0\n")  # a 1-D file for a 2-D [space]
+    with pytest.raises(ProblemFileError, match=r"header must be x_1,x_2,u,x_next_1,x_next_2 \(2 state "
+                                               r"dimensions like \[space\]\); got 'x_1,u,x_next_1'"):
         read_data_file(p, ["a"], n_dims=2)
+    np.savez(tmp_path / "d1.npz", x=np.zeros((2, 1)), u=np.array(["a", "a"]), x_next=np.zeros((2, 1)))
+    with pytest.raises(ProblemFileError, match="must have 2 columns"):
+        read_data_file(tmp_path / "d1.npz", ["a"], n_dims=2)
+    np.savez(tmp_path / "d2.npz", x=np.array([[0.0, np.nan]]), u=np.array(["a"]), x_next=np.zeros((1, 2)))
+    with pytest.raises(ProblemFileError, match=r"1 sample is not \(row 0 \(0-based, of the arrays"):
+        read_data_file(tmp_path / "d2.npz", ["a"], n_dims=2)
 
 
 def test_case_study_problem_files_parse(tmp_path):
@@ -218,3 +235,133 @@ def test_committed_example_problems_load():
         p = load_problem(root / f"{name}.toml")
         assert len(p.mode_names) == n_modes and p.data.x.shape[1] == 2
         assert p.threshold == 0.95 and p.rkhs_bound > 0
+
+
+# --------------------------------------------------------------------------- load-time checks
+ONE_MODE = """
+[space]
+lower = [-2.0, -2.0]
+upper = [2.0, 2.0]
+cell_size = [0.25, 0.25]
+[[regions.des]]
+lower = [0.0, 0.0]
+upper = [1.0, 1.0]
+[spec]
+formula = "F des"
+threshold = 0.9
+[data]
+path = "d.csv"
+[modes.a]
+A = [[0.0, 0.0], [0.0, 0.0]]
+b = [0.0, 0.0]
+[noise]
+kind = "truncated_gaussian"
+sigma = [0.01, 0.01]
+bound = [0.05, 0.05]
+[gp]
+rkhs_bound = 3.0
+"""
+
+
+def _one_mode(tmp_path, residuals, text=ONE_MODE):
+    """Problem file + data: sample k at x = (k/10, 0) with x_next = (residuals[k], 0) (f_a = 0)."""
+    lines = ["x_1,x_2,u,x_next_1,x_next_2"] + [f"{k / 10},0,a,{r},0" for k, r in enumerate(residuals)]
+    (tmp_path / "d.csv").write_text("\n".join(lines) + "\n")
+    return _write(tmp_path, text)
+
+
+@pytest.mark.parametrize("r,refused", [(3.06, True), (3.04, False), (-3.06, True)])
+def test_impossible_sample_is_refused_at_load_like_the_assumption_check(tmp_path, r, refused):
+    # |g| <= B + tau = 3 everywhere (unit-amplitude kernel) and |noise| <= 0.05, so a residual
+    # with |r| > 3.05 cannot come from the stated system; 3.04 can.
+    from robust_imdp.errors import AssumptionError
+    from robust_imdp.io import load_problem
+    from robust_imdp.rkhs import check_assumption
+
+    residuals = [0.1] * 11 + [r] + [0.2] * 3  # the bad sample is data row 12: file line 13
+    path = _one_mode(tmp_path, residuals)
+    if refused:
+        with pytest.raises(AssumptionError, match=r"d.csv, line 13 \(mode 'a'\): the residual x_next - f_u\(x\) = "
+                                                  rf"{r:g} in component 1 is impossible.*\|residual\| <= 3.05"):
+            load_problem(path)
+    else:
+        assert load_problem(path).data.x.shape == (15, 2)
+    # the pipeline's assumption check (single points, the same noise bound) draws the same line
+    x = np.c_[np.arange(15) / 10, np.zeros(15)]
+    y = np.c_[residuals, np.zeros(15)]
+    try:
+        check_assumption([(x, y)], lengthscale=1.0, rkhs_bound=3.0, noise_bound=[0.05, 0.05], solver=False)
+        pipeline_refuses = False
+    except AssumptionError as exc:
+        pipeline_refuses = "alone" in str(exc)
+    assert pipeline_refuses == refused
+
+
+def test_other_impossible_samples_are_counted(tmp_path):
+    from robust_imdp.errors import AssumptionError
+    from robust_imdp.io import load_problem
+
+    path = _one_mode(tmp_path, [0.0] * 10 + [99.0, 5.0, -4.0])  # lines 12, 13, 14; 99 is the worst
+    with pytest.raises(AssumptionError, match=r"line 12 .* = 99 .*; 2 more such samples \(lines 13, 14\).*"
+                                              r"rkhs_bound above 98.95"):
+        load_problem(path)
+
+
+def test_few_samples_warn_and_ten_do_not(tmp_path):
+    from robust_imdp.errors import RobustImdpWarning
+    from robust_imdp.io import FEW_SAMPLES, load_problem
+
+    assert FEW_SAMPLES == 10
+    with pytest.warns(RobustImdpWarning, match=r"mode 'a' has 3 samples \(fewer than 10\)"):
+        load_problem(_one_mode(tmp_path, [0.1, 0.2, 0.3]))
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # any warning fails the test
+        load_problem(_one_mode(tmp_path, [0.1] * 10))
+
+
+def test_region_off_the_grid_warns_with_the_partitions_cell_count(tmp_path):
+    from robust_imdp.errors import RobustImdpWarning
+    from robust_imdp.geometry import Box, Partition, Region
+    from robust_imdp.io import load_problem
+
+    text = ONE_MODE.replace("upper = [1.0, 1.0]", "upper = [1.1, 1.0]").replace(
+        "[spec]", "[[regions.obs]]\nlower = [-1.3, -1.0]\nupper = [-1.0, 0.3]\n[spec]")
+    with pytest.warns(RobustImdpWarning) as rec:
+        p = load_problem(_one_mode(tmp_path, [0.1] * 10, text))
+    msg = str(rec[0].message)
+    # 16 x 16 uniform cells; x_1 gains -1.3 (obs) and 1.1 (des), x_2 gains 0.3 (obs): 18 x 17 = 306
+    part = Partition(Box(p.space_lower, p.space_upper), p.cell_size,
+                     [Region(k, [Box(lo, up) for lo, up in v]) for k, v in p.regions.items()])
+    assert part.n_cells == 306
+    assert "refine it from 256 to 306 cells" in msg
+    assert "dimension 1: 16 -> 18 intervals, at -1.3 (obs), 1.1 (des); dimension 2: 16 -> 17 intervals, at 0.3 (obs)" in msg
+
+
+def test_committed_examples_load_without_warnings():
+    import warnings
+
+    from robust_imdp.io import load_problem
+
+    root = Path(__file__).parents[1] / "examples" / "problems"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_problem(root / "three_mode_linear.toml")
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o077])
+def test_result_files_get_the_mode_of_every_other_output(tmp_path, umask):
+    # result.json / result.npz are written under a temporary name (mkstemp: 0600) and renamed;
+    # they must end with the mode a plain open() gives (the PNGs, validation.json): 0666 & ~umask.
+    import os
+
+    old = os.umask(umask)
+    try:
+        save_result(_fake_result(), tmp_path)
+        (tmp_path / "plain.txt").write_text("x")
+    finally:
+        os.umask(old)
+    want = 0o666 & ~umask  # 0644 or 0600
+    modes = {name: (tmp_path / name).stat().st_mode & 0o777 for name in ("result.json", "result.npz", "plain.txt")}
+    assert modes == {"result.json": want, "result.npz": want, "plain.txt": want}

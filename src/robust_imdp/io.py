@@ -375,11 +375,26 @@ def make_noise(noise: dict):
 def load_problem(path):
     """Read a problem file and its data file into a :class:`robust_imdp.pipeline.Problem`.
 
+    Checks at load time, before any long work:
+
+    * every mode has samples (else ``ProblemFileError``);
+    * no sample is impossible under the assumption: ``|g| <= B + tau`` everywhere (the SE
+      kernel has unit amplitude), so a residual ``|x_next - f_u(x)|`` above ``B + tau`` + the
+      noise bound cannot come from the stated system. The same single-point test as the
+      pipeline's assumption check (``rkhs.min_rkhs_norm``), with the same noise bound, so both
+      refuse the same samples; here the message names the data file's line
+      (``AssumptionError``);
+    * a mode with fewer than ``FEW_SAMPLES`` samples gets a warning (the bounds stay valid, but
+      away from the data they are as wide as the assumption allows);
+    * regions whose boundaries are not on the grid refine it: a warning gives the new cell count.
+
     Raises
     ------
     ProblemFileError
         For any missing / misspelt key, bad value or bad data file (see
         :func:`parse_problem_file` and :func:`read_data_file`).
+    AssumptionError
+        A sample is impossible under ``[gp].rkhs_bound``, ``misspecification`` and the noise bound.
     """
     from robust_imdp.pipeline import Problem
     from robust_imdp.system import AffineMap, Dataset
@@ -387,13 +402,17 @@ def load_problem(path):
     spec = parse_problem_file(path)
     names = list(spec["modes"])
     n = spec["lower"].shape[0]
-    x, u, x_next, _ = read_data_file(spec["data_file"], names, n_dims=n)
+    x, u, x_next, _, rows = _read_data(spec["data_file"], names, n)
     missing = [names[i] for i in range(len(names)) if not np.any(u == i)]
     if missing:
         raise ProblemFileError(
             f"data file {spec['data_file']}: modes {missing} have no samples; every [modes.*] "
             "table needs data"
         )
+    noise = make_noise(spec["noise"])
+    _check_samples_possible(spec, noise, x, u, x_next, rows)
+    _warn_few_samples(spec, u, rows)
+    _warn_refined_grid(spec, str(path))
     gp = dict(spec["gp"])
     rkhs_bound = gp.pop("rkhs_bound")
     error_bound = gp.pop("error_bound")
@@ -408,16 +427,120 @@ def load_problem(path):
         regions=spec["regions"], formula=spec["formula"], threshold=spec["threshold"],
         horizon=spec["horizon"], data=Dataset(x, u, x_next, modes=tuple(names)),
         mode_names=tuple(names), maps=tuple(AffineMap(A, b) for A, b in spec["modes"].values()),
-        noise=make_noise(spec["noise"]), rkhs_bound=rkhs_bound, gp_options=gp,
+        noise=noise, rkhs_bound=rkhs_bound, gp_options=gp,
         bound_tol=bound_tol, bound_max_boxes=bound_max_boxes, eta=ab["eta"], eps_rule=ab["eps_rule"], combine=ab["combine"],
         guarantee=ab["guarantee"], confidence=ab["confidence"], error_bound=error_bound,
         misspecification=misspecification, iid_noise=iid_noise, local_points=local_points,
     )
 
 
+#: A mode with fewer samples than this gets a warning at load time.
+FEW_SAMPLES = 10
+
+
+def _rows_text(rows, idx, limit: int = 5) -> str:
+    """Where samples ``idx`` are in the data file: 1-based CSV lines, or npz array indices."""
+    idx = np.asarray(idx, dtype=np.int64)
+    shown = ", ".join(str(int(v)) for v in (rows[idx[:limit]] if rows is not None else idx[:limit]))
+    more = f" and {idx.size - limit} more" if idx.size > limit else ""
+    if rows is not None:
+        return f"line{'s' if idx.size > 1 else ''} {shown}{more}"
+    return f"row{'s' if idx.size > 1 else ''} {shown}{more} (0-based, of the arrays x, u, x_next)"
+
+
+def _check_samples_possible(spec, noise, x, u, x_next, rows) -> None:
+    """Refuse samples that no system allowed by the assumption can produce (see :func:`load_problem`)."""
+    from robust_imdp.errors import AssumptionError
+    from robust_imdp.pipeline import CHECK_DELTA
+    from robust_imdp.rkhs import min_rkhs_norm, noise_bound_at_confidence
+
+    B = float(spec["gp"]["rkhs_bound"])
+    tau = float(spec["gp"]["misspecification"])
+    lengthscale = spec["gp"].get("lengthscale", 1.0)
+    # the pipeline's assumption check uses this bound (unbounded noise: all samples at 1 - 1e-6)
+    nb, fail = noise_bound_at_confidence(noise, x.shape[0], CHECK_DELTA)
+    nb = np.broadcast_to(np.asarray(nb, float), (x.shape[1],))
+    where = f"data file {spec['data_file']}"
+    names = list(spec["modes"])
+    for m, (A, b) in enumerate(spec["modes"].values()):
+        sel = np.flatnonzero(u == m)
+        res = x_next[sel] - (x[sel] @ A.T + b)
+        for i in range(res.shape[1]):
+            r = min_rkhs_norm(x[sel], res[:, i], lengthscale, float(nb[i]), tau, solver=False)
+            if r["single_minimum"] <= B:
+                continue
+            worst = sel[r["sample"]]
+            limit = B + tau + float(nb[i])
+            bad = sel[np.abs(res[:, i]) > limit]
+            others = [k for k in bad.tolist() if k != worst]
+            noise_text = (f"[noise].bound {nb[i]:g}" if fail == 0 else
+                          f"the noise bound {nb[i]:.4g} that all {x.shape[0]} samples respect with probability "
+                          f"1 - {CHECK_DELTA:g}")
+            raise AssumptionError(
+                f"{where}, {_rows_text(rows, [worst])} (mode {names[m]!r}): the residual x_next - f_u(x) = "
+                f"{res[r['sample'], i]:.6g} in component {i + 1} is impossible under the assumption: every allowed "
+                f"g has |g| <= [gp].rkhs_bound + misspecification = {B:g} + {tau:g} everywhere (unit-amplitude "
+                f"kernel), and the noise adds at most {noise_text}, so |residual| <= {limit:.6g}"
+                + (f"; {len(others)} more such samples ({_rows_text(rows, np.array(others))})" if others else "")
+                + ". The guarantees would rest on a false premise: fix or remove the sample, or choose "
+                f"[gp].rkhs_bound above {r['single_minimum']:.4g}")
+
+
+def _warn_few_samples(spec, u, rows) -> None:
+    import warnings
+
+    from robust_imdp.errors import RobustImdpWarning
+
+    counts = np.bincount(u, minlength=len(spec["modes"]))
+    few = [(name, int(c)) for name, c in zip(spec["modes"], counts) if c < FEW_SAMPLES]
+    if few:
+        warnings.warn(
+            f"data file {spec['data_file']}: " + ", ".join(f"mode {name!r} has {c} sample{'s' if c != 1 else ''}"
+                                                          for name, c in few)
+            + f" (fewer than {FEW_SAMPLES}): the bounds stay valid, but away from the samples they are as wide "
+            "as [gp].rkhs_bound allows, so expect few Q_yes cells; add samples of these modes",
+            RobustImdpWarning, stacklevel=3)
+
+
+def _warn_refined_grid(spec, where: str) -> None:
+    """Warn when region boundaries off the uniform grid add breakpoints (``geometry.Partition``'s rule)."""
+    import warnings
+
+    from robust_imdp.errors import RobustImdpWarning
+    from robust_imdp.geometry import Box, Partition, Region
+
+    lower, upper, h = spec["lower"], spec["upper"], spec["cell_size"]
+    uniform, refined, notes = [], [], []
+    for j in range(lower.shape[0]):
+        # the breakpoints of dimension j depend only on dimension j: a 1-D partition has them
+        regions = [Region(name, [Box([lo[j]], [up[j]]) for lo, up in boxes])
+                   for name, boxes in spec["regions"].items()]
+        bp = Partition(Box([lower[j]], [upper[j]]), [h[j]], regions).breakpoints[0]
+        k = int(round((upper[j] - lower[j]) / h[j]))
+        uniform.append(k)
+        refined.append(bp.size - 1)
+        if bp.size - 1 > k:
+            ticks = lower[j] + np.arange(k + 1) * ((upper[j] - lower[j]) / k)
+            new = [v for v in bp.tolist() if np.min(np.abs(ticks - v)) > 1e-9 * h[j]]
+            owners = {v: sorted({name for name, boxes in spec["regions"].items() for lo, up in boxes
+                                 if v in (lo[j], up[j])}) for v in new}
+            notes.append(f"dimension {j + 1}: {k} -> {bp.size - 1} intervals, at "
+                         + ", ".join(f"{v:g} ({', '.join(owners[v])})" for v in new[:4])
+                         + (f" and {len(new) - 4} more" if len(new) > 4 else ""))
+    if notes:
+        warnings.warn(
+            f"{where}: region boundaries off the grid refine it from {int(np.prod(uniform)):,} to "
+            f"{int(np.prod(refined)):,} cells ({'; '.join(notes)}); to keep the uniform grid, put region "
+            "boundaries at [space].lower + k * cell_size",
+            RobustImdpWarning, stacklevel=3)
+
+
 # --------------------------------------------------------------------------- data files
-def _check_data(x, u, x_next, mode_names, where):
-    """Validate arrays read from a data file; return (x, u_index, x_next)."""
+def _check_data(x, u, x_next, mode_names, where, rows=None):
+    """Validate arrays read from a data file; return (x, u_index, x_next, modes).
+
+    ``rows``: the 1-based file line of every sample (CSV), or None (npz: 0-based array rows).
+    """
     if x.ndim != 2 or x_next.shape != x.shape:
         raise ProblemFileError(
             f"{where}: x_next must have shape (m, n) like x {x.shape}; got {x_next.shape}"
@@ -426,10 +549,10 @@ def _check_data(x, u, x_next, mode_names, where):
         raise ProblemFileError(f"{where}: u must have shape ({x.shape[0]},); got {u.shape}")
     bad = ~(np.all(np.isfinite(x), axis=1) & np.all(np.isfinite(x_next), axis=1))
     if np.any(bad):
-        rows = np.flatnonzero(bad)[:5].tolist()
         raise ProblemFileError(
-            f"{where}: x and x_next must be finite; {int(bad.sum())} rows are not "
-            f"(first data rows, 0-based: {rows})"
+            f"{where}: x and x_next must be finite; {int(bad.sum())} sample"
+            f"{' is' if bad.sum() == 1 else 's are'} not "
+            f"({_rows_text(rows, np.flatnonzero(bad))})"
         )
     names = [str(v) for v in u.tolist()]
     if mode_names is None:
@@ -437,9 +560,10 @@ def _check_data(x, u, x_next, mode_names, where):
     index = {m: i for i, m in enumerate(mode_names)}
     unknown = sorted(set(names) - set(index))
     if unknown:
+        at = np.flatnonzero(~np.isin(np.asarray(names, dtype=object), list(index)))
         raise ProblemFileError(
             f"{where}: column u names modes {unknown} that are not in [modes.*] "
-            f"(known modes: {list(mode_names)})"
+            f"(known modes: {list(mode_names)}; {_rows_text(rows, at)})"
         )
     return x, np.array([index[s] for s in names], dtype=np.int64), x_next, tuple(mode_names)
 
@@ -462,11 +586,23 @@ def read_data_file(path, mode_names=None, n_dims: int | None = None):
     u : (m,) int array of indices into ``modes``
     x_next : (m, n) float array
     modes : tuple of str
+
+    Raises
+    ------
+    ProblemFileError
+        Naming the file and, for a CSV file, the 1-based line (NaN, empty or non-numeric
+        fields, unknown modes, wrong number of fields, a header with the wrong separator).
     """
+    return _read_data(path, mode_names, n_dims)[:4]
+
+
+def _read_data(path, mode_names=None, n_dims: int | None = None):
+    """:func:`read_data_file` plus the 1-based line of every sample (None for .npz)."""
     path = Path(path)
     where = f"data file {path}"
     if not path.exists():
         raise ProblemFileError(f"{where}: file not found")
+    rows = None
     if path.suffix == ".npz":
         try:
             with np.load(path, allow_pickle=False) as z:
@@ -485,46 +621,74 @@ def read_data_file(path, mode_names=None, n_dims: int | None = None):
         if x.ndim == 1:
             x, x_next = x[:, None], x_next.reshape(-1, 1) if x_next.ndim == 1 else x_next
     elif path.suffix == ".csv":
-        x, u, x_next = _read_csv(path, where)
+        x, u, x_next, rows = _read_csv(path, where, n_dims)
     else:
         raise ProblemFileError(f"{where}: expected a .csv or .npz file; got suffix '{path.suffix}'")
     if n_dims is not None and (x.ndim != 2 or x.shape[1] != n_dims):
         raise ProblemFileError(
             f"{where}: x must have {n_dims} columns like [space]; got shape {x.shape}"
         )
-    return _check_data(x, u, x_next, mode_names, where)
+    return (*_check_data(x, u, x_next, mode_names, where, rows), rows)
 
 
-def _read_csv(path: Path, where: str):
+def _header(n: int) -> list:
+    return [f"x_{i + 1}" for i in range(n)] + ["u"] + [f"x_next_{i + 1}" for i in range(n)]
+
+
+def _read_csv(path: Path, where: str, n_dims: int | None = None):
+    """Arrays of a CSV data file and the 1-based line of every sample."""
     with open(path, newline="") as fh:
         reader = csv.reader(fh)
         try:
             header = [h.strip() for h in next(reader)]
         except StopIteration:
             raise ProblemFileError(f"{where}: file is empty") from None
-        rows = [r for r in reader if r]
+        rows, lines = [], []
+        for r in reader:
+            if r:  # blank lines are skipped, but every sample keeps its line number
+                rows.append(r)
+                lines.append(reader.line_num)
     n = (len(header) - 1) // 2
-    expected = [f"x_{i + 1}" for i in range(n)] + ["u"] + [f"x_next_{i + 1}" for i in range(n)]
-    if n < 1 or header != expected:
+    want = n_dims if n_dims is not None else max(n, 1)
+    expected = _header(want)
+    if header != expected:
+        raw = ",".join(header)
+        seps = [c for c in (";", "\t", "|") if c in raw and len(header) == 1]
+        hint = (f" (fields separated by {seps[0]!r}: use commas)" if seps else "")
         raise ProblemFileError(
-            f"{where}: header must be {','.join(expected) if n >= 1 else 'x_1,u,x_next_1'}; "
-            f"got {','.join(header)}"
+            f"{where}: line 1: header must be {','.join(expected)} "
+            f"({want} state dimension{'s' if want > 1 else ''}"
+            + (" like [space]" if n_dims is not None else "") + f"); got {raw!r}{hint}"
         )
     if not rows:
         raise ProblemFileError(f"{where}: no data rows after the header")
-    for i, r in enumerate(rows):
+    lines = np.asarray(lines, dtype=np.int64)
+    for r, line in zip(rows, lines.tolist()):
         if len(r) != len(header):
             raise ProblemFileError(
-                f"{where}: line {i + 2} has {len(r)} fields; expected {len(header)}"
+                f"{where}: line {line} has {len(r)} fields; expected {len(header)} ({','.join(header)})"
             )
     table = np.array(rows, dtype=object)
-    try:
-        x = table[:, :n].astype(float)
-        x_next = table[:, n + 1:].astype(float)
-    except ValueError as exc:
-        raise ProblemFileError(f"{where}: non-numeric state value ({exc})") from None
-    u = np.array([s.strip() for s in table[:, n]], dtype=str)
-    return x, u, x_next
+    cols = list(range(n)) + list(range(n + 1, 2 * n + 1))
+    values = np.empty((len(rows), 2 * n))
+    for k, c in enumerate(cols):
+        try:
+            values[:, k] = table[:, c].astype(float)
+        except ValueError:  # find the first bad field (only on this error path)
+            for i, text in enumerate(table[:, c].tolist()):
+                try:
+                    float(text)
+                except ValueError:
+                    what = "is empty" if not text.strip() else f"is not a number: {text!r}"
+                    raise ProblemFileError(
+                        f"{where}: line {int(lines[i])}, column {header[c]} {what}"
+                    ) from None
+            raise  # pragma: no cover - astype and float() accept the same strings
+    u = np.array([v.strip() for v in table[:, n]], dtype=str)
+    empty = np.flatnonzero(u == "")
+    if empty.size:
+        raise ProblemFileError(f"{where}: line {int(lines[empty[0]])}, column u is empty (a mode name is needed)")
+    return values[:, :n], u, values[:, n:], lines
 
 
 def write_data_file(path, x, u, x_next, modes=None) -> None:
@@ -560,11 +724,21 @@ def write_data_file(path, x, u, x_next, modes=None) -> None:
 
 
 # --------------------------------------------------------------------------- result files
+def _umask() -> int:
+    """The process's umask (read by setting it and setting it back; there is no getter)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def _atomic_write(path: Path, write) -> None:
     """Write via ``write(tmp_path)`` to a temporary file in the same directory, then rename."""
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
     os.close(fd)
     try:
+        # mkstemp creates the file with mode 0600; give it the mode open() gives every other
+        # output (PNG figures, validation.json): 0666 less the umask.
+        os.chmod(tmp, 0o666 & ~_umask())
         write(Path(tmp))
         os.replace(tmp, path)
     except BaseException:
