@@ -144,3 +144,181 @@ def test_run_end_to_end_on_a_coarse_problem(tmp_path, capsys):
     code, stdout, _ = _run(["run", str(tmp_path / "p.toml"), "--out", str(out), "--threshold",
                             "0.5", "--no-figures", "--quiet"], capsys)
     assert code == 0 and "reused from cache" in stdout
+
+
+# --------------------------------------------------------------------------- options (issue 12)
+def test_version(capsys):
+    import robust_imdp
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0
+    assert capsys.readouterr().out.strip() == f"robust-imdp {robust_imdp.__version__}"
+
+
+def test_debug_also_after_the_command(tmp_path, capsys):
+    from robust_imdp.errors import ProblemFileError
+
+    for argv in (["--debug", "run", str(tmp_path / "x.toml"), "--out", str(tmp_path / "o")],
+                 ["run", str(tmp_path / "x.toml"), "--out", str(tmp_path / "o"), "--debug"]):
+        with pytest.raises(ProblemFileError, match="cannot be read"):  # --debug re-raises: a traceback
+            main(argv)
+    code, _, err = _run(["run", str(tmp_path / "x.toml"), "--out", str(tmp_path / "o")], capsys)
+    assert code == 1 and "Traceback" not in err  # without it: one line
+
+
+@pytest.mark.parametrize("argv,match", [
+    (["run", "P.toml", "--out", "O", "--threshold", "1.5"], "argument --threshold: must be a probability in"),
+    (["run", "P.toml", "--out", "O", "--threshold", "nan"], "argument --threshold: must be a probability in"),
+    (["run", "P.toml", "--out", "O", "--threshold", "high"], "argument --threshold: must be a probability in"),
+    (["run", "P.toml", "--out", "O", "--workers", "0"], r"argument --workers: must be an integer >= 1; got 0"),
+    (["simulate", "D", "--true-system", "x", "--n-per-cell", "0"], "argument --n-per-cell: must be an integer >= 1"),
+    (["simulate", "D", "--true-system", "x", "--confidence", "1"], r"argument --confidence: must lie in \(0, 1\)"),
+    (["simulate", "D", "--true-system", "x", "--seed", "-1"], "argument --seed: must be an integer >= 0"),
+    (["export", "D", "--format", "dot", "--out", "F"], r"argument --format: invalid choice: 'dot'"),
+])
+def test_bad_option_values_stop_before_any_work(tmp_path, monkeypatch, capsys, argv, match):
+    import re
+
+    monkeypatch.chdir(tmp_path)  # P.toml, D and O do not exist: the values fail first
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    assert re.search(match, capsys.readouterr().err)
+    assert not (tmp_path / "O").exists()
+
+
+def test_bad_overrides_fail_before_the_data_are_read(tmp_path, capsys):
+    # The data file does not exist: a formula error reported first proves nothing was read.
+    p = tmp_path / "p.toml"
+    p.write_text(GOOD_HEAD)
+    code, _, err = _run(["run", str(p), "--out", str(tmp_path / "o"), "--formula", "F (des"], capsys)
+    assert code == 1 and "formula" in err.lower() and "data" not in err
+    out_file = tmp_path / "file"
+    out_file.write_text("")
+    code, _, err = _run(["run", str(p), "--out", str(out_file)], capsys)
+    assert code == 1 and "--out must be a directory you can write to" in err
+
+
+def test_problem_refuses_a_bad_threshold_when_made():
+    # The Python API: Problem.replace(threshold=1.5) fails at once, not after learning and solving.
+    from pathlib import Path
+
+    from robust_imdp.errors import InvalidInputError
+    from robust_imdp.io import load_problem
+
+    problem = load_problem(Path(__file__).parents[1] / "examples" / "problems" / "three_mode_linear.toml")
+    with pytest.raises(InvalidInputError, match=r"threshold must be a probability in \[0, 1\]; got 1.5"):
+        problem.replace(threshold=1.5)
+    with pytest.raises(InvalidInputError, match=r"horizon must be None \(unbounded\) or an integer >= 1; got 0"):
+        problem.replace(horizon=0)
+
+
+def test_warnings_read_like_errors(tmp_path, capsys):
+    # 3 samples warn at load time; the unknown region then stops the run at the specify stage.
+    p = tmp_path / "p.toml"
+    p.write_text(GOOD_HEAD)
+    (tmp_path / "data.csv").write_text("x_1,x_2,u,x_next_1,x_next_2\n0,0,a,0,0\n1,1,a,0,0\n0,1,a,0,0\n")
+    code, _, err = _run(["run", str(p), "--out", str(tmp_path / "o"), "--formula", "F goal", "--quiet"], capsys)
+    assert code == 1
+    lines = err.strip().splitlines()
+    assert lines[0].startswith("robust-imdp: warning: data file ") and "mode 'a' has 3 samples" in lines[0]
+    assert lines[1].startswith("robust-imdp: error: ") and len(lines) == 2  # no source line, no "warnings.warn("
+
+
+# --------------------------------------------------------------------------- simulate a user's system
+STILL_SYSTEM = '''
+import numpy as np
+
+
+class Still:
+    """Never moves: x_next = x (modes named like the synthetic result's)."""
+
+    mode_names = ("1", "2", "3")
+
+    def step(self, x, modes, rng):
+        return np.array(x, dtype=float)
+
+
+still = Still()
+
+
+class NeedsArgs:
+    mode_names = ("1", "2", "3")
+
+    def __init__(self, speed):
+        self.speed = speed
+
+    def step(self, x, modes, rng):
+        return x
+
+
+class WrongShape(Still):
+    def step(self, x, modes, rng):
+        return x[:, :1]
+
+
+class Broken(Still):
+    def step(self, x, modes, rng):
+        raise ZeroDivisionError("user bug")
+
+
+class NoStep:
+    mode_names = ("1", "2", "3")
+
+
+class OtherModes(Still):
+    mode_names = ("a", "b")
+'''
+
+
+@pytest.fixture
+def synthetic_result(tmp_path):
+    sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
+    from test_plotting import grid_doc
+
+    doc = grid_doc(h=1.0)  # 16 cells; G !obs & F des
+    (tmp_path / "result.json").write_text(json.dumps(doc))
+    (tmp_path / "mysys.py").write_text(STILL_SYSTEM)
+    return tmp_path, doc
+
+
+@pytest.mark.parametrize("name", ["Still", "still"])  # a class built with no arguments, or an object
+def test_simulate_a_users_system_from_a_file(synthetic_result, capsys, name):
+    d, doc = synthetic_result
+    code, out, err = _run(["simulate", str(d), "--true-system", f"{d / 'mysys.py'}:{name}", "--n-per-cell", "4",
+                           "--max-steps", "3", "--paths", "2"], capsys)
+    assert code == 0, err
+    rep = json.loads((d / "validation.json").read_text())
+    # A system that never moves: the DFA reads the start cell's label at once, so des cells are
+    # satisfied (4 of 4 runs), obs cells violated (0), and all other runs stay undecided (capped).
+    des = np.array(["des" in lab for lab in doc["labels"]])
+    obs = np.array(["obs" in lab for lab in doc["labels"]])
+    assert rep["satisfied"] == (4 * des).tolist()
+    assert rep["capped"] == (4 * (~des & ~obs)).tolist()
+
+
+import numpy as np  # noqa: E402  (used by the tests below and above)
+
+
+@pytest.mark.parametrize("spec,match", [
+    ("mysys.py:Nope", r"mysys.py defines no 'Nope' \(it defines \['Broken', 'NeedsArgs',"),
+    ("missing.py:Still", r"file .*missing.py not found"),
+    ("mysys.py:NeedsArgs", r"the class must be constructible with no arguments"),
+    ("mysys.py:NoStep", r"must have a method step\(x \(k, n\), modes \(k,\) int, rng\) -> \(k, n\)"),
+    # 16 cells x 1 run; the 2 des and 4 obs cells are decided at reset, so 10 runs are stepped
+    ("mysys.py:WrongShape", r"true_system.step\(x, modes, rng\) must return the next states, shape \(k, n\) = "
+                            r"\(10, 2\) like x; got \(10, 1\)"),
+    ("mysys.py:Broken", r"mysys.py:Broken: step\(x, modes, rng\) raised ZeroDivisionError: user bug"),
+    ("mysys.py:OtherModes", r"true_system has no modes \['1', '2', '3'\]; it has \['a', 'b'\]"),
+    ("mysys.py", r"must be a case study name or FILE.py:NAME"),
+])
+def test_simulate_user_system_errors_name_the_file_and_the_interface(synthetic_result, capsys, spec, match):
+    import re
+
+    d, _ = synthetic_result
+    path = f"{d / spec}" if not spec.startswith("missing") else str(d / spec)
+    code, _, err = _run(["simulate", str(d), "--true-system", path, "--n-per-cell", "1", "--max-steps", "2",
+                         "--no-figures"], capsys)
+    assert code == 1 and re.search(match, err), err
+    assert "Traceback" not in err

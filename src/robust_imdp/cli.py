@@ -2,11 +2,16 @@
 
     robust-imdp run PROBLEM.toml --out DIR        synthesize; write DIR/result.json, result.npz, figures
     robust-imdp simulate DIR --true-system NAME   Monte-Carlo validation of DIR's result on a true system
+                                                  (a case study, or FILE.py:NAME for your own system)
+    robust-imdp export DIR --format drn --out F   the abstraction (or --product: with the DFA) for Storm / PRISM
     robust-imdp example NAME --out DIR            write a case study's problem file and data
+    robust-imdp --version
 
 Errors (bad files, unknown regions, ...) print one message and exit with status 1; usage errors
-exit with status 2 (argparse); unexpected internal errors exit with status 3. No traceback is
-shown unless ``--debug`` is given.
+(including option values out of range, checked before any work) exit with status 2 (argparse);
+unexpected internal errors exit with status 3; Ctrl-C exits with status 130. No traceback is
+shown unless ``--debug`` is given (before or after the command). Warnings print as
+``robust-imdp: warning: ...``, without the library's source line.
 """
 
 from __future__ import annotations
@@ -14,24 +19,65 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import warnings
 from pathlib import Path
 
-from robust_imdp.errors import RobustImdpError
+from robust_imdp import __version__
+from robust_imdp.errors import InvalidInputError, RobustImdpError
 
 __all__ = ["main"]
+
+
+# --------------------------------------------------------------------------- option values
+# Checked by argparse while parsing, so a bad value stops the command before any work (exit 2).
+def _number(kind, text: str, what: str):
+    try:
+        return kind(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be {what}; got {text!r}") from None
+
+
+def _probability(text: str) -> float:
+    v = _number(float, text, "a probability in [0, 1]")
+    if not 0.0 <= v <= 1.0:  # also refuses nan
+        raise argparse.ArgumentTypeError(f"must be a probability in [0, 1]; got {text}")
+    return v
+
+
+def _open_unit(text: str) -> float:
+    v = _number(float, text, "a number in (0, 1)")
+    if not 0.0 < v < 1.0:
+        raise argparse.ArgumentTypeError(f"must lie in (0, 1); got {text}")
+    return v
+
+
+def _at_least(low: int):
+    def check(text: str) -> int:
+        v = _number(int, text, f"an integer >= {low}")
+        if v < low:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {low}; got {text}")
+        return v
+
+    check.__name__ = f"integer >= {low}"
+    return check
 
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="robust-imdp",
-        description="Formally guaranteed switching controllers from data (GP learning, "
-                    "interval-MDP abstraction, LTLf synthesis).",
+        description="Formally guaranteed switching controllers from data (certified bounds of the "
+                    "unknown dynamics, interval-MDP abstraction, LTLf synthesis).",
     )
+    p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     p.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    # --debug is also accepted after the command; SUPPRESS keeps a --debug given before it.
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                        help="show tracebacks on errors")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
 
-    run = sub.add_parser("run", help="synthesize a controller from a TOML problem file",
+    run = sub.add_parser("run", parents=[common], help="synthesize a controller from a TOML problem file",
                          description="Learn, bound, abstract and synthesize; write result.json, "
                                      "result.npz and PNG figures into --out.")
     run.add_argument("problem", type=Path, help="TOML problem file")
@@ -40,10 +86,10 @@ def _parser() -> argparse.ArgumentParser:
                      help="abstraction cache directory (default: OUT/cache); reused when only "
                           "the formula, threshold or horizon changes")
     run.add_argument("--formula", default=None, help="override [spec].formula")
-    run.add_argument("--threshold", type=float, default=None, help="override [spec].threshold")
+    run.add_argument("--threshold", type=_probability, default=None, help="override [spec].threshold")
     run.add_argument("--no-figures", action="store_true", help="do not write PNG figures")
     run.add_argument("--quiet", action="store_true", help="no progress lines")
-    run.add_argument("--workers", type=int, default=None,
+    run.add_argument("--workers", type=_at_least(1), default=None,
                      help="local cores: 1 = in this process on one core, N > 1 = a local Dask cluster "
                           "of N processes (default: this process, numba threads on all cores)")
     run.add_argument("--scheduler", default=None, metavar="ADDRESS",
@@ -52,23 +98,43 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--yes", action="store_true",
                      help="run even when the pre-flight estimate says the run does not fit the machine")
 
-    sim = sub.add_parser("simulate", help="validate a result by simulating a true system",
+    sim = sub.add_parser("simulate", parents=[common], help="validate a result by simulating a true system",
                          description="Simulate the true system under the result's controller "
                                      "from random states in every cell and compare the "
                                      "empirical satisfaction with [p_low, p_up] (Wilson "
                                      "intervals). Writes validation.json and trajectories.png.")
     sim.add_argument("result", type=Path, help="directory holding result.json")
-    sim.add_argument("--true-system", required=True,
-                     help="case study whose true dynamics to simulate "
-                          "(three_mode_linear, four_mode_nonlinear)")
-    sim.add_argument("--n-per-cell", type=int, default=50, help="runs per cell (default 50)")
-    sim.add_argument("--max-steps", type=int, default=100, help="step cap per run (default 100)")
-    sim.add_argument("--confidence", type=float, default=0.999, help="Wilson confidence (0.999)")
-    sim.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    sim.add_argument("--paths", type=int, default=20, help="trajectories to draw (default 20)")
+    sim.add_argument("--true-system", required=True, metavar="NAME | FILE.py:NAME",
+                     help="the true dynamics to simulate: a case study (three_mode_linear, "
+                          "four_mode_nonlinear), or NAME in your Python file: a class built with no "
+                          "arguments, or an object, with mode_names (the result's mode names) and "
+                          "step(x (k, n), modes (k,) int indices into mode_names, rng) -> (k, n)")
+    sim.add_argument("--n-per-cell", type=_at_least(1), default=50, help="runs per cell (default 50)")
+    sim.add_argument("--max-steps", type=_at_least(1), default=100, help="step cap per run (default 100)")
+    sim.add_argument("--confidence", type=_open_unit, default=0.999, help="Wilson confidence (0.999)")
+    sim.add_argument("--seed", type=_at_least(0), default=0, help="random seed (default 0)")
+    sim.add_argument("--paths", type=_at_least(0), default=20, help="trajectories to draw (default 20)")
     sim.add_argument("--no-figures", action="store_true", help="do not write trajectories.png")
 
-    ex = sub.add_parser("example", help="write a case study's problem file and data",
+    exp = sub.add_parser("export", parents=[common],
+                         help="write the abstraction (or its product with the DFA) for Storm or PRISM",
+                         description="Write the interval MDP behind DIR's result (from the run's cache) in "
+                                     "Storm's DRN format or as PRISM explicit files. States: cells 0..n-1, "
+                                     "then the outside-X state n; action a = mode index (see FILE.states.json). "
+                                     "With --product: the product with the DFA (state s * (n + 1) + q for DFA "
+                                     "state s and cell q), labels init (every cell's initial product state), "
+                                     "target (accepting) and avoid (outside X or acceptance unreachable).")
+    exp.add_argument("result", type=Path, help="directory holding result.json")
+    exp.add_argument("--format", required=True, choices=("drn", "prism"),
+                     help="drn: one .drn file; prism: OUT.tra, .lab, .sta (and .props with --product)")
+    exp.add_argument("--out", type=Path, required=True,
+                     help="output file (drn) or file prefix (prism; a .tra suffix is dropped)")
+    exp.add_argument("--product", action="store_true",
+                     help="the product with the result's DFA, whose values are p_low / p_up_star")
+    exp.add_argument("--cache", type=Path, default=None,
+                     help="the run's cache directory (default: DIR/cache)")
+
+    ex = sub.add_parser("example", parents=[common], help="write a case study's problem file and data",
                         description="Generate the data of a paper case study with a fixed seed "
                                     "and write NAME.toml + NAME_data.csv into --out.")
     ex.add_argument("name", help="three_mode_linear or four_mode_nonlinear")
@@ -78,11 +144,34 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def _writable_dir(directory: Path, option: str) -> None:
+    """Create ``directory`` and check that files can be written there (before any long work)."""
+    import tempfile
+
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=directory):
+            pass
+    except OSError as exc:
+        raise InvalidInputError(f"{option} must be a directory you can write to; {directory}: "
+                                f"{exc.strerror or exc}") from None
+
+
 def _cmd_run(args) -> int:
     from robust_imdp.io import load_problem, save_result
     from robust_imdp.pipeline import synthesize_from_data
 
     out: Path = args.out
+    cache = args.cache if args.cache is not None else out / "cache"
+    # Everything the command line can get wrong is checked before the data are read:
+    # option ranges by argparse, the output directories and the formula's syntax here, the
+    # formula's regions by the pipeline's first stage.
+    _writable_dir(out, "--out")
+    _writable_dir(cache, "--cache")
+    if args.formula is not None:
+        from robust_imdp.ltlf import parse
+
+        parse(args.formula)
     # A stale complete-looking result must not survive a failed run.
     for name in ("result.json", "result.npz"):
         (out / name).unlink(missing_ok=True)
@@ -94,32 +183,106 @@ def _cmd_run(args) -> int:
         changes["threshold"] = args.threshold
     if changes:
         problem = problem.replace(**changes)
-    cache = args.cache if args.cache is not None else out / "cache"
     args.interrupt_note = (f"interrupted; the finished chunks are saved in {cache}: run the same command again "
                            "to resume")
     result = synthesize_from_data(problem, progress=not args.quiet, abstraction_cache=cache,
                                   workers=args.workers, scheduler=args.scheduler, check_resources=not args.yes)
-    figures = not args.no_figures and len(problem.space_lower) == 2  # plots are 2-D only
-    if figures:
+    figures = []
+    if not args.no_figures:
         from robust_imdp.plotting import save_figures
 
-        save_figures(result, out)
+        figures = save_figures(result, out)
     path = save_result(result, out)
     print(result.summary())
-    print(f"wrote {path}" + (f" and figures in {out}" if figures else " (no figures)"))
+    print(f"wrote {path}" + (f" and {len(figures)} figures in {out}" if figures else " (no figures)"))
     return 0
+
+
+# --------------------------------------------------------------------------- true systems
+class _UserSystem:
+    """A user's true system, checked once and wrapped so that its errors name it.
+
+    The interface (the one :func:`robust_imdp.validate.simulate` uses): ``mode_names``, a
+    sequence of str, and ``step(x (k, n) float array, modes (k,) int array of indices into
+    mode_names, rng numpy Generator) -> (k, n) float array``, the next states.
+    """
+
+    def __init__(self, obj, where: str):
+        names = getattr(obj, "mode_names", None)
+        if isinstance(names, str) or names is None or not all(isinstance(m, str) for m in names):
+            raise InvalidInputError(
+                f"--true-system {where} must have mode_names, a sequence of mode-name strings; got "
+                f"{names!r}")
+        if not callable(getattr(obj, "step", None)):
+            raise InvalidInputError(
+                f"--true-system {where} must have a method step(x (k, n), modes (k,) int, rng) -> (k, n); "
+                f"{type(obj).__name__} has none")
+        self.mode_names = tuple(names)
+        self._obj, self._where = obj, where
+
+    def step(self, x, modes, rng):
+        try:
+            return self._obj.step(x, modes, rng)
+        except Exception as exc:  # the user's code, not ours: say whose it is
+            raise InvalidInputError(
+                f"--true-system {self._where}: step(x, modes, rng) raised {type(exc).__name__}: {exc} "
+                "(--debug shows the traceback)") from exc
+
+
+def _load_true_system(spec: str):
+    """A case study's true system, or the class / object NAME of the Python file in ``FILE.py:NAME``."""
+    import importlib.util
+
+    file, sep, name = spec.rpartition(":")
+    if not (sep and file.endswith(".py")):
+        if spec.endswith(".py") or ".py:" in spec:
+            raise InvalidInputError(
+                f"--true-system must be a case study name or FILE.py:NAME (NAME: a class or object in "
+                f"FILE.py); got {spec!r}")
+        from robust_imdp.casestudies import true_system
+
+        return true_system(spec)
+    path = Path(file)
+    where = f"{path}:{name}"
+    if not name.isidentifier():
+        raise InvalidInputError(f"--true-system {spec!r}: NAME must be a Python name; got {name!r}")
+    if not path.is_file():
+        raise InvalidInputError(f"--true-system {spec!r}: file {path} not found")
+    module_name = f"_robust_imdp_true_system_{abs(hash(str(path.resolve())))}"
+    loader_spec = importlib.util.spec_from_file_location(module_name, path)
+    module = importlib.util.module_from_spec(loader_spec)
+    sys.path.insert(0, str(path.resolve().parent))  # the file may import its neighbours
+    try:
+        loader_spec.loader.exec_module(module)
+    except Exception as exc:
+        raise InvalidInputError(
+            f"--true-system {where}: {path} cannot be run ({type(exc).__name__}: {exc}; --debug shows the "
+            "traceback)") from exc
+    finally:
+        sys.path.remove(str(path.resolve().parent))
+    if not hasattr(module, name):
+        public = sorted(k for k in vars(module) if not k.startswith("_"))
+        raise InvalidInputError(f"--true-system {where}: {path} defines no {name!r} (it defines {public})")
+    obj = getattr(module, name)
+    if isinstance(obj, type):
+        try:
+            obj = obj()
+        except TypeError as exc:
+            raise InvalidInputError(
+                f"--true-system {where}: the class must be constructible with no arguments ({exc}); or give "
+                "an object built in the file") from exc
+    return _UserSystem(obj, where)
 
 
 def _cmd_simulate(args) -> int:
     import numpy as np
 
-    from robust_imdp.casestudies import true_system
     from robust_imdp.io import load_result
     from robust_imdp.jsonable import jsonable
     from robust_imdp.validate import simulate, validate
 
+    system = _load_true_system(args.true_system)  # before the result: a bad NAME fails first
     res = load_result(args.result)
-    system = true_system(args.true_system)
     report = validate(res, system, n_per_cell=args.n_per_cell, max_steps=args.max_steps,
                       rng=args.seed, confidence=args.confidence)
     print(report.summary())
@@ -130,8 +293,9 @@ def _cmd_simulate(args) -> int:
         "expected_outside")}
     (out / "validation.json").write_text(json.dumps(jsonable(doc), indent=1))
     if not args.no_figures and args.paths > 0 and len(res.space_lower) == 2:
-        from robust_imdp.plotting import plot_trajectories
         import matplotlib.pyplot as plt
+
+        from robust_imdp.plotting import plot_trajectories
 
         rng = np.random.default_rng(args.seed + 1)
         x0 = res.space_lower + rng.random((args.paths, len(res.space_lower))) * (
@@ -144,6 +308,81 @@ def _cmd_simulate(args) -> int:
     return 0
 
 
+# --------------------------------------------------------------------------- export
+def _cmd_export(args) -> int:
+    import numpy as np
+
+    from robust_imdp.formats import MAX_ENTRIES, write_drn, write_prism_explicit
+    from robust_imdp.io import load_result
+
+    res = load_result(args.result)
+    key = res.parameters.get("abstraction_key")
+    cache = args.cache if args.cache is not None else Path(args.result) / "cache"
+    file = cache / f"abstraction-{key}.npz"
+    if key is None or not file.exists():
+        raise InvalidInputError(
+            f"export needs the abstraction of this result, abstraction-{key}.npz in the run's cache {cache}; "
+            f"it is not there: pass the run's --cache, or run `robust-imdp run PROBLEM --out {args.result}` again")
+    from robust_imdp.abstraction import Abstraction
+
+    imdp = Abstraction.load(file).imdp
+    n = res.n_cells
+    if imdp.n_states != n + 1:
+        raise InvalidInputError(f"{file}: the abstraction has {imdp.n_states} states; result.json has {n} cells "
+                                "(+ 1 outside state)")
+    states = {"format": "robust_imdp.export/1", "kind": "product" if args.product else "abstraction",
+              "n_cells": n, "outside_state": n, "actions": list(res.modes),
+              "action_meaning": "action a applies mode actions[a]"}
+    if args.product:
+        from types import SimpleNamespace
+
+        from robust_imdp.product import materialize_product
+
+        S = res.dfa_delta.shape[0]
+        # Materialising lists every floor mass explicitly: refuse before building what cannot be written.
+        per_row = np.where(imdp.floor > 0, imdp.n_states, np.diff(imdp.row_ptr))
+        entries = int(per_row.sum()) * S
+        if entries > MAX_ENTRIES:
+            raise InvalidInputError(
+                f"the product has {S} DFA states x {imdp.n_states} states, about {entries:,} listed transitions "
+                f"with the floors written out, more than the {MAX_ENTRIES:,} export limit; export the abstraction "
+                "alone (without --product)")
+        letters = np.concatenate([res.label_letters, [0]])  # the outside state's letter is never read
+        dfa = SimpleNamespace(n_states=S, initial=res.dfa_initial, accepting=res.dfa_accepting, delta=res.dfa_delta)
+        prod = materialize_product(imdp, letters, dfa, avoid=[n])
+        model, target, labels, initial = prod.imdp, prod.target, {"avoid": prod.avoid}, prod.initial
+        states.update({"dfa_states": S, "state": "s * (n_cells + 1) + q for DFA state s and state q",
+                       "initial": prod.initial, "horizon": res.horizon,
+                       "values": "from initial[q]: max-min = p_low[q], max-max = p_up_star[q] of result.json"})
+    else:
+        regions = sorted({a for lab in res.labels for a in lab})
+        model, target, initial = imdp, None, np.arange(n)
+        labels = {a: np.array([a in lab for lab in res.labels] + [False]) for a in regions}
+        labels["outside"] = np.arange(n + 1) == n
+    out: Path = args.out
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if args.format == "drn":
+        write_drn(model, out, target=target, labels=labels, initial=initial)
+        written = [str(out)]
+        meta = out.with_name(out.name + ".states.json") if out.suffix != ".drn" else out.with_suffix(".states.json")
+    else:
+        prefix = out.with_suffix("") if out.suffix == ".tra" else out
+        written = write_prism_explicit(model, prefix, target=target, labels=labels, initial=initial)
+        if args.product and res.horizon is not None:  # the k-step values: bounded until
+            props = Path(str(prefix) + ".props")
+            props.write_text(f'Pmaxmin=? [ F<={int(res.horizon)} "target" ]\n'
+                             f'Pmaxmax=? [ F<={int(res.horizon)} "target" ]\n')
+        meta = Path(str(prefix) + ".states.json")
+    from robust_imdp.jsonable import jsonable
+
+    meta.write_text(json.dumps(jsonable(states), indent=1))
+    written.append(str(meta))
+    print(f"wrote {', '.join(written)}: {model.n_states} states, {model.n_choices} choices"
+          + (f" (product of {n} cells + outside with {states['dfa_states']} DFA states)" if args.product else
+             f" ({n} cells + the outside state {n})"))
+    return 0
+
+
 def _cmd_example(args) -> int:
     from robust_imdp.casestudies import write_problem_files
 
@@ -152,12 +391,20 @@ def _cmd_example(args) -> int:
     return 0
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Warnings read like the errors: ``robust-imdp: warning: <message>``, no source line."""
+    print(f"robust-imdp: warning: {message}", file=sys.stderr if file is None else file, flush=True)
+
+
 def main(argv=None) -> int:
     """Entry point of ``robust-imdp``; returns the exit status."""
     args = _parser().parse_args(argv)
+    commands = {"run": _cmd_run, "simulate": _cmd_simulate, "export": _cmd_export, "example": _cmd_example}
     try:
-        return {"run": _cmd_run, "simulate": _cmd_simulate, "example": _cmd_example}[
-            args.command](args)
+        with warnings.catch_warnings():
+            if not args.debug:  # --debug keeps Python's format, with the source line
+                warnings.showwarning = _show_warning
+            return commands[args.command](args)
     except KeyboardInterrupt:
         if args.debug:
             raise

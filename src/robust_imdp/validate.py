@@ -145,7 +145,11 @@ def simulate(result, true_system, x0, *, max_steps: int = 100, rng=None, record:
         modes = table[q[run], s[run]]
         if np.any(modes < 0):
             raise InvalidInputError("result strategy is undefined (-1) for a reachable (cell, DFA state)")
-        x_new = true_system.step(x[run], to_sys[modes], rng)
+        x_new = np.asarray(true_system.step(x[run], to_sys[modes], rng), dtype=float)
+        if x_new.shape != (run.size, x.shape[1]):
+            raise DimensionError(
+                f"true_system.step(x, modes, rng) must return the next states, shape (k, n) = "
+                f"({run.size}, {x.shape[1]}) like x; got {x_new.shape}")
         x[run] = x_new
         steps[run] += 1
         q_new = locate(x_new)
