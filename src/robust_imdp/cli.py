@@ -350,9 +350,10 @@ def _cmd_export(args) -> int:
         letters = np.concatenate([res.label_letters, [0]])  # the outside state's letter is never read
         dfa = SimpleNamespace(n_states=S, initial=res.dfa_initial, accepting=res.dfa_accepting, delta=res.dfa_delta)
         prod = materialize_product(imdp, letters, dfa, avoid=[n])
-        model, target, labels, initial = prod.imdp, prod.target, {"avoid": prod.avoid}, prod.initial
+        initial = prod.initial[:n]  # the cells' initial product states (the outside state has one too)
+        model, target, labels = prod.imdp, prod.target, {"avoid": prod.avoid}
         states.update({"dfa_states": S, "state": "s * (n_cells + 1) + q for DFA state s and state q",
-                       "initial": prod.initial, "horizon": res.horizon,
+                       "initial": initial, "horizon": res.horizon,
                        "values": "from initial[q]: max-min = p_low[q], max-max = p_up_star[q] of result.json"})
     else:
         regions = sorted({a for lab in res.labels for a in lab})
