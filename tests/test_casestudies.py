@@ -22,7 +22,11 @@ from robust_imdp.geometry import Box, Partition, Region
 NAMES = sorted(CASE_STUDIES)
 N_CELLS = 48  # sampled cells per case study
 N_RANDOM = 10_000  # uniform points per cell
-N_GRID = 101  # grid points per axis (includes the corners and the centre)
+
+
+def _n_grid(n: int) -> int:
+    """Odd grid points per axis, about 10^4 grid points per cell: 101 (2-D), 21 (3-D)."""
+    return 2 * int(round(10 ** (4 / n) / 2)) + 1
 
 
 def _partition(name):
@@ -38,16 +42,17 @@ def _images(system, x, u):
 
 
 def _sampled_ranges(system, lower, upper, rng):
-    """Per mode and cell, the min / max of the images of N_RANDOM uniform points and a
-    N_GRID x N_GRID grid (corners included): two (n_modes, n_cells, 2) arrays."""
+    """Per mode and cell, the min / max of the images of N_RANDOM uniform points and a regular
+    grid (``_n_grid`` points per axis, corners and centre included): two (n_modes, n_cells, n)
+    arrays."""
     rng = np.random.default_rng(rng)
-    M, k = len(system.mode_names), lower.shape[0]
-    smin, smax = np.empty((M, k, 2)), np.empty((M, k, 2))
-    t = np.linspace(0.0, 1.0, N_GRID)
-    grid = np.stack(np.meshgrid(t, t, indexing="ij"), axis=-1).reshape(-1, 2)
+    M, (k, n) = len(system.mode_names), lower.shape
+    smin, smax = np.empty((M, k, n)), np.empty((M, k, n))
+    t = np.linspace(0.0, 1.0, _n_grid(n))
+    grid = np.stack(np.meshgrid(*[t] * n, indexing="ij"), axis=-1).reshape(-1, n)
     for q in range(k):
         w = upper[q] - lower[q]
-        x = np.concatenate([lower[q] + rng.random((N_RANDOM, 2)) * w, lower[q] + grid * w])
+        x = np.concatenate([lower[q] + rng.random((N_RANDOM, n)) * w, lower[q] + grid * w])
         x = np.minimum(x, upper[q])  # lower + 1.0 * w may round above upper
         for u in range(M):
             y = _images(system, x, u)
@@ -84,12 +89,13 @@ def sampled(request):
 def test_g_terms_are_the_unknown_part(name):
     """The separable form g_terms sums to g at random points (so the boxes bound the real g)."""
     system = true_system(name)
+    n = len(system.sigma)
     rng = np.random.default_rng(0)
-    x = rng.uniform(-5.0, 5.0, (1000, 2))
+    x = rng.uniform(-5.0, 5.0, (1000, n))
     funcs = {"lin": lambda v: v, "sin": np.sin, "cos": np.cos}
     for u in range(len(system.mode_names)):
         g = system.g(x, np.full(1000, u))
-        for i in range(2):
+        for i in range(n):
             s = np.zeros(1000)
             for kind, j, c in system.g_terms[u][i]:
                 s += c if kind == "const" else c * funcs[kind](x[:, j])
@@ -98,19 +104,20 @@ def test_g_terms_are_the_unknown_part(name):
 
 @pytest.mark.parametrize("name", NAMES)
 def test_point_boxes_contain_the_point(name):
-    """Degenerate cells [x, x]: the box contains f(x) + g(x) and is at most ~1e-11 wide."""
-    system = true_system(name)
-    x = np.random.default_rng(1).uniform(-2.0, 2.0, (500, 2))
+    """Degenerate cells [x, x]: the box contains f(x) + g(x) and is at most ~1e-10 wide."""
+    case = get_case_study(name)
+    system = case.system
+    x = np.random.default_rng(1).uniform(case.lower, case.upper, (500, len(case.lower)))
     lo, hi = system.image_bounds(x, x)
     for u in range(len(system.mode_names)):
         y = _images(system, x, u)
         assert np.all(lo[u] <= y) and np.all(y <= hi[u])
-    assert np.max(hi - lo) < 1e-11  # margin 1e-12 (1 + magnitudes) per side, magnitudes < 4
+    assert np.max(hi - lo) < 1e-10  # margin 1e-12 (1 + magnitudes) per side, magnitudes < 10 here
 
 
 # --------------------------------------------------------------------------- soundness
 def test_dense_samples_never_leave_the_box(sampled):
-    """10^4 uniform points + a 101 x 101 grid per cell, 48 seeded cells, every mode: 0 outside."""
+    """10^4 uniform points + ~10^4 grid points per cell, 48 seeded cells, every mode: 0 outside."""
     _, _, _, _, img_lo, img_hi, smin, smax = sampled
     assert img_lo.shape == smin.shape
     assert _violations(img_lo, img_hi, smin, smax) == 0
@@ -118,8 +125,10 @@ def test_dense_samples_never_leave_the_box(sampled):
 
 def test_box_is_tight(sampled):
     """The sampled range reaches the box: the grid includes the corners (the extremes of the
-    linear terms) and lies within h/200 of any interior critical line, so a trig term misses
-    its extreme by at most 0.4 (0.125/200)^2/2 < 1e-7; the rest is the 1e-12 margin."""
+    linear terms) and lies within h/(2 (G - 1)) of any interior critical line (G grid points per
+    axis), so a trig term c sin misses its extreme by at most |c| (h/(2 (G - 1)))^2 / 2: 2-D,
+    0.4 (0.125/200)^2/2 < 1e-7; 3-D (G = 21, h <= pi/32), 0.15 (0.1/40)^2/2 < 5e-7. The rest is
+    the 1e-12 margin."""
     _, _, _, _, img_lo, img_hi, smin, smax = sampled
     slack = np.concatenate([(smin - img_lo).ravel(), (img_hi - smax).ravel()])
     assert np.all(slack >= 0)
@@ -207,7 +216,7 @@ def test_known_dynamics_cell_bounds(name):
     part = _partition(name)
     cb = known_dynamics_cell_bounds(name, part)
     assert isinstance(cb, CellBounds) and cb.std_upper is None
-    assert cb.image_lower.shape == (len(true_system(name).mode_names), part.n_cells, 2)
+    assert cb.image_lower.shape == (len(true_system(name).mode_names), part.n_cells, part.dim)
     lo, hi = true_system(name).image_bounds(part.cells_lower, part.cells_upper)
     np.testing.assert_array_equal(cb.image_lower, lo)
     np.testing.assert_array_equal(cb.image_upper, hi)
