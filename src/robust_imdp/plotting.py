@@ -2,13 +2,22 @@
 
 Every function takes a result (a :class:`~robust_imdp.io.ResultFile`, a pipeline
 ``Result``, a result dict or a path to ``result.json``) and an optional ``ax``; it draws and
-returns the Axes. :func:`save_figures` writes the standard set of PNGs. Only 2-D state spaces
-are drawn.
+returns the Axes. :func:`save_figures` writes the standard set of PNGs for any dimension:
+
+* 1-D: ``bounds.png`` -- p_low and p_up against x over the cells' classes (:func:`plot_bounds_1d`);
+* 2-D: ``partition.png``, ``classes.png``, ``p_low.png``, ``error.png`` (and ``trajectories.png``);
+* 3-D and more: the same four as panels of 2-D slices x_3 = c at a few values c
+  (:func:`plot_slices`; further dimensions are fixed at the centre of X).
+
+Maps carry the region outlines with their names; heat maps of probabilities also carry the
+threshold contour (the boundary of ``value >= threshold``).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+
+import dataclasses
 
 import matplotlib.pyplot as plt
 import numpy as np
@@ -28,6 +37,10 @@ __all__ = [
     "plot_values",
     "plot_trajectories",
     "plot_eta_sweep",
+    "plot_bounds_1d",
+    "plot_slices",
+    "slice_result",
+    "threshold_segments",
     "save_figures",
 ]
 
@@ -35,13 +48,18 @@ CLASS_COLOURS = {"yes": "#2ca25f", "maybe": "#fec44f", "no": "#de2d26"}
 CLASS_TEXT = {"yes": "Q_yes (p_low >= threshold)", "maybe": "Q_? (undecided)",
               "no": "Q_no (p_up < threshold)"}
 _REGION_COLOURS = ["#3182bd", "#636363", "#e6550d", "#756bb1", "#31a354", "#d6616b"]
+THRESHOLD_COLOUR = "#e7298a"  # the threshold contour: magenta reads on viridis, magma and the class colours
+_PROBABILITIES = ("p_low", "p_up", "p_up_star")
 
 
-def _result(result) -> ResultFile:
+def _result(result, dims: int | None = 2) -> ResultFile:
     res = _as_result_file(result)
-    if res.cells_lower.shape[1] != 2:
+    if dims is not None and res.cells_lower.shape[1] != dims:
+        hint = {1: "plot_bounds_1d", 2: "plot_classes / plot_values"}.get(res.cells_lower.shape[1],
+                                                                          "plot_slices (or slice_result)")
         raise DimensionError(
-            f"plots need a 2-D state space; got cells of dimension {res.cells_lower.shape[1]}"
+            f"this plot needs a {dims}-D state space; got cells of dimension {res.cells_lower.shape[1]} "
+            f"(use {hint}, or save_figures for any dimension)"
         )
     return res
 
@@ -61,17 +79,22 @@ def _frame(ax, res: ResultFile, title: str) -> None:
     ax.set_xlim(res.space_lower[0], res.space_upper[0])
     ax.set_ylim(res.space_lower[1], res.space_upper[1])
     ax.set_aspect("equal")
-    ax.set_xlabel("$x_1$")
-    ax.set_ylabel("$x_2$")
+    names = res.parameters.get("_axis_names", ("$x_1$", "$x_2$"))  # set by slice_result
+    ax.set_xlabel(names[0])
+    ax.set_ylabel(names[1])
     ax.set_title(title, fontsize=10)
 
 
 def _region_raster(res: ResultFile, atom: str):
     """Indicator of ``atom`` on the breakpoint grid; returns (bps_x, bps_y, ind (nx, ny))."""
+    return _raster(res, np.array([atom in lab for lab in res.labels], dtype=bool))
+
+
+def _raster(res: ResultFile, has: np.ndarray):
+    """Indicator of the cells ``has`` on the breakpoint grid; returns (bps_x, bps_y, ind (nx, ny))."""
     bx = np.unique(np.r_[res.cells_lower[:, 0], res.cells_upper[:, 0]])
     by = np.unique(np.r_[res.cells_lower[:, 1], res.cells_upper[:, 1]])
     ind = np.zeros((len(bx) - 1, len(by) - 1), dtype=bool)
-    has = np.array([atom in lab for lab in res.labels])
     i0 = np.searchsorted(bx, res.cells_lower[has, 0])
     i1 = np.searchsorted(bx, res.cells_upper[has, 0])
     j0 = np.searchsorted(by, res.cells_lower[has, 1])
@@ -124,9 +147,11 @@ def _draw_regions(ax, res: ResultFile, *, fill: bool, label_text: bool = True, l
                 ii, jj = np.nonzero(comp == c)
                 cx = 0.5 * (bx[ii].min() + bx[ii.max() + 1])
                 cy = 0.5 * (by[jj].min() + by[jj.max() + 1])
+                # black on an opaque white box, edged in the region's colour: reads on every cell
+                # colour, and sits above paths and markers (zorder)
                 ax.text(cx, cy, atom, ha="center", va="center", fontsize=9, weight="bold",
-                        color=colour, bbox=dict(boxstyle="round,pad=0.15", fc="white",
-                                                ec="none", alpha=0.7))
+                        color="black", zorder=6, bbox=dict(boxstyle="round,pad=0.2", fc="white",
+                                                           ec=colour, lw=1.2, alpha=0.95))
         handles.append(Patch(facecolor=colour if fill else "none", edgecolor=colour,
                              alpha=0.6 if fill else 1.0, label=atom))
     return handles
@@ -140,8 +165,9 @@ def plot_partition(result, ax=None, *, title: str | None = None):
                                      linewidths=0.3))
     handles = _draw_regions(ax, res, fill=True)
     _frame(ax, res, title or f"Partition: {res.n_cells} cells, regions {', '.join(h.get_label() for h in handles)}")
-    ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.13),
-              ncol=min(4, len(handles)), fontsize=8, frameon=False)
+    if handles:
+        ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.13),
+                  ncol=min(4, len(handles)), fontsize=8, frameon=False)
     return ax
 
 
@@ -163,22 +189,48 @@ def plot_classes(result, ax=None, *, title: str | None = None, legend: bool = Tr
     return ax
 
 
+def threshold_segments(result, which: str = "p_low") -> list:
+    """Boundary segments of the cells where ``which >= threshold`` (2-D; for p_low: the edge of Q_yes)."""
+    res = _result(result)
+    bx, by, ind = _raster(res, np.asarray(getattr(res, which), dtype=float) >= res.threshold)
+    return _outline_segments(bx, by, ind)
+
+
 def plot_values(result, which: str = "p_low", ax=None, *, title: str | None = None,
-                colorbar: bool = True, cmap: str = "viridis"):
-    """Heat map of a per-cell quantity: ``"p_low"``, ``"p_up"``, ``"p_up_star"`` or ``"error"``."""
+                colorbar: bool = True, cmap: str = "viridis", legend: bool = True):
+    """Heat map of a per-cell quantity: ``"p_low"``, ``"p_up"``, ``"p_up_star"`` or ``"error"``.
+
+    With the formula's regions outlined and named and, for the probabilities, the threshold
+    contour (dashed): the boundary of the cells with ``which >= threshold``.
+    """
     res = _result(result)
     values = np.asarray(getattr(res, which), dtype=float)
     ax = _ax(ax)
     coll = PolyCollection(_rects(res), array=values, cmap=cmap, norm=Normalize(0.0, 1.0),
                           edgecolors="face", linewidths=0.2)
     ax.add_collection(coll)
-    _draw_regions(ax, res, fill=False, label_text=False, lw=1.2, only=res.dfa_atoms)
+    _draw_regions(ax, res, fill=False, label_text=True, lw=1.2, only=res.dfa_atoms)
     names = {"p_low": "lower bound p_low", "p_up": "upper bound p_up",
              "p_up_star": "optimal upper bound p_up*", "error": "error p_up* - p_low"}
+    if which in _PROBABILITIES:
+        segs = threshold_segments(res, which)
+        ax.add_collection(LineCollection(segs, colors=THRESHOLD_COLOUR, linewidths=1.6, linestyles="--",
+                                         zorder=4, path_effects=[withStroke(linewidth=3.0, foreground="white")]))
+        if legend:
+            ax.legend(handles=[Line2D([], [], color=THRESHOLD_COLOUR, ls="--", lw=1.6,
+                                      label=f"{which} = threshold {res.threshold:g} (contour)")],
+                      loc="upper center", bbox_to_anchor=(0.5, -0.13), fontsize=8, frameon=False)
     _frame(ax, res, title or f"{names.get(which, which)} of P(sat) for {res.formula!r}")
     if colorbar:
         ax.figure.colorbar(coll, ax=ax, shrink=0.85, label=names.get(which, which))
     return ax
+
+
+_END_STYLES = {  # outcome code of validate.simulate -> marker style
+    1: dict(marker="*", s=110, c="white", edgecolors="black", linewidths=0.9),
+    2: dict(marker="X", s=70, c="black", edgecolors="white", linewidths=0.9),
+    0: dict(marker="o", s=30, c="#969696", edgecolors="black", linewidths=0.6),
+}
 
 
 def plot_trajectories(result, trajectories, ax=None, *, title: str | None = None,
@@ -192,16 +244,19 @@ def plot_trajectories(result, trajectories, ax=None, *, title: str | None = None
                                      linewidths=0.8, alpha=0.8))
     starts = np.array([p[0] for p in paths])
     ends = np.array([p[-1] for p in paths])
-    ax.plot(starts[:, 0], starts[:, 1], "o", ms=4, mfc="white", mec="black", ls="none")
-    end_colour = np.where(outcome == 1, "#08519c", np.where(outcome == 2, "#a50f15", "#525252"))
-    ax.scatter(ends[:, 0], ends[:, 1], marker="*", s=70, c=end_colour, edgecolors="black",
-               linewidths=0.4, zorder=3)
+    ax.plot(starts[:, 0], starts[:, 1], "o", ms=4, mfc="white", mec="black", ls="none", zorder=3)
+    # End markers differ by shape and use no class colour (red stars vanished on red Q_no cells):
+    # satisfied = white star, violated = black cross, undecided at the cap = grey dot.
+    for code, style in _END_STYLES.items():
+        sel = outcome == code
+        if np.any(sel):
+            ax.scatter(ends[sel, 0], ends[sel, 1], zorder=4, **style)
     handles = [
         Line2D([], [], color="black", lw=0.8, label="path"),
         Line2D([], [], marker="o", mfc="white", mec="black", ls="none", label="start"),
-        Line2D([], [], marker="*", color="#08519c", ms=9, ls="none", label="end: satisfied"),
-        Line2D([], [], marker="*", color="#a50f15", ms=9, ls="none", label="end: violated"),
-    ] + [Patch(facecolor=CLASS_COLOURS[c], label=CLASS_TEXT[c]) for c in ("yes", "maybe", "no")]
+    ] + [Line2D([], [], marker=st["marker"], mfc=st["c"], mec=st["edgecolors"], ms=9, ls="none", label=lab)
+         for lab, st in zip(("end: satisfied", "end: violated", "end: undecided (step cap)"), _END_STYLES.values())
+         ] + [Patch(facecolor=CLASS_COLOURS[c], label=CLASS_TEXT[c]) for c in ("yes", "maybe", "no")]
     ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2,
               fontsize=7.5, frameon=False)
     return ax
@@ -223,7 +278,7 @@ def plot_eta_sweep(results, etas, *, which: str = "p_low", fig=None, suptitle: s
     fig = fig or plt.figure(figsize=(3.3 * ncol + 0.8, 3.4 * nrow), constrained_layout=True)
     axes = np.atleast_1d(fig.subplots(nrow, ncol, squeeze=False)).ravel()
     for ax, res, eta in zip(axes, results, etas):
-        plot_values(res, which, ax, colorbar=False,
+        plot_values(res, which, ax, colorbar=False, legend=False,
                     title=f"eta = {eta}: mean {which} {np.mean(getattr(res, which)):.3f}")
     for ax in axes[len(results):]:
         ax.set_visible(False)
@@ -233,29 +288,206 @@ def plot_eta_sweep(results, etas, *, which: str = "p_low", fig=None, suptitle: s
     return fig
 
 
+# --------------------------------------------------------------------------- 1-D
+def plot_bounds_1d(result, ax=None, *, title: str | None = None, legend: bool = True):
+    """1-D results: p_low and p_up against x over the cells' classes, the threshold and the regions.
+
+    Each cell is a band coloured by its class (Q_yes / Q_? / Q_no); the bracket [p_low, p_up]
+    is shaded between the two step lines; the regions are bars with their names below 0.
+    """
+    res = _result(result, dims=1)
+    ax = _ax(ax)
+    order = np.argsort(res.cells_lower[:, 0])
+    lo, up = res.cells_lower[order, 0], res.cells_upper[order, 0]
+    edges = np.r_[lo, up[-1]]
+    colours = [CLASS_COLOURS[c] for c in res.classes[order]]
+    bands = np.stack([np.c_[lo, np.zeros_like(lo)], np.c_[up, np.zeros_like(lo)],
+                      np.c_[up, np.ones_like(lo)], np.c_[lo, np.ones_like(lo)]], axis=1)
+    ax.add_collection(PolyCollection(bands, facecolors=colours, alpha=0.28, edgecolors="white", linewidths=0.3))
+    p_low, p_up = res.p_low[order], res.p_up[order]
+    ax.stairs(p_up, edges, baseline=p_low, fill=True, color="#bdbdbd", alpha=0.6, label="[p_low, p_up]")
+    ax.stairs(p_low, edges, color="black", lw=1.6, label="p_low", baseline=None)
+    ax.stairs(p_up, edges, color="#3182bd", lw=1.2, ls="--", label="p_up", baseline=None)
+    ax.axhline(res.threshold, color=THRESHOLD_COLOUR, lw=1.2, ls=":", label=f"threshold {res.threshold:g}")
+    atoms = sorted({a for lab in res.labels for a in lab})
+    for k, atom in enumerate(atoms):  # each region: bars where its cells are, named once per piece
+        colour = _REGION_COLOURS[k % len(_REGION_COLOURS)]
+        has = np.array([atom in res.labels[q] for q in order])
+        y = -0.05 - 0.07 * k
+        starts = np.flatnonzero(has & ~np.r_[False, has[:-1]])
+        ends = np.flatnonzero(has & ~np.r_[has[1:], False])
+        for i, j in zip(starts, ends):
+            ax.plot([lo[i], up[j]], [y, y], color=colour, lw=5, solid_capstyle="butt")
+            ax.text(0.5 * (lo[i] + up[j]), y, atom, ha="center", va="center", fontsize=8, weight="bold",
+                    color="black", zorder=6, bbox=dict(boxstyle="round,pad=0.1", fc="white", ec=colour, alpha=0.95))
+    ax.set_xlim(res.space_lower[0], res.space_upper[0])
+    ax.set_ylim(-0.05 - 0.07 * max(len(atoms), 1) - 0.02, 1.04)
+    ax.set_yticks(np.linspace(0.0, 1.0, 6))  # the region bars below 0 are not probabilities
+    ax.set_xlabel("$x_1$")
+    ax.set_ylabel("P(formula)")
+    ax.set_title(title or f"Bounds and classes for {res.formula!r}", fontsize=10)
+    if legend:
+        counts = {c: int(np.sum(res.classes == c)) for c in CLASS_COLOURS}
+        handles, _ = ax.get_legend_handles_labels()
+        handles += [Patch(facecolor=CLASS_COLOURS[c], alpha=0.5, label=f"{CLASS_TEXT[c]}: {counts[c]}")
+                    for c in ("yes", "maybe", "no")]
+        ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2, fontsize=8,
+                  frameon=False)
+    return ax
+
+
+# --------------------------------------------------------------------------- 3-D and more: slices
+def slice_result(result, at: float, *, axis: int = 2, rest=None) -> ResultFile:
+    """The 2-D result on the plane ``x_{axis+1} = at``: the cells it meets, drawn in the other two axes.
+
+    Parameters
+    ----------
+    result : a result of dimension d >= 3
+    at : float, the value of coordinate ``axis`` (a cell meets the plane if lower <= at < upper,
+        or at == upper at the upper end of X)
+    axis : int, the sliced coordinate (0-based)
+    rest : (d,) float array, optional
+        For d > 3, the values of the coordinates other than the two drawn and ``axis``
+        (default: the centre of X).
+
+    Returns
+    -------
+    ResultFile
+        Cells restricted to the slice, with 2-D boxes.
+    """
+    res = _result(result, dims=None)
+    d = res.cells_lower.shape[1]
+    if d < 3:
+        raise DimensionError(f"slice_result needs a state space of dimension >= 3; got {d}")
+    if not 0 <= axis < d:
+        raise DimensionError(f"axis must be in [0, {d}); got {axis}")
+    centre = 0.5 * (res.space_lower + res.space_upper) if rest is None else np.asarray(rest, float)
+    if centre.shape != (d,):
+        raise DimensionError(f"rest must have shape ({d},); got {centre.shape}")
+    point = centre.copy()
+    point[axis] = at
+    drawn = [j for j in range(d) if j != axis][:2]
+    fixed = [j for j in range(d) if j not in drawn]
+    lo, up = res.cells_lower, res.cells_upper
+    top = np.isclose(point, res.space_upper)
+    meets = np.all((lo[:, fixed] <= point[fixed]) & ((point[fixed] < up[:, fixed]) | top[fixed]), axis=1)
+    q = np.flatnonzero(meets)
+    fixed_text = ", ".join(f"x_{j + 1} = {point[j]:.3g}" for j in fixed)
+    view = dataclasses.replace(
+        res, space_lower=res.space_lower[drawn], space_upper=res.space_upper[drawn],
+        cells_lower=lo[q][:, drawn], cells_upper=up[q][:, drawn], label_letters=res.label_letters[q],
+        labels=tuple(res.labels[i] for i in q), strategy=res.strategy[q], p_low=res.p_low[q], p_up=res.p_up[q],
+        p_up_star=res.p_up_star[q], error=res.error[q], classes=res.classes[q],
+        strategy_by_time=None if res.strategy_by_time is None else res.strategy_by_time[:, q],
+        parameters={**res.parameters, "_axis_names": tuple(f"$x_{j + 1}$" for j in drawn),
+                    "_slice": fixed_text, "_cells": q})
+    return view
+
+
+def _slice_values(res: ResultFile, axis: int, n_slices: int) -> np.ndarray:
+    """Midpoints of ``n_slices`` intervals of the grid along ``axis``, evenly spread."""
+    bps = np.unique(np.r_[res.cells_lower[:, axis], res.cells_upper[:, axis]])
+    mids = 0.5 * (bps[:-1] + bps[1:])
+    pick = np.unique(np.round(np.linspace(0, len(mids) - 1, min(n_slices, len(mids)))).astype(int))
+    return mids[pick]
+
+
+def plot_slices(result, kind: str = "classes", *, n_slices: int = 4, axis: int = 2, fig=None,
+                suptitle: str | None = None):
+    """Panels of 2-D slices of a result of dimension >= 3, one per value of coordinate ``axis``.
+
+    Parameters
+    ----------
+    kind : "classes", "partition", or a per-cell value ("p_low", "p_up", "p_up_star", "error")
+    n_slices : int, number of panels (slices at the midpoints of evenly spread grid intervals)
+    axis : int, the sliced coordinate (0-based; default the third)
+
+    Returns
+    -------
+    Figure
+    """
+    res = _result(result, dims=None)
+    d = res.cells_lower.shape[1]
+    if d < 3:
+        raise DimensionError(f"plot_slices needs a state space of dimension >= 3; got {d} (use plot_classes)")
+    values = _slice_values(res, axis, n_slices)
+    ncol = min(4, len(values))
+    nrow = -(-len(values) // ncol)
+    fig = fig or plt.figure(figsize=(3.4 * ncol + 0.8, 3.6 * nrow + 0.6), constrained_layout=True)
+    axes = np.atleast_1d(fig.subplots(nrow, ncol, squeeze=False)).ravel()
+    for ax, at in zip(axes, values):
+        view = slice_result(res, at, axis=axis)
+        title = view.parameters["_slice"]
+        if kind == "classes":
+            plot_classes(view, ax, title=title, legend=False)
+        elif kind == "partition":
+            plot_partition(view, ax, title=title)
+            if ax.get_legend() is not None:
+                ax.get_legend().remove()
+        else:
+            plot_values(view, kind, ax, title=title, colorbar=False, legend=False,
+                        cmap="magma" if kind == "error" else "viridis")
+    for ax in axes[len(values):]:
+        ax.set_visible(False)
+    shown = axes[: len(values)].tolist()
+    if kind == "classes":
+        counts = {c: int(np.sum(res.classes == c)) for c in CLASS_COLOURS}
+        fig.legend(handles=[Patch(facecolor=CLASS_COLOURS[c], label=f"{CLASS_TEXT[c]}: {counts[c]} of {res.n_cells}")
+                            for c in ("yes", "maybe", "no")], loc="outside lower center", ncol=3, fontsize=8,
+                   frameon=False)
+    elif kind != "partition":
+        sm = plt.cm.ScalarMappable(norm=Normalize(0.0, 1.0), cmap="magma" if kind == "error" else "viridis")
+        fig.colorbar(sm, ax=shown, shrink=0.8, label=kind)
+        if kind in _PROBABILITIES:
+            fig.legend(handles=[Line2D([], [], color=THRESHOLD_COLOUR, ls="--", lw=1.6,
+                                       label=f"{kind} = threshold {res.threshold:g} (contour)")],
+                       loc="outside lower center", fontsize=8, frameon=False)
+    what = {"classes": "Classification", "partition": "Partition"}.get(kind, kind)
+    fig.suptitle(suptitle or f"{what} for {res.formula!r}: slices x_{axis + 1} = const"
+                 + (f" (further coordinates at the centre of X)" if d > 3 else ""), fontsize=11)
+    return fig
+
+
 def save_figures(result, out_dir, *, trajectories=None, prefix: str = "", dpi: int = 130) -> list:
-    """Write partition, classes, p_low and error PNGs (and trajectories if given).
+    """Write the standard PNGs for a result of any dimension (see the module docstring).
+
+    1-D: ``bounds.png``. 2-D: ``partition``, ``classes``, ``p_low``, ``error`` (and
+    ``trajectories`` if given). 3-D and more: the same four as panels of slices
+    (``trajectories`` are not drawn).
 
     Returns
     -------
     list of Path
         The files written.
     """
-    res = _result(result)
+    res = _result(result, dims=None)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    d = res.cells_lower.shape[1]
+    written = []
+    if d == 1:
+        fig, ax = plt.subplots(figsize=(6.4, 4.6), constrained_layout=True)
+        plot_bounds_1d(res, ax)
+        written.append(_save(fig, out / f"{prefix}bounds.png", dpi))
+        return written
+    if d >= 3:
+        for kind in ("partition", "classes", "p_low", "error"):
+            written.append(_save(plot_slices(res, kind), out / f"{prefix}{kind}.png", dpi))
+        return written
     jobs = [("partition", lambda ax: plot_partition(res, ax)),
             ("classes", lambda ax: plot_classes(res, ax)),
             ("p_low", lambda ax: plot_values(res, "p_low", ax)),
             ("error", lambda ax: plot_values(res, "error", ax, cmap="magma"))]
     if trajectories is not None:
         jobs.append(("trajectories", lambda ax: plot_trajectories(res, trajectories, ax)))
-    written = []
     for name, draw in jobs:
         fig, ax = plt.subplots(figsize=(5.6, 5.2), constrained_layout=True)
         draw(ax)
-        path = out / f"{prefix}{name}.png"
-        fig.savefig(path, dpi=dpi)
-        plt.close(fig)
-        written.append(path)
+        written.append(_save(fig, out / f"{prefix}{name}.png", dpi))
     return written
+
+
+def _save(fig, path: Path, dpi: int) -> Path:
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
