@@ -25,7 +25,8 @@ def imports_of(source: str) -> dict:
         names = []
         if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
             if node.module == "robust_imdp":  # from robust_imdp import lp, product as _product
-                names = [a.name for a in node.names]
+                # (__version__ is the package's, like ``import robust_imdp``: not a module)
+                names = [a.name for a in node.names if not a.name.startswith("__")]
             elif node.module.startswith("robust_imdp."):
                 names = [node.module.split(".")[1]]
         elif isinstance(node, ast.Import):
