@@ -11,17 +11,21 @@ Problem file contract (keys in ``[brackets]`` are tables; ``?`` marks optional k
     [gp]            rkhs_bound, lengthscale?, error_bound? ("optimal" | "ridge" | "chowdhury"),
                     misspecification? (0), iid_noise? (false), local_points? (all points up to 1000
                     per mode, else 100);
-                    only with error_bound = "chowdhury": signal_variance? (number or "tune"),
-                    optimize?, info_gain? ("data" | "trivial"), bound_tol? (1e-3), bound_max_boxes? (2000)
+                    only with error_bound = "chowdhury": signal_variance? (number, default 1.0, or
+                    "tune": minutes, it bounds every candidate), optimize?, info_gain? ("data" |
+                    "trivial"), bound_tol? (1e-3), bound_max_boxes? (2000)
     [abstraction]?  eta?, eps_rule?, combine?, guarantee? ("confidence" | "paper"), confidence?
 
 Data files: ``.csv`` with header ``x_1..x_n,u,x_next_1..x_next_n`` (``u`` holds mode names), or
 ``.npz`` with arrays ``x`` (m, n), ``u`` (m,) and ``x_next`` (m, n). Every mode name in ``u``
-must be one of the ``[modes.*]`` tables.
+must be one of the ``[modes.*]`` tables. Errors name the CSV file's 1-based line.
+:func:`load_problem` also checks the data against the assumption (impossible samples are
+refused) and warns about modes with few samples and regions that refine the grid.
 
-Result files: ``result.json`` (the documented contract, see :func:`result_to_dict`) and
-``result.npz`` (the same arrays in binary form). Both are written under temporary names and
-renamed only when complete, so an interrupted run never leaves a result that looks finished.
+Result files: ``result.json`` (the documented contract, see :func:`result_to_dict` and the JSON
+schema ``docs/result.schema.json``) and ``result.npz`` (the same arrays in binary form). Both
+are written under temporary names and renamed only when complete, so an interrupted run never
+leaves a result that looks finished. :class:`ResultFile` reads ``result.json`` back as arrays.
 """
 
 from __future__ import annotations
