@@ -10,6 +10,11 @@ part of each mode and the noise model.
 * ``four_mode_nonlinear``: x+ = x + g_u(x) + v (f_u = identity) with g_1 = [0.5 + 0.2 sin x2,
   0.4 cos x1], g_2 = [-0.5 + 0.2 sin x2, 0.4 cos x1], g_3 = [0.4 cos x2, 0.5 + 0.2 sin x1],
   g_4 = [0.4 cos x2, -0.5 + 0.2 sin x1]; same noise; 300 samples per mode.
+* ``unicycle_3d`` (not from the paper; issue 10's scale study): a unicycle (p_x, p_y, theta) on
+  [0, 4]^2 x [-pi, pi] with three turning modes. Known: the heading update theta + omega_u
+  (omega = +0.3, 0, -0.3) and the position itself; unknown: the motion v (cos theta, sin theta)
+  (v = 0.15) plus a cross current 0.04 sin p_y along p_x. Noise N(0, 0.005^2) truncated to
+  +-0.01; 10,000 samples per mode; a 64^3 grid; reach ``goal`` while avoiding ``obs``.
 """
 
 from __future__ import annotations
@@ -298,6 +303,7 @@ class CaseStudy:
     gp: tuple = (("lengthscale", 2.0),)
     rkhs_bound: float = 6.0
     misspecification: float = 0.001
+    data_format: str = "csv"
 
 
 _SIGMA = np.array([0.01, 0.01])
@@ -335,7 +341,45 @@ _FOUR = CaseStudy(
     rkhs_bound=2.5,
 )
 
-CASE_STUDIES = {c.name: c for c in (_THREE, _FOUR)}
+_V, _OMEGA, _CURRENT = 0.15, 0.3, 0.04
+
+
+def _g_unicycle(x: np.ndarray, modes: np.ndarray) -> np.ndarray:
+    g = np.empty_like(x)
+    g[:, 0] = _V * np.cos(x[:, 2]) + _CURRENT * np.sin(x[:, 1])
+    g[:, 1] = _V * np.sin(x[:, 2])
+    g[:, 2] = 0.0
+    return g
+
+
+_G_TERMS_UNICYCLE = tuple(
+    ((("cos", 2, _V), ("sin", 1, _CURRENT)), (("sin", 2, _V),), (("const", -1, 0.0),)) for _ in range(3)
+)
+_PI = float(np.pi)
+
+_UNICYCLE = CaseStudy(
+    name="unicycle_3d",
+    system=TrueSystem(("left", "straight", "right"), np.stack([np.eye(3)] * 3),
+                      np.array([[0.0, 0.0, _OMEGA], [0.0, 0.0, 0.0], [0.0, 0.0, -_OMEGA]]), _g_unicycle,
+                      np.full(3, 0.005), np.full(3, 0.01), _G_TERMS_UNICYCLE),
+    n_per_mode=10_000,
+    regions={
+        "goal": [((3.0, 3.0, -_PI), (3.75, 3.75, _PI))],
+        "obs": [((1.5, 1.0, -_PI), (2.5, 3.0, _PI))],
+    },
+    formulas=("G !obs & F goal",),
+    threshold=0.9,
+    lower=(0.0, 0.0, -_PI),
+    upper=(4.0, 4.0, _PI),
+    cell_size=(0.0625, 0.0625, _PI / 32),
+    # local ridge weights: 3 x 10^4 samples, 262,144 cells (see issue 10 and benchmarks/scale.py)
+    gp=(("lengthscale", [4.0, 1.5, 1.5]), ("error_bound", "ridge"), ("local_points", 50)),
+    rkhs_bound=1.0,
+    misspecification=0.001,
+    data_format="npz",
+)
+
+CASE_STUDIES = {c.name: c for c in (_THREE, _FOUR, _UNICYCLE)}
 
 
 def get_case_study(name: str) -> CaseStudy:
@@ -417,7 +461,12 @@ def problem_toml(case: CaseStudy, formula: str, data_path: str, *, rkhs_bound: f
     lines += ["", "[noise]", 'kind = "truncated_gaussian"', f"sigma = {_toml_list(sysm.sigma)}",
               f"bound = {_toml_list(sysm.bound)}", "", "[gp]", f"rkhs_bound = {float(rkhs_bound)!r}"]
     for key, value in case.gp:
-        lines.append(f"{key} = {value!r}" if not isinstance(value, str) else f'{key} = "{value}"')
+        if isinstance(value, str):
+            lines.append(f'{key} = "{value}"')
+        elif np.ndim(value):
+            lines.append(f"{key} = {_toml_list(value)}")
+        else:
+            lines.append(f"{key} = {value!r}")
     if case.misspecification:
         lines.append(f"misspecification = {float(case.misspecification)!r}")
     if eta is not None:
@@ -442,10 +491,10 @@ def write_problem_files(name: str, directory, *, seed: int = 0, formula: str | N
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     x, u, x_next = case.system.sample_dataset(case.n_per_mode, case.lower, case.upper, seed)
-    write_data_file(directory / f"{name}_data.csv", x, u, x_next, modes=case.system.mode_names)
+    data_name = f"{name}_data.{case.data_format}"
+    write_data_file(directory / data_name, x, u, x_next, modes=case.system.mode_names)
     path = directory / f"{name}.toml"
-    path.write_text(problem_toml(case, formula or case.formulas[0], f"{name}_data.csv",
-                                 rkhs_bound=rkhs_bound, eta=eta))
+    path.write_text(problem_toml(case, formula or case.formulas[0], data_name, rkhs_bound=rkhs_bound, eta=eta))
     return path
 
 

@@ -1079,7 +1079,7 @@ class NormCheck:
 
 
 def min_rkhs_norm(X, y, lengthscale, noise_bound: float, misspecification: float = 0.0, *,
-                  max_points: int | None = 1500, rng: Any = 0, solver: bool = True) -> dict:
+                  max_points: int | None = 300, rng: Any = 0, solver: bool = True) -> dict:
     """Certified lower bound of ``min { ||h|| : |h(x_i) - y_i| <= noise_bound + tau }`` (section 4).
 
     Two certificates, the larger is the minimum: single points (``||h|| >= |h(x_i)| >=
@@ -1111,7 +1111,7 @@ def min_rkhs_norm(X, y, lengthscale, noise_bound: float, misspecification: float
     infl = _norm_inflation(X.shape[1])
     single = _down(np.abs(y) - dbar)
     i_best = int(np.argmax(single))
-    single_min = float(_down(max(float(single[i_best]), 0.0) / infl))
+    single_min = max(float(_down(max(float(single[i_best]), 0.0) / infl)), 0.0)
     best, n_used = single_min, 1
     if solver and X.shape[0] >= 2:
         idx = np.arange(X.shape[0])
@@ -1137,7 +1137,7 @@ def min_rkhs_norm(X, y, lengthscale, noise_bound: float, misspecification: float
 
 
 def check_assumption(data, *, lengthscale, rkhs_bound: float, noise_bound, misspecification: float = 0.0,
-                     mode_names: Sequence[str] | None = None, sample_index=None, max_points: int | None = 1500,
+                     mode_names: Sequence[str] | None = None, sample_index=None, max_points: int | None = 300,
                      solver: bool = True, refuse: bool = True) -> tuple:
     """Compute the data-implied minimum norm of every component; refuse a refuted ``rkhs_bound``.
 
