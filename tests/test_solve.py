@@ -345,7 +345,7 @@ def test_not_converged_warns_and_stays_sound():
     (dict(target=[1], objective="max"), InvalidInputError, "objective must be one of"),
     (dict(target=[1], horizon=-1), InvalidInputError, "horizon must be a non-negative"),
     (dict(target=[1], precision=0.0), InvalidInputError, "precision must be a positive"),
-    (dict(target=[1], method="simplex"), InvalidInputError, "method must be 'vi' or 'lp'"),
+    (dict(target=[1], method="simplex"), InvalidInputError, "method must be 'vi', 'interval' or 'lp'; got 'simplex'"),
 ])
 def test_bad_input_solve(kw, exc, match):
     with pytest.raises(exc, match=match):

@@ -1,4 +1,4 @@
-"""Interval value iteration with sound lower and upper bounds (issue 2, items 3-4).
+"""Value iteration with sound lower and upper bounds (issue 2, items 3-4; issue 11).
 
 Contract
 --------
@@ -44,6 +44,29 @@ value V* is its *least* fixed point (for every combination max/min x max/min).
   CAV 2018), which is what makes the upper iterates converge in the usual cases.  When they
   do not within ``max_iterations``, the result says ``converged=False`` and a
   ``ConvergenceWarning`` is issued; the bracket is still sound.
+* **Fixing the pre-computed nodes keeps the least fixed point.**  Let B' be B with the nodes of
+  (a)/(a') fixed to 0/1.  V* is a fixed point of B'; for w = lfp(B') <= V*, B(w) = B'(w) = w on
+  the other nodes, ``B(w) <= B(V*) = 0 = w`` on the value-0 nodes and ``B(w) <= 1 = w`` on the
+  value-1 nodes, so w is a pre-fixed point of B and w >= V*: lfp(B') = V*.  Below, B means B'.
+* **Lemma OVI (optimistic value iteration, Hartmanns & Kaminski CAV 2020).**  Any u with
+  ``B(u) <= u`` satisfies ``u >= V*`` (Knaster-Tarski: the least fixed point is the least
+  pre-fixed point).  We check it with ``B_up >= B``, so rounding can only make the check fail.
+  The check is a Gauss-Seidel sweep ``u(s) <- B_up(u)(s)`` over the nodes in order; if no value
+  increased, the final u_f is proven: with u^(s) the vector when s was processed, u_f <= u^(s)
+  (values only decreased), hence ``B(u_f)(s) <= B(u^(s))(s) <= B_up(u^(s))(s) = u_f(s)``.
+  The guess is ``u = min(proven upper, lower + delta)`` after the lower iteration reached an
+  estimated error below delta; a refuted or undecided guess is discarded (the previous proven
+  vector is restored), so only proven vectors are ever reported.
+* **Topological order.**  Components C of the graph of possible successors are solved in
+  reverse topological order; when C is solved, every successor outside C has its final
+  bracket l <= V* <= u.  Lower sweeps on C read l outside: still below V* by monotonicity.
+  For the upper end let ``B_C(x) = B(x on C, u outside)`` and ``B*_C(x) = B(x on C, V* outside)
+  <= B_C(x)``.  V*_C is the least fixed point of B*_C (if y = lfp(B*_C) <= V*_C, the vector
+  (y on C, V* outside) is a pre-fixed point of B, hence >= V*).  So ``B_C(u_C) <= u_C`` gives
+  ``u_C >= lfp(B_C) >= lfp(B*_C) = V*_C``, and interval iteration on C (and Lemma D, which
+  holds for any set C) is sound from a proven start as before.  Components without an end
+  component have a unique fixed point (every strategy and adversary leave them), which is
+  what makes the guess succeed; components with one use interval iteration with Lemma D.
 
 Strategy extraction: rows within ``_TIE_TOL`` of the best (w.r.t. the final lower values) are
 optimal; among them a backward attractor picks rows that make progress toward the target, so a
@@ -833,6 +856,319 @@ def stayable_rows(state_ptr, row_ptr, col, lower, upper, floor, nxt, comp, comp_
     return out
 
 
+# =========================================================================== topological OVI kernels
+# The default unbounded engine (``method="vi"``, models without floor rows): strongly connected
+# components in reverse topological order, Gauss-Seidel sweeps over a node list, and per
+# component optimistic value iteration (guess an upper vector from the lower one and prove it
+# with one Bellman sweep), falling back to interval iteration.  Soundness: module docstring,
+# "Optimistic value iteration" and "Topological order".
+
+@njit(cache=True, inline="always")
+def row_value_cached(j0, j1, po, col, lower, upper, V, nxt, l, n, layered, adv_max, perm, keys, idx):
+    """Optimal ``p.V`` of one row without floor mass; returns (value, mass left unassigned).
+
+    Same operations as :func:`row_value` (so ``ROW_ERR`` bounds its rounding), but the entries are
+    visited in the order of the previous sweep, ``perm[po + t]`` (local indices), and re-sorted by
+    insertion: O(k) compares with predictable branches while the order of the successor values
+    does not change, which is the usual case once the iteration settles.  The new order is
+    written back.  ``V`` is the flat (L*n,) value vector; with ``layered`` the successor of
+    entry j is node ``nxt[l, col[j]] * n + col[j]``.
+    """
+    k = j1 - j0
+    val = 0.0
+    rem = 1.0
+    for t in range(k):
+        li = perm[po + t]
+        j = j0 + li
+        q2 = col[j]
+        if layered:
+            x = V[nxt[l, q2] * n + q2]
+        else:
+            x = V[q2]
+        lj = lower[j]
+        val += lj * x
+        rem -= lj
+        kk = -x if adv_max else x
+        i = t
+        while i > 0 and keys[i - 1] > kk:
+            keys[i] = keys[i - 1]
+            idx[i] = idx[i - 1]
+            i -= 1
+        keys[i] = kk
+        idx[i] = li
+    for t in range(k):
+        perm[po + t] = idx[t]
+    if rem <= 0.0:
+        return val, 0.0  # sum(lower) >= 1 (within the model tolerance): p = lower
+    for t in range(k):
+        j = j0 + idx[t]
+        cap = upper[j] - lower[j]
+        if cap > 0.0:
+            x = -keys[t] if adv_max else keys[t]
+            if cap >= rem:
+                return val + rem * x, 0.0
+            val += cap * x
+            rem -= cap
+    return val, rem
+
+
+@njit(cache=True)
+def fill_local_order(row_ptr, perm, L):
+    """``perm[l * nnz + j] = j - row_ptr[r]`` (storage order) for every layer l and entry j of row r."""
+    R = row_ptr.shape[0] - 1
+    nnz = row_ptr[R]
+    for l in range(L):
+        for r in range(R):
+            for j in range(row_ptr[r], row_ptr[r + 1]):
+                perm[l * nnz + j] = j - row_ptr[r]
+
+
+@njit(cache=True)
+def node_sweep(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, V, Vlo, ctrl, strat, adv_max,
+               mode, perm, keys, idx):
+    """One Gauss-Seidel sweep over ``nodes`` (in that order), updating the flat vector ``V`` in place.
+
+    mode 0 (lower): ``V[s] = max(V[s], B_down(V)(s))``; 1 (upper, verification):
+    ``V[s] = B_up(V)(s)``; 2 (upper, sound): ``V[s] = min(V[s], B_up(V)(s))``.
+    ctrl: 0 = controller maximises over rows, 1 = minimises, 2 = fixed row ``strat[node]``.
+    Returns (largest increase, largest decrease, crossed), where ``crossed`` (mode 1) says that
+    some ``B_up(V)(s) < Vlo[s]``: then V was not an upper bound (if V >= V*, B(V) >= V* >= Vlo).
+    """
+    nnz = col.shape[0]
+    inc = 0.0
+    dec = 0.0
+    crossed = False
+    for t in range(nodes.shape[0]):
+        node = nodes[t]
+        l = node // n
+        q = node - l * n
+        r0 = state_ptr[q]
+        r1 = state_ptr[q + 1]
+        if ctrl == 2:
+            r0 = r0 + strat[node]
+            r1 = r0 + 1
+        best = -1.0
+        for r in range(r0, r1):
+            j0 = row_ptr[r]
+            j1 = row_ptr[r + 1]
+            v, left = row_value_cached(j0, j1, l * nnz + j0, col, lower, upper, V, nxt, l, n, layered, adv_max,
+                                       perm, keys, idx)
+            if mode == 0:
+                v = v - row_err(j1 - j0)
+                if v < 0.0:
+                    v = 0.0  # safe: every true value is >= 0
+            else:
+                # mass left unassigned (upper sum below 1 within the model tolerance) is credited
+                # with the largest possible value 1: stays an upper bound
+                v = v + row_err(j1 - j0) + left
+                if v > 1.0:
+                    v = 1.0  # safe: every true value is <= 1
+            if best < 0.0 or (ctrl == 0 and v > best) or (ctrl == 1 and v < best):
+                best = v
+        old = V[node]
+        if mode == 0:
+            if best > old:
+                V[node] = best
+                if best - old > inc:
+                    inc = best - old
+        elif mode == 1:
+            if best > old:
+                if best - old > inc:
+                    inc = best - old
+            elif old - best > dec:
+                dec = old - best
+            V[node] = best
+            if best < Vlo[node]:
+                crossed = True
+        else:
+            if best < old:
+                V[node] = best
+                if old - best > dec:
+                    dec = old - best
+    return inc, dec, crossed
+
+
+@njit(cache=True)
+def _max_gap(nodes, lo, up):
+    g = 0.0
+    for t in range(nodes.shape[0]):
+        d = up[nodes[t]] - lo[nodes[t]]
+        if d > g:
+            g = d
+    return g
+
+
+@njit(cache=True)
+def _exit_gap(nodes, c, comp, n, state_ptr, row_ptr, col, upper, nxt, layered, ctrl, strat, lo, up):
+    """Largest bracket width ``up - lo`` of a possible successor outside component ``c``."""
+    g = 0.0
+    for t in range(nodes.shape[0]):
+        node = nodes[t]
+        l = node // n
+        q = node - l * n
+        r0 = state_ptr[q]
+        r1 = state_ptr[q + 1]
+        if ctrl == 2:
+            r0 = r0 + strat[node]
+            r1 = r0 + 1
+        for j in range(row_ptr[r0], row_ptr[r1]):
+            if upper[j] <= 0.0:
+                continue
+            q2 = col[j]
+            s2 = nxt[l, q2] * n + q2 if layered else q2
+            if comp[s2] != c:
+                d = up[s2] - lo[s2]
+                if d > g:
+                    g = d
+    return g
+
+
+#: Optimistic value iteration: verification sweeps per guess, and failed guesses before the
+#: component falls back to interval iteration (each failure asks the lower iteration for a 16x
+#: smaller estimated error before the next guess).
+OVI_VERIFY_SWEEPS = 12
+OVI_MAX_FAILS = 4
+
+
+@njit(cache=True)
+def ovi_component(nodes, c, comp, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, ctrl, strat, adv_max,
+                  lo, up, perm, keys, idx, prec, max_sweeps, saved):
+    """Solve one strongly connected component (no end component inside) to a bracket <= ``prec``.
+
+    Its successors outside have their final brackets.  Optimistic value iteration (Hartmanns &
+    Kaminski, CAV 2020) adapted to the interval Bellman operator: Gauss-Seidel lower sweeps until
+    the estimated error ``r lam / (1 - lam)`` (residual r, contraction estimate lam from two
+    residuals) is below ``tol``; then the guess ``u = min(proven, lo + delta)`` and at most
+    ``OVI_VERIFY_SWEEPS`` verification sweeps ``u <- B_up(u)`` (mode 1).  A sweep in which no
+    node increased proves that u bounds the value from above (module docstring, Lemma OVI);
+    a node with ``B_up(u) < lo`` refutes the guess.  After ``OVI_MAX_FAILS`` refuted guesses the
+    component falls back to interval iteration (lower and mode-2 upper sweeps from the last
+    proven upper vector, initially 1).
+    Returns (sweeps, status): status 0 proven by a guess, 1 by interval iteration, 2 not within
+    ``max_sweeps`` (the bracket is still sound).
+    """
+    m = nodes.shape[0]
+    dgap = _exit_gap(nodes, c, comp, n, state_ptr, row_ptr, col, upper, nxt, layered, ctrl, strat, lo, up)
+    if dgap < prec:
+        target = prec
+        margin = prec - dgap
+    else:  # the successors' brackets are already wider than prec: aim a little above them
+        target = dgap + 0.5 * prec
+        margin = 0.5 * prec
+    delta = dgap + 0.5 * margin
+    tol = 0.125 * margin
+    for t in range(m):
+        saved[t] = up[nodes[t]]
+    sweeps = 0
+    fails = 0
+    while sweeps < max_sweeps and fails < OVI_MAX_FAILS:
+        prev = np.inf
+        k = 0
+        while sweeps < max_sweeps:
+            r = node_sweep(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, lo, lo, ctrl, strat,
+                           adv_max, 0, perm, keys, idx)[0]
+            sweeps += 1
+            k += 1
+            if r <= 0.0:
+                break
+            if k >= 2 and r < prev:
+                lam = r / prev
+                if r * lam / (1.0 - lam) <= tol:
+                    break
+            prev = r
+        if sweeps >= max_sweeps:
+            break
+        for t in range(m):
+            g = lo[nodes[t]] + delta
+            up[nodes[t]] = g if g < saved[t] else saved[t]
+        ok = False
+        for _ in range(OVI_VERIFY_SWEEPS):
+            if sweeps >= max_sweeps:
+                break
+            inc, dec, crossed = node_sweep(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, up, lo,
+                                           ctrl, strat, adv_max, 1, perm, keys, idx)
+            sweeps += 1
+            if crossed:
+                break
+            if inc <= 0.0:
+                ok = True
+                break
+        if ok:
+            # proven: B(u) <= u on the component (and the outside is final), so u >= V*; the
+            # minimum with the previously proven upper vector is an upper bound as well
+            for t in range(m):
+                if saved[t] < up[nodes[t]]:
+                    up[nodes[t]] = saved[t]
+            return sweeps, 0
+        for t in range(m):
+            up[nodes[t]] = saved[t]  # refuted or undecided: back to the proven vector
+        fails += 1
+        tol *= 0.0625
+    while sweeps < max_sweeps:
+        node_sweep(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, lo, lo, ctrl, strat, adv_max, 0,
+                   perm, keys, idx)
+        node_sweep(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, up, lo, ctrl, strat, adv_max, 2,
+                   perm, keys, idx)
+        sweeps += 2
+        if _max_gap(nodes, lo, up) <= target:
+            return sweeps, 1
+    return sweeps, 2
+
+
+@njit(cache=True)
+def solve_components(c0, order, comp_ptr, kind, comp, n, state_ptr, row_ptr, col, lower, upper, nxt, layered,
+                     ctrl, strat, adv_max, lo, up, perm, prec, max_sweeps, comp_sweeps, comp_status):
+    """Solve the components ``c0, c0+1, ...`` (reverse topological order: every successor
+    component comes first) until one that contains an end component (``kind`` 2, returned for
+    the caller) or the last one (returns the number of components).
+
+    kind 0: one node without a self-loop, solved exactly by one lower and one upper step;
+    kind 1: :func:`ovi_component`.  The nodes of component c are ``order[comp_ptr[c]:comp_ptr[c+1]]``.
+    """
+    maxk = 1
+    for r in range(row_ptr.shape[0] - 1):
+        if row_ptr[r + 1] - row_ptr[r] > maxk:
+            maxk = row_ptr[r + 1] - row_ptr[r]
+    keys = np.empty(maxk)
+    idx = np.empty(maxk, dtype=perm.dtype)
+    biggest = 1
+    for c in range(comp_ptr.shape[0] - 1):
+        if comp_ptr[c + 1] - comp_ptr[c] > biggest:
+            biggest = comp_ptr[c + 1] - comp_ptr[c]
+    saved = np.empty(biggest)
+    nc = comp_ptr.shape[0] - 1
+    for c in range(c0, nc):
+        if kind[c] == 2:
+            return c
+        nodes = order[comp_ptr[c]:comp_ptr[c + 1]]
+        if kind[c] == 0:
+            node_sweep(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, lo, lo, ctrl, strat, adv_max,
+                       0, perm, keys, idx)
+            node_sweep(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, up, lo, ctrl, strat, adv_max,
+                       2, perm, keys, idx)
+            comp_sweeps[c] = 2
+            comp_status[c] = 0
+        else:
+            s, st = ovi_component(nodes, c, comp, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, ctrl,
+                                  strat, adv_max, lo, up, perm, keys, idx, prec, max_sweeps, saved)
+            comp_sweeps[c] = s
+            comp_status[c] = st
+    return nc
+
+
+@njit(cache=True)
+def self_loops(indptr, indices):
+    """(N,) bool: node v has an edge to itself."""
+    N = indptr.shape[0] - 1
+    out = np.zeros(N, dtype=np.bool_)
+    for v in range(N):
+        for e in range(indptr[v], indptr[v + 1]):
+            if indices[e] == v:
+                out[v] = True
+                break
+    return out
+
+
 # =========================================================================== public API
 class Adversary(str, Enum):
     """How the probabilities inside the intervals are resolved.
@@ -947,8 +1283,12 @@ def solve_reachability(imdp: IMDP, target, *, avoid=None, adversary="pessimistic
         ``k`` gives k-step bounded reachability; None unbounded.
     precision : float
         Stop when ``max(upper - lower) <= precision`` (unbounded only).
-    method : {"vi", "lp"}
-        "lp" dispatches to :func:`robust_imdp.lp.solve_reachability_lp` (small models).
+    method : {"vi", "interval", "lp"}
+        "vi" (default): strongly connected components in reverse topological order, each solved by
+        optimistic value iteration with Gauss-Seidel sweeps and a proven upper vector (falls back to
+        interval iteration; models with floor rows use "interval").  "interval": interval
+        iteration (a lower and an upper sequence) on the whole model.  Both return proven
+        brackets.  "lp" dispatches to :func:`robust_imdp.lp.solve_reachability_lp` (small models).
 
     Returns
     -------
@@ -965,25 +1305,26 @@ def solve_reachability(imdp: IMDP, target, *, avoid=None, adversary="pessimistic
 
         r = lp.solve_reachability_lp(imdp, target, avoid=avoid, adversary=adversary, objective=objective)
         return ReachabilityResult(r.lower, r.upper, r.strategy, r.iterations, r.precision, r.converged)
-    if method != "vi":
-        raise InvalidInputError(f"method must be 'vi' or 'lp'; got {method!r}")
+    _check_method(method)
     adv_max = adversary_maximises(adversary, objective)
     ctrl = 0 if _enum(Objective, objective, "objective") is Objective.MAXIMIZE else 1
     t, z = _target_avoid(imdp, target, avoid)
     nxt = np.zeros((1, imdp.n_states), dtype=np.int64)
     res = solve_layered(imdp, nxt, t[None, :], z[None, :], ctrl=ctrl, adv_max=adv_max, horizon=horizon,
-                        precision=precision, max_iterations=max_iterations)
+                        precision=precision, max_iterations=max_iterations, method=method)
     return _single_layer(res)
 
 
 def evaluate_strategy(imdp: IMDP, target, strategy, *, avoid=None, adversary="pessimistic", horizon=None,
-                      precision=1e-8, max_iterations=100_000):
+                      precision=1e-8, max_iterations=100_000, method="vi"):
     """Sound bounds of the reachability probability of a fixed strategy (an interval Markov chain).
 
     ``adversary="pessimistic"`` minimises the probability (the strategy's guaranteed value),
     ``"optimistic"`` maximises it.  ``strategy`` is (n,) or (k, n) (time-varying, with a horizon
-    of k steps).  Returns a :class:`ReachabilityResult` whose ``strategy`` is the input.
+    of k steps).  ``method`` as in :func:`solve_reachability` ("vi" or "interval").  Returns a
+    :class:`ReachabilityResult` whose ``strategy`` is the input.
     """
+    _check_method(method)
     s = check_strategy(imdp, strategy)
     adv_max = _enum(Adversary, adversary, "adversary") is Adversary.OPTIMISTIC
     if s.ndim == 2 and (horizon is None or s.shape[0] != int(horizon)):
@@ -992,8 +1333,13 @@ def evaluate_strategy(imdp: IMDP, target, strategy, *, avoid=None, adversary="pe
     nxt = np.zeros((1, imdp.n_states), dtype=np.int64)
     strat = s[:, None, :] if s.ndim == 2 else s[None, None, :]
     res = solve_layered(imdp, nxt, t[None, :], z[None, :], ctrl=2, adv_max=adv_max, horizon=horizon,
-                        precision=precision, max_iterations=max_iterations, strategy=strat)
+                        precision=precision, max_iterations=max_iterations, strategy=strat, method=method)
     return _single_layer(res)
+
+
+def _check_method(method):
+    if method not in ("vi", "interval"):
+        raise InvalidInputError(f"method must be 'vi', 'interval' or 'lp'; got {method!r}")
 
 
 def _target_avoid(imdp, target, avoid):
@@ -1075,7 +1421,7 @@ class _Sweeper:
 
 
 def solve_layered(imdp, nxt, target, zero, *, ctrl, adv_max, horizon=None, precision=1e-8,
-                  max_iterations=100_000, strategy=None) -> ReachabilityResult:
+                  max_iterations=100_000, strategy=None, method="vi") -> ReachabilityResult:
     """Engine shared by :func:`solve_reachability`, :func:`evaluate_strategy` and the lazy product.
 
     Parameters
@@ -1105,7 +1451,8 @@ def solve_layered(imdp, nxt, target, zero, *, ctrl, adv_max, horizon=None, preci
     sw = _Sweeper(imdp, nxt, active, ctrl, adv_max, strategy)
     if horizon is not None:
         return _bounded(sw, V0, horizon, ctrl, strategy)
-    return _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, precision, max_iterations)
+    return _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, precision, max_iterations,
+                      method)
 
 
 def _bounded(sw, V0, k, ctrl, strategy):
@@ -1125,7 +1472,7 @@ def _bounded(sw, V0, k, ctrl, strategy):
     return ReachabilityResult(lower=lo, upper=up, strategy=strat, iterations=k, precision=prec, converged=True)
 
 
-def _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, precision, max_iterations):
+def _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, precision, max_iterations, method):
     L, n = nxt.shape
     flat_strat = strategy[0].reshape(-1) if strategy is not None else np.zeros(1, dtype=np.int64)
     # (a) graph pre-computation: nodes that reach the target with positive probability
@@ -1145,18 +1492,26 @@ def _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, pre
     sw.layers = [l for l in range(L) if active2[l].any()]
     lo = fixed1.astype(np.float64)
     up = np.where(zero_all, 0.0, 1.0)
-    comp, ncomp, comp_cnt = _end_components(imdp, nxt, active2, ctrl, flat_strat)
-    it = 0
-    gap = float(np.max(up - lo)) if up.size else 0.0
-    while gap > precision and it < max_iterations:
-        it += 1
-        lo, _, _ = sw.sweep(lo, -1, inplace=True)  # keeps max(old, new): both are lower bounds
-        # deflation is an optional tightening (sound whenever applied): every 4th iteration
-        deflate = ncomp > 0 and (it <= 3 or it % 4 == 0)
-        up, _, rows = sw.sweep(up, +1, want_rows=deflate, inplace=True)  # min(old, new): both upper bounds
-        if deflate:
-            _deflate(imdp, nxt, up, rows, comp, ncomp, comp_cnt, adv_max, ctrl, flat_strat)
-        gap = float(np.max(up - lo))
+    topo = method == "vi" and not imdp.has_floor
+    comp, ncomp, comp_cnt, sccs = _end_components(imdp, nxt, active2, ctrl, flat_strat, want_sccs=topo)
+    if topo:
+        # components in reverse topological order, optimistic value iteration in each
+        it = _topological(imdp, nxt, lo, up, active2, ctrl, adv_max, flat_strat, precision, max_iterations, sccs,
+                          (comp, ncomp, comp_cnt))
+        gap = float(np.max(up - lo)) if up.size else 0.0
+    else:
+        # interval iteration on the whole model (floor rows: their global order needs Jacobi sweeps)
+        it = 0
+        gap = float(np.max(up - lo)) if up.size else 0.0
+        while gap > precision and it < max_iterations:
+            it += 1
+            lo, _, _ = sw.sweep(lo, -1, inplace=True)  # keeps max(old, new): both are lower bounds
+            # deflation is an optional tightening (sound whenever applied): every 4th iteration
+            deflate = ncomp > 0 and (it <= 3 or it % 4 == 0)
+            up, _, rows = sw.sweep(up, +1, want_rows=deflate, inplace=True)  # min(old, new): both upper bounds
+            if deflate:
+                _deflate(imdp, nxt, up, rows, comp, ncomp, comp_cnt, adv_max, ctrl, flat_strat)
+            gap = float(np.max(up - lo))
     converged = gap <= precision
     if not converged:
         warnings.warn(f"interval iteration stopped after {it} iterations with max(upper - lower) = {gap:.3g} > "
@@ -1188,7 +1543,7 @@ def _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, pre
 _TIE_TOL = 1e-12
 
 
-def _end_components(imdp, nxt, active, ctrl, flat_strat):
+def _end_components(imdp, nxt, active, ctrl, flat_strat, want_sccs=False):
     """Components for the deflation step (Lemma D in the module docstring).
 
     Any set works for soundness; tight sets make the iteration converge.  We use the
@@ -1200,8 +1555,9 @@ def _end_components(imdp, nxt, active, ctrl, flat_strat):
     L, n = nxt.shape
     N = L * n
     act = active.reshape(-1)
+    sccs = None
     if not act.any():
-        return np.full(N, -1), 0, np.zeros((L, 0), dtype=np.int64)
+        return np.full(N, -1), 0, np.zeros((L, 0), dtype=np.int64), sccs
     R = imdp.n_choices
     rowmask = np.ones(L * R, dtype=bool)
     if ctrl == 2:
@@ -1213,6 +1569,8 @@ def _end_components(imdp, nxt, active, ctrl, flat_strat):
     for _ in range(8):
         indptr, indices = edge_csr(imdp.state_ptr, imdp.row_ptr, imdp.col, imdp.upper, nxt, rowmask, act)
         lab, nc = strong_components(indptr, indices)
+        if want_sccs and sccs is None:  # first round: the components of the whole graph
+            sccs = (np.where(act, lab, -1), self_loops(indptr, indices))
         del indptr, indices
         lab = np.where(act, lab, -1)
         cnt = np.zeros((L, nc), dtype=np.int64)
@@ -1238,7 +1596,7 @@ def _end_components(imdp, nxt, active, ctrl, flat_strat):
     newid = np.cumsum(keep) - 1
     comp = np.where((comp >= 0) & keep[np.maximum(comp, 0)], newid[np.maximum(comp, 0)], -1)
     cnt = cnt[:, keep] if ncomp else cnt
-    return comp, int(keep.sum()), np.ascontiguousarray(cnt)
+    return comp, int(keep.sum()), np.ascontiguousarray(cnt), sccs
 
 
 def _deflate(imdp, nxt, up, rows, comp, ncomp, comp_cnt, adv_max, ctrl, flat_strat):
@@ -1266,6 +1624,85 @@ def _deflate(imdp, nxt, up, rows, comp, ncomp, comp_cnt, adv_max, ctrl, flat_str
     cap = np.maximum(e, 0.0)  # Lemma D with e = -inf: every row stays, the value is 0
     uf[inc] = np.minimum(uf[inc], cap[comp[inc]])
 
+
+def _topological(imdp, nxt, lo, up, active, ctrl, adv_max, flat_strat, precision, max_iterations, sccs, mec):
+    """Unbounded values by components in reverse topological order (models without floor rows).
+
+    ``sccs`` = (label (L*n,) of the strongly connected components of the active nodes, in
+    reverse topological order, -1 for inactive nodes; self-loop flags); ``mec`` = the
+    end-component labels of :func:`_end_components`.  ``lo``/``up`` (L, n) are updated in place.
+    Returns the largest number of sweeps spent on one component.
+    """
+    L, n = nxt.shape
+    act = active.reshape(-1)
+    nodes = np.flatnonzero(act)
+    if nodes.size == 0:
+        return 0
+    lab, has_self = sccs
+    mcomp, nmec, mcnt = mec
+    # components in label order (Tarjan numbers them sinks first), nodes in index order inside
+    order = nodes[np.argsort(lab[nodes], kind="stable")]
+    ls = lab[order]
+    first = np.flatnonzero(np.r_[True, ls[1:] != ls[:-1]])
+    comp_ptr = np.r_[first, order.size].astype(np.int64)
+    nc = first.size
+    comp = np.full(L * n, -1, dtype=np.int64)
+    comp[order] = np.repeat(np.arange(nc), np.diff(comp_ptr))
+    size = np.diff(comp_ptr)
+    kind = np.where((size == 1) & ~has_self[order[first]], 0, 1).astype(np.int64)
+    if nmec:
+        in_mec = np.zeros(nc, dtype=bool)
+        in_mec[comp[mcomp >= 0]] = True
+        kind[in_mec] = 2
+    maxk = int(np.max(np.diff(imdp.row_ptr))) if imdp.n_choices else 1
+    perm = np.empty(L * imdp.nnz, dtype=np.uint8 if maxk <= 256 else (np.uint16 if maxk <= 65536 else np.int32))
+    fill_local_order(imdp.row_ptr, perm, L)
+    lof, upf = lo.reshape(-1), up.reshape(-1)
+    strat = flat_strat if ctrl == 2 else np.zeros(1, dtype=np.int64)
+    nx = np.ascontiguousarray(nxt, dtype=np.int64)
+    comp_sweeps = np.zeros(nc, dtype=np.int64)
+    comp_status = np.zeros(nc, dtype=np.int64)
+    args = (imdp.state_ptr, imdp.row_ptr, imdp.col, imdp.lower, imdp.upper, nx, L > 1, ctrl, strat, adv_max)
+    c = 0
+    while c < nc:
+        c = solve_components(c, order, comp_ptr, kind, comp, n, *args, lof, upf, perm, precision, max_iterations,
+                             comp_sweeps, comp_status)
+        if c < nc:  # a component holding an end component: interval iteration with deflation
+            members = order[comp_ptr[c]:comp_ptr[c + 1]]
+            comp_sweeps[c] = _deflated_component(imdp, nxt, lo, up, members, mcomp, mcnt, ctrl, adv_max, flat_strat,
+                                                 precision, max_iterations)
+            c += 1
+    return int(comp_sweeps.max())
+
+
+def _deflated_component(imdp, nxt, lo, up, members, mcomp, mcnt, ctrl, adv_max, flat_strat, precision,
+                        max_iterations):
+    """Interval iteration with deflation (Lemma D) on one component that holds end components;
+    its successors outside have their final brackets.  Returns the number of sweeps."""
+    L, n = nxt.shape
+    mask = np.zeros(L * n, dtype=bool)
+    mask[members] = True
+    strategy = None if ctrl != 2 else flat_strat.reshape(1, L, n)
+    sw = _Sweeper(imdp, nxt, mask.reshape(L, n), ctrl, adv_max, strategy)
+    # only this component's end components are deflated (rows elsewhere are not evaluated)
+    comp = np.where(mask, mcomp, -1)
+    ids = np.unique(comp[comp >= 0])
+    remap = np.full(int(mcomp.max()) + 1, -1, dtype=np.int64)
+    remap[ids] = np.arange(ids.size)
+    comp = np.where(comp >= 0, remap[np.maximum(comp, 0)], -1)
+    cnt = np.ascontiguousarray(mcnt[:, ids])
+    it = 0
+    gap = float(np.max((up - lo).reshape(-1)[members]))
+    while gap > precision and it < max_iterations:
+        it += 1
+        lo[...] = sw.sweep(lo, -1, inplace=True)[0]
+        deflate = it <= 3 or it % 4 == 0
+        new, _, rows = sw.sweep(up, +1, want_rows=deflate, inplace=True)
+        up[...] = new
+        if deflate:
+            _deflate(imdp, nxt, up, rows, comp, ids.size, cnt, adv_max, ctrl, flat_strat)
+        gap = float(np.max((up - lo).reshape(-1)[members]))
+    return 2 * it
 
 __all__ = ["Adversary", "Objective", "ReachabilityResult", "solve_reachability", "evaluate_strategy",
            "adversary_maximises", "check_strategy", "solve_layered"]
