@@ -9,9 +9,11 @@ For every shipped case-study problem (``examples/problems/*.toml``):
   (up to the abstraction's own rules), so it is the yardstick of tightness.
 * **ours** -- ``io.load_problem`` + ``pipeline.synthesize_from_data`` on the problem file, as
   shipped (no cache): Q_yes / Q_no / Q_?, Q_yes as a fraction of the reference, pipeline time.
-* **image boxes** -- the boxes our pipeline hands to ``abstraction.abstract`` are recorded by
-  wrapping that function during the run (no library change; works whatever the pipeline does
-  before, as long as it ends in ``abstract``). Per mode and output: median / max excess per
+* **image boxes** -- the boxes our pipeline abstracts are recorded by watching every
+  ``abstraction.CellBounds`` made during the run (no library change; works however the pipeline
+  learns, bounds and chunks, since the abstraction's input is a ``CellBounds``): the last one of
+  full shape, with ``std_upper=None`` if any (the boxes with the learning error folded in).
+  Per mode and output: median / max excess per
   side over the exact box (``exact_lo - ours_lo`` and ``ours_hi - exact_hi``), and
   **containment**: the number of (mode, cell, output, side) where an exact box sticks out of
   ours. In the confidence mode that number must be 0 (the boxes then contain the true images
@@ -20,7 +22,8 @@ For every shipped case-study problem (``examples/problems/*.toml``):
   so containment is not expected and is reported as n/a.
 
 Writes ``benchmarks/results/reference.json`` and ``.md`` (machine info, medians over
-``--repeat`` pipeline runs, ``BENCH_NOTE``).
+``--repeat`` pipeline runs, ``BENCH_NOTE``). One untimed warm-up run of the first problem comes
+first (numba compiles on first use; ``--no-warmup`` skips it).
 
 Usage: ``python benchmarks/reference.py [--repeat N] [--only STEM ...] [--render]``
 """
@@ -108,33 +111,26 @@ def reference(problem, case: str) -> dict:
             "cell_bounds": cb, "p_low": np.asarray(syn.p_low), "p_up_star": np.asarray(syn.p_up_star)}
 
 
-class _RecordAbstract:
-    """Wraps ``abstraction.abstract`` wherever it is bound, recording its cell-bounds argument."""
+class _RecordCellBounds:
+    """Records every ``abstraction.CellBounds`` made in this process while active."""
 
     def __init__(self):
         self.calls = []
-        self.original = _abstraction.abstract
-        self.patched = []
+        self.cls = _abstraction.CellBounds
+        self.original = self.cls.__post_init__
 
     def __enter__(self):
         original, calls = self.original, self.calls
 
-        def recording(partition, cell_bounds, *args, **kwargs):
-            calls.append(cell_bounds)
-            return original(partition, cell_bounds, *args, **kwargs)
+        def recording(obj):
+            original(obj)
+            calls.append(obj)
 
-        # every loaded robust_imdp module that bound the function by name (lazy imports read
-        # the module attribute at call time, so patching robust_imdp.abstraction covers them)
-        for name, mod in list(sys.modules.items()):
-            if (name == "robust_imdp" or name.startswith("robust_imdp.")) and \
-                    getattr(mod, "abstract", None) is original:
-                setattr(mod, "abstract", recording)
-                self.patched.append(mod)
+        self.cls.__post_init__ = recording
         return self
 
     def __exit__(self, *exc):
-        for mod in self.patched:
-            setattr(mod, "abstract", self.original)
+        self.cls.__post_init__ = self.original
         return False
 
 
@@ -164,7 +160,7 @@ def run_one(stem: str, repeat: int) -> dict:
            "reference": ref, "expected_reference_yes": EXPECTED_REFERENCE_YES.get(stem)}
     times, result, recorded = [], None, None
     for _ in range(repeat):
-        with _RecordAbstract() as rec:
+        with _RecordCellBounds() as rec:
             result = synthesize_from_data(problem, progress=False)  # no cache: a full run
         times.append(float(result.timings.get("total", float("nan"))))
         recorded = rec.calls
@@ -188,11 +184,12 @@ def run_one(stem: str, repeat: int) -> dict:
     row["ours"]["p_up_star_below_reference"] = {"cells": int(np.sum(d_star > 1e-7)), "max": float(np.max(d_star))}
     boxes = [cb for cb in (recorded or []) if getattr(cb, "image_lower", None) is not None
              and cb.image_lower.shape == exact.image_lower.shape]
+    folded = [cb for cb in boxes if cb.std_upper is None]
     if not boxes:
-        row["images"] = {"note": "the pipeline did not call abstraction.abstract with boxes of this "
-                                 "shape (cache? new entry point?): no image comparison"}
+        row["images"] = {"note": "the pipeline made no CellBounds of the full shape in this process "
+                                 "(cache? worker processes?): no image comparison"}
     else:
-        ours = boxes[-1]
+        ours = (folded or boxes)[-1]
         row["images"] = image_comparison(ours, exact)
         if ours.std_upper is not None:  # "paper" mode: boxes of f + mu, GP error not folded in
             row["images"]["note"] = ("boxes hold f + mu only (GP error enters the probabilities): "
@@ -218,11 +215,13 @@ def write_md(path: Path, data: dict) -> None:
     lines = [
         "# Known-dynamics reference (`benchmarks/reference.py`)", "",
         f"{meta['note']}; {meta['date']}; commit {meta['commit']}; python {meta['python']}, "
-        f"numpy {meta['numpy']}, {meta['machine']}; pipeline times are medians of {meta['repeat']} run(s).", "",
+        f"numpy {meta['numpy']}, {meta['machine']}; pipeline times are medians of {meta['repeat']} run(s)"
+        + (f" after an untimed warm-up run ({meta['warmup_s']:.0f} s)" if meta.get("warmup_s") else "")
+        + ".", "",
         "*reference*: the same grid, regions, noise, threshold and abstraction options with the EXACT "
         "image boxes of the true dynamics (`casestudies.known_dynamics_cell_bounds`) through our own "
         "`abstract` + `synthesize`. *ours*: `synthesize_from_data` on the shipped problem file. "
-        "*excess*: per side, how far our image box (as handed to `abstract`) reaches beyond the exact "
+        "*excess*: per side, how far our image box (the input of our abstraction) reaches beyond the exact "
         "box. *containment*: (mode, cell, output, side) where the exact box sticks out of ours "
         "(must be 0). *succ/row*: mean listed successor cells per row. *monotone*: cells where our "
         "p_low exceeds the reference's or our p_up_star falls below it by > 1e-7 (must be 0 when "
@@ -280,6 +279,7 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=1, help="pipeline runs per problem (median time)")
     ap.add_argument("--only", nargs="+", choices=sorted(CASES), help="problem file stems to run")
     ap.add_argument("--render", action="store_true", help="only rewrite reference.md from reference.json")
+    ap.add_argument("--no-warmup", action="store_true", help="skip the untimed warm-up run")
     args = ap.parse_args(argv)
     OUT.mkdir(exist_ok=True)
     if args.render:
@@ -287,8 +287,13 @@ def main(argv=None) -> int:
         return 0
     assert set(CASES.values()) <= set(CASE_STUDIES)
     t0 = time.perf_counter()
+    stems = args.only or list(CASES)
+    warmup_s = None
+    if not args.no_warmup:  # numba compiles on first use: keep that out of the timings
+        synthesize_from_data(load_problem(PROBLEMS / f"{stems[0]}.toml"), progress=False)
+        warmup_s = time.perf_counter() - t0
     rows = []
-    for stem in args.only or list(CASES):
+    for stem in stems:
         row = run_one(stem, max(1, args.repeat))
         rc, oc = row["reference"]["counts"], row["ours"]["counts"]
         print(f"{stem}: reference {rc['yes']}/{rc['no']}/{rc['maybe']}, ours {oc['yes']}/{oc['no']}/{oc['maybe']} "
@@ -300,7 +305,7 @@ def main(argv=None) -> int:
             "robust_imdp": robust_imdp.__version__, "commit": _git_commit(), "repeat": max(1, args.repeat),
             "note": os.environ.get("BENCH_NOTE", "2-core machine shared with other jobs"),
             "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-            "total_s": time.perf_counter() - t0}
+            "warmup_s": warmup_s, "total_s": time.perf_counter() - t0}
     data = {"meta": meta, "rows": rows}
     (OUT / "reference.json").write_text(json.dumps(data, indent=1))
     write_md(OUT / "reference.md", data)
