@@ -322,3 +322,41 @@ def test_simulate_user_system_errors_name_the_file_and_the_interface(synthetic_r
                          "--no-figures"], capsys)
     assert code == 1 and re.search(match, err), err
     assert "Traceback" not in err
+
+
+ONE_D = """
+[space]
+lower = [0.0]
+upper = [4.0]
+cell_size = [0.25]
+[[regions.des]]
+lower = [2.0]
+upper = [3.0]
+[spec]
+formula = "F des"
+threshold = 0.9
+[data]
+path = "d.csv"
+[modes.a]
+A = [[0.5]]
+b = [1.0]
+[noise]
+kind = "uniform"
+bound = [0.01]
+[gp]
+rkhs_bound = 1.0
+"""
+
+
+@pytest.mark.slow
+def test_run_a_one_d_problem_writes_its_figure(tmp_path, capsys):
+    # x+ = 0.5 x + 1 + 0.1 sin(x) + v: contracts towards x = 2.2 inside des = [2, 3].
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0, 4, 30)
+    xn = 0.5 * x + 1 + 0.1 * np.sin(x) + rng.uniform(-0.01, 0.01, 30)
+    (tmp_path / "d.csv").write_text("x_1,u,x_next_1\n" + "".join(f"{a:.17g},a,{b:.17g}\n" for a, b in zip(x, xn)))
+    (tmp_path / "p.toml").write_text(ONE_D)
+    code, out, err = _run(["run", str(tmp_path / "p.toml"), "--out", str(tmp_path / "o"), "--quiet"], capsys)
+    assert code == 0, err
+    assert "cells: 16" in out and "1 figures in" in out
+    assert (tmp_path / "o" / "bounds.png").stat().st_size > 5000

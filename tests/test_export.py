@@ -15,6 +15,8 @@ import pytest
 
 from robust_imdp.cli import main
 
+pytestmark = pytest.mark.slow  # one pipeline run (about 3 s on 2 cores) shared by the module
+
 HORIZON = 3
 N = 64  # cells: [-2, 2]^2 in steps of 0.5
 
@@ -66,6 +68,7 @@ def test_abstraction_export_reads_back_as_the_cached_imdp(run_dir, tmp_path, cap
     assert states["kind"] == "abstraction" and states["actions"] == ["1", "2", "3"]
 
 
+@pytest.mark.stormpy
 def test_product_export_has_our_values_in_storm(run_dir, tmp_path, capsys):
     stormpy = pytest.importorskip("stormpy")
     from robust_imdp.formats import load_prism_explicit, storm_reachability, to_stormpy
