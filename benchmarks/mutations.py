@@ -60,7 +60,7 @@ _VI_RETURN = ("    return ReachabilityResult(lower=lo, upper=up, strategy=strat,
 _VI_K_RETURN = ("    return ReachabilityResult(lower=lo, upper=up, strategy=strat, iterations=k, "
                 "precision=prec, converged=True)")
 _SYN_CHECK = "    bad = np.flatnonzero(~(p_low <= p_up))"
-_FLOOR = "    floor = np.concatenate([floors.T.ravel(), np.zeros(M)])"
+_FLOOR = "        floors[u] = _complement_up(_combine_down(md.floor_p, md.floor_pv, combine))"
 
 #: The mutations, in the order they are run. Keep each ``original`` unique in its file.
 MUTATIONS = [
@@ -70,13 +70,13 @@ MUTATIONS = [
          replacement="    return x",
          description="abstraction._outward returns x (outward rounding off)"),
     dict(name="floor-x0.99", file=_ABS, original=_FLOOR,
-         replacement="    floor = np.concatenate([floors.T.ravel() * 0.99, np.zeros(M)])",
+         replacement="        floors[u] = _complement_up(_combine_down(md.floor_p, md.floor_pv, combine)) * 0.99",
          description="every row's floor (upper bound of unlisted targets) x 0.99"),
     dict(name="floor-x0.5", file=_ABS, original=_FLOOR,
-         replacement="    floor = np.concatenate([floors.T.ravel() * 0.5, np.zeros(M)])",
+         replacement="        floors[u] = _complement_up(_combine_down(md.floor_p, md.floor_pv, combine)) * 0.5",
          description="every row's floor x 0.5"),
     dict(name="floor-shrink-1e-3", file=_ABS, original=_FLOOR,
-         replacement="    floor = np.concatenate([floors.T.ravel() * (1 - 1e-3), np.zeros(M)])",
+         replacement="        floors[u] = _complement_up(_combine_down(md.floor_p, md.floor_pv, combine)) * (1 - 1e-3)",
          description="every row's floor x (1 - 1e-3)"),
     dict(name="listed-upper-shrink-1e-3", file=_ABS,
          original="            upper[dest] = _complement_up(G)",
