@@ -25,6 +25,9 @@ bench: venv
 	$(PY) benchmarks/solver.py
 	$(PY) benchmarks/abstraction.py
 	$(PY) benchmarks/bounds.py
+	$(PY) benchmarks/reference.py
+	$(PY) benchmarks/tightness_variants.py
+	$(PY) benchmarks/scale.py
 
 clean:
 	rm -rf $(VENV) results
