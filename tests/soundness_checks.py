@@ -80,9 +80,10 @@ def check_close(lower, upper, reference, tol):
 
 
 def check_synthesis(p_low, p_up, p_up_star, value_pess, value_opt, value_star, tol):
-    """Violations of ``p_low <= min_adv P(pi) ``, ``p_up >= max_adv P(pi)``, ``p_up_star >= max max P``.
+    """Violations of ``p_low <= min_adv P(pi)``, ``p_up >= max_adv P(pi)``, ``p_up_star >= max_pi max_adv P``.
 
-    Returns a dict ``{"p_low": n, "p_up": n, "p_up_star": n}``.
+    ``value_*``: reference values (brute force) of the three quantities per cell. Returns a dict
+    ``{"p_low": n, "p_up": n, "p_up_star": n}``.
     """
     return {
         "p_low": int(np.sum(np.asarray(p_low) > np.asarray(value_pess) + tol)),
