@@ -38,13 +38,15 @@ def _run(argv, capsys):
 
 
 def test_refuted_rkhs_bound_exits_1_before_any_result(tmp_path, capsys):
-    problem = _coarse_case(tmp_path, rkhs_bound=1.0)  # the data need about 3
+    # B = 2: every sample alone is possible (|residual| <= 1.29 + noise), but jointly the data
+    # need an RKHS norm of about 3 (the SOCP certificate of the assumption check).
+    problem = _coarse_case(tmp_path, rkhs_bound=2.0)
     out = tmp_path / "out"
     out.mkdir()
     (out / "result.json").write_text("{}")  # an old result must not survive a refused run
     code, stdout, err = _run(["run", str(problem), "--out", str(out), "--quiet"], capsys)
     assert code == 1
-    assert "[gp].rkhs_bound = 1 is refuted by the data" in err and "component" in err
+    assert "[gp].rkhs_bound = 2 is refuted by the data" in err and "component" in err
     assert "needs an RKHS norm of at least" in err and "Traceback" not in err
     assert err.count("\n") == 1  # one message
     assert not (out / "result.json").exists()
@@ -57,7 +59,8 @@ def test_impossible_sample_is_named(tmp_path, capsys):
     problem = _coarse_case(tmp_path, edit=spike)
     code, _, err = _run(["run", str(problem), "--out", str(tmp_path / "out"), "--quiet"], capsys)
     assert code == 1
-    assert "sample 5 alone has residual" in err and "component 2" in err
+    # checked when the data are read: sample 5 is on line 7 of the CSV (1-based, after the header)
+    assert "line 7" in err and "component 2 is impossible under the assumption" in err
 
 
 @pytest.mark.slow
