@@ -75,11 +75,12 @@ from pathlib import Path
 import numpy as np
 
 from robust_imdp.errors import DimensionError, InvalidInputError, SoundnessError
-from robust_imdp.geometry import Partition
+from robust_imdp.geometry import BoxPartition, Partition, partition_from_dict
 from robust_imdp.imdp import IMDP
 from robust_imdp.noise import NoiseModel
 
 __all__ = ["CellBounds", "Abstraction", "AbstractionRows", "abstract", "abstract_rows", "assemble_abstraction",
+           "select_rows", "join_rows",
            "confidence_cell_bounds", "EPS_LEVELS"]
 
 #: Probability levels at which candidate eps are proposed (``eps_for_prob(level, std)``).
@@ -259,7 +260,7 @@ class Abstraction:
             meta = json.loads(str(z["meta"]))
             imdp = IMDP.from_csr(z["state_ptr"], z["row_ptr"], z["col"], z["lower"], z["upper"],
                                  floor=z["floor"], actions=z["actions"])
-            return cls(imdp=imdp, partition=Partition.from_dict(meta["partition"]), eps_rule=meta["eps_rule"],
+            return cls(imdp=imdp, partition=partition_from_dict(meta["partition"]), eps_rule=meta["eps_rule"],
                        combine=meta["combine"], eta=np.array(z["eta"]) if "eta" in z else None,
                        floor_tol=float(meta["floor_tol"]), floor_eps=np.array(z["floor_eps"]),
                        floor_eta=np.array(z["floor_eta"]), lower_eps=np.array(z["lower_eps"]),
@@ -573,8 +574,8 @@ def abstract_rows(partition: Partition, cell_bounds: CellBounds, noise: NoiseMod
     (:func:`assemble_abstraction`) gives exactly :func:`abstract`'s IMDP. Parameters as in
     :func:`abstract`, except that ``cell_bounds`` may hold any number of cells.
     """
-    if not isinstance(partition, Partition):
-        raise InvalidInputError(f"partition must be a Partition; got {type(partition).__name__}")
+    if not isinstance(partition, (Partition, BoxPartition)):
+        raise InvalidInputError(f"partition must be a Partition or a BoxPartition; got {type(partition).__name__}")
     if not isinstance(cell_bounds, CellBounds):
         raise InvalidInputError(f"cell_bounds must be a CellBounds; got {type(cell_bounds).__name__}")
     if not isinstance(noise, NoiseModel):
@@ -612,10 +613,12 @@ def abstract_rows(partition: Partition, cell_bounds: CellBounds, noise: NoiseMod
     elif eps_rule == "paper":
         eta_fixed = noise.default_eta()
 
+    modes = [_Mode(u, cell_bounds, models, noise, eta_fixed, eps_rule, floor_tol, combine) for u in range(M)]
+    if isinstance(partition, BoxPartition):
+        return _box_rows(partition, cell_bounds, modes, combine, block_size, eps_rule, eta_fixed, floor_tol)
     bp = partition.breakpoints
     shape = np.array(partition.shape)
     Xlo, Xhi = partition.space.lower, partition.space.upper
-    modes = [_Mode(u, cell_bounds, models, noise, eta_fixed, eps_rule, floor_tol, combine) for u in range(M)]
 
     # ---------------------------------------------------------------- pass 1: listed targets per row
     klo = np.empty((M, N, d), dtype=np.int64)
@@ -733,6 +736,157 @@ def abstract_rows(partition: Partition, cell_bounds: CellBounds, noise: NoiseMod
         floor_eps=np.stack([md.floor_eps for md in modes]), floor_eta=np.stack([md.floor_eta for md in modes]),
         n_modes=M, eps_rule=eps_rule, combine=combine, eta=None if eta_fixed is None else np.array(eta_fixed),
         floor_tol=float(floor_tol))
+
+
+def _box_rows(partition: BoxPartition, cell_bounds: CellBounds, modes, combine, block_size, eps_rule, eta_fixed,
+              floor_tol) -> AbstractionRows:
+    """:func:`abstract_rows` on a :class:`~robust_imdp.geometry.BoxPartition` (cells of different sizes).
+
+    The same Thm 1 bounds as the rectilinear path, entry by entry: the targets of a row are the
+    cells whose closed box meets ``Im ⊕ e_f`` (found through the partition's spatial index,
+    :meth:`BoxPartition.intersecting`), the gap to a target along axis j is
+    ``max(lo_j(q') - b_j, a_j - hi_j(q'))`` rounded down (the rectilinear path's per-interval gap),
+    the containing cell is the listed cell with positive margins ``min(a_j - lo_j(q'), hi_j(q') - b_j)``
+    on every axis (at most one: cells have disjoint interiors), and every other cell is
+    separated from ``Im ⊕ e_f`` along some axis, so the floor bounds it. Each entry is computed
+    by the same operations in the same order as there, so a ``BoxPartition`` whose cells are
+    a grid gives the same numbers as the ``Partition`` of that grid.
+    """
+    M, N, d = cell_bounds.n_modes, cell_bounds.n_cells, cell_bounds.dim
+    Xlo, Xhi = partition.space.lower, partition.space.upper
+    tlo, thi = partition.cells_lower, partition.cells_upper
+    # ---------------------------------------------------------------- pass 1: listed targets per row
+    listed = []
+    n_listed = np.empty((M, N), dtype=np.int64)
+    floors = np.empty((M, N))
+    for u, md in enumerate(modes):
+        a, b = cell_bounds.image_lower[u], cell_bounds.image_upper[u]
+        ef = _up1(md.floor_eps + md.floor_eta)
+        qq, cc = partition.intersecting(_down1(a - ef), _up1(b + ef))  # closed box ⊇ Im ⊕ e_f
+        n_listed[u] = np.bincount(qq, minlength=N)
+        off = np.zeros(N + 1, dtype=np.int64)
+        np.cumsum(n_listed[u], out=off[1:])
+        listed.append((off, cc))
+        floors[u] = _complement_up(_combine_down(md.floor_p, md.floor_pv, combine))
+    row_len = (n_listed + 1).T.ravel()  # rows q*M + u (the outside state's rows: assemble_abstraction)
+    row_ptr = np.zeros(row_len.size + 1, dtype=np.int64)
+    np.cumsum(row_len, out=row_ptr[1:])
+    nnz = int(row_ptr[-1])
+    col = np.empty(nnz, dtype=np.int64)
+    lower = np.zeros(nnz)
+    upper = np.empty(nnz)
+    lower_eps = np.full((M, N, d), np.nan)
+    lower_eta = np.full((M, N, d), np.nan)
+    containing = np.full((M, N), -1, dtype=np.int64)
+
+    # ---------------------------------------------------------------- pass 2: bounds, block by block
+    for u, md in enumerate(modes):
+        off_all, cc_all = listed[u]
+        for start in range(0, N, block_size):
+            rows = np.arange(start, min(start + block_size, N))
+            B = rows.size
+            a = cell_bounds.image_lower[u, rows]
+            b = cell_bounds.image_upper[u, rows]
+            nl = n_listed[u, rows]
+            E = int(nl.sum())
+            er = np.repeat(np.arange(B), nl)  # block-local row of each entry
+            cols = cc_all[off_all[start]:off_all[start] + E]
+            # -- cell containing Im(q) with positive margins (Thm 1, eq. lower-bound)
+            m = np.empty((E, d))
+            for j in range(d):
+                m[:, j] = _down1(np.minimum(a[er, j] - tlo[cols, j], thi[cols, j] - b[er, j]))
+            hit = np.flatnonzero(np.all(m > 0, axis=1))  # at most one entry per row
+            rin = er[hit]
+            Pc, PVc = np.zeros((hit.size, d)), np.zeros((hit.size, d))
+            for j in range(d):
+                p_, pv_, e_, h_ = md.split(m[hit, j], rows[rin], j, paper_candidate=True)
+                Pc[:, j], PVc[:, j] = p_, pv_
+                lower_eps[u, rows[rin], j], lower_eta[u, rows[rin], j] = e_, h_
+            low_in = _combine_down(Pc, PVc, combine) if hit.size else np.zeros(0)
+            low_c = np.zeros(B)
+            cont = np.full(B, -1, dtype=np.int64)
+            low_c[rin] = low_in
+            cont[rin] = np.where(low_in > 0, cols[hit], -1)
+            containing[u, rows] = cont
+            lower_eps[u, rows[cont < 0]] = np.nan
+            lower_eta[u, rows[cont < 0]] = np.nan
+            # -- outside state (corollary)
+            PX, PVX = np.zeros((B, d)), np.zeros((B, d))
+            g_out = np.zeros(B)
+            for j in range(d):
+                mX = _down1(np.minimum(a[:, j] - Xlo[j], Xhi[j] - b[:, j]))
+                PX[:, j], PVX[:, j], _, _ = md.split(mX, rows, j, paper_candidate=True)
+                gX = _down1(np.maximum(Xlo[j] - b[:, j], a[:, j] - Xhi[j]))
+                sp, spv, _, _ = md.split(gX, rows, j, paper_candidate=False)
+                g_out = np.maximum(g_out, _separated_best(md, sp, spv, rows, j))
+            up_out = _complement_up(_combine_down(PX, PVX, combine))  # 1 - P_g P_v 1[Im ⊕ e ⊆ X]
+            low_out = g_out  # 1 - (1 - P_g P_v 1[Im ⊕ e ∩ X = ∅])
+            # -- listed cells: per-axis gaps of every entry, then the separation bound
+            G = np.zeros(E)
+            P0, PV0 = md.top(rows)
+            for j in range(d):
+                gap = _down1(np.maximum(tlo[cols, j] - b[er, j], a[er, j] - thi[cols, j]))
+                sp, spv, _, _ = md.split(gap, rows[er], j, paper_candidate=False)
+                P, PV = P0[er], PV0[er]
+                P[:, j], PV[:, j] = sp, spv
+                G = np.maximum(G, _combine_down(P, PV, combine))
+            low = np.where(cols == cont[er], low_c[er], 0.0)
+            # -- scatter into the state-major CSR (row = q * M + u), outside state last
+            eoff = np.zeros(B + 1, dtype=np.int64)
+            np.cumsum(nl, out=eoff[1:])
+            grow = rows * M + u
+            dest = row_ptr[grow][er] + np.arange(E) - eoff[er]
+            col[dest] = cols
+            upper[dest] = _complement_up(G)
+            lower[dest] = low
+            dout = row_ptr[grow + 1] - 1
+            col[dout] = partition.n_cells  # the outside state (global index)
+            upper[dout] = up_out
+            lower[dout] = low_out
+    return AbstractionRows(
+        row_len=row_len, col=col, lower=lower, upper=upper, floor=floors.T.ravel(),
+        lower_eps=lower_eps, lower_eta=lower_eta, containing=containing,
+        floor_eps=np.stack([md.floor_eps for md in modes]), floor_eta=np.stack([md.floor_eta for md in modes]),
+        n_modes=M, eps_rule=eps_rule, combine=combine, eta=None if eta_fixed is None else np.array(eta_fixed),
+        floor_tol=float(floor_tol))
+
+
+def select_rows(rows: AbstractionRows, cells) -> AbstractionRows:
+    """The rows of ``cells`` (local indices into ``rows``' cells), in that order: a chunk of its own.
+
+    With :func:`join_rows` this lets a refinement keep the rows of the cells it did not touch
+    (a row depends only on its cell's image box and on the target cells it lists).
+    """
+    cells = np.asarray(cells, dtype=np.int64)
+    M = rows.n_modes
+    ptr = np.zeros(rows.row_len.size + 1, dtype=np.int64)
+    np.cumsum(rows.row_len, out=ptr[1:])
+    r = (cells[:, None] * M + np.arange(M)[None, :]).ravel()
+    lens = rows.row_len[r]
+    starts = np.repeat(ptr[r], lens)
+    o = np.zeros(r.size + 1, dtype=np.int64)
+    np.cumsum(lens, out=o[1:])
+    idx = starts + np.arange(int(o[-1])) - np.repeat(o[:-1], lens)
+    return AbstractionRows(
+        row_len=lens, col=rows.col[idx], lower=rows.lower[idx], upper=rows.upper[idx], floor=rows.floor[r],
+        lower_eps=rows.lower_eps[:, cells], lower_eta=rows.lower_eta[:, cells], containing=rows.containing[:, cells],
+        floor_eps=rows.floor_eps[:, cells], floor_eta=rows.floor_eta[:, cells], n_modes=M, eps_rule=rows.eps_rule,
+        combine=rows.combine, eta=rows.eta, floor_tol=rows.floor_tol)
+
+
+def join_rows(chunks) -> AbstractionRows:
+    """Concatenate chunks of rows (in the order given) into one :class:`AbstractionRows`."""
+    chunks = list(chunks)
+    f = chunks[0]
+
+    def cat(name, axis=0):
+        return np.concatenate([getattr(c, name) for c in chunks], axis=axis)
+
+    return AbstractionRows(
+        row_len=cat("row_len"), col=cat("col"), lower=cat("lower"), upper=cat("upper"), floor=cat("floor"),
+        lower_eps=cat("lower_eps", 1), lower_eta=cat("lower_eta", 1), containing=cat("containing", 1),
+        floor_eps=cat("floor_eps", 1), floor_eta=cat("floor_eta", 1), n_modes=f.n_modes, eps_rule=f.eps_rule,
+        combine=f.combine, eta=f.eta, floor_tol=f.floor_tol)
 
 
 def assemble_abstraction(partition: Partition, chunks) -> Abstraction:

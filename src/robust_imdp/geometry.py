@@ -33,7 +33,7 @@ import numpy as np
 
 from robust_imdp.errors import DimensionError, InvalidInputError, OutsideDomainError
 
-__all__ = ["Box", "Region", "Partition"]
+__all__ = ["Box", "Region", "Partition", "BoxPartition", "partition_from_dict"]
 
 # Relative tolerance (w.r.t. the cell size) under which a region boundary is
 # considered to coincide with a uniform tick; the region's exact value is then
@@ -359,3 +359,328 @@ class Partition:
 
     def __repr__(self) -> str:
         return f"Partition(shape={self.shape}, n_cells={self.n_cells}, atoms={self.atoms})"
+
+
+# ============================================================================ non-uniform cells
+class BoxPartition:
+    """Boxes of different sizes tiling X: a rectilinear :class:`Partition` refined by bisection.
+
+    Every cell of ``base`` is the root of a binary tree (a k-d tree); :meth:`split` bisects
+    cells at the midpoint of an axis and returns a new partition. The cells are the leaves.
+
+    Labels are exact: a base cell lies inside a region or has no interior point in common
+    with it (its breakpoints contain every region boundary), and a child is a subset of its
+    parent, so a child has its parent's label, which is the label of every point of its
+    interior. The same attribute names as :class:`Partition` mean the same things, so
+    synthesis, the result file, validation and the figures take either.
+
+    Cell indices are stable under :meth:`split`: a split cell's index goes to its first child
+    (the one at the lower end of the split axes); the other children are appended, in the
+    order of the split cells. An unsplit ``BoxPartition(base)`` has ``base``'s cells in
+    ``base``'s order.
+
+    Spatial index. :meth:`locate` finds the base cell by per-axis ``searchsorted`` and
+    descends the tree (half-open halves ``[lo, m)``, ``[m, hi]``, as :meth:`Partition.locate`);
+    :meth:`intersecting` lists every cell meeting a closed query box the same way, descending
+    only into the halves the box meets (cost ~ depth + matches per query, vectorised over
+    queries).
+
+    Parameters
+    ----------
+    base : Partition
+        The grid that is refined (it respects the regions).
+
+    Attributes
+    ----------
+    base : Partition
+    space, regions, atoms, dim : as in :class:`Partition`
+    n_cells : int
+    cells_lower, cells_upper : (n_cells, d) float arrays
+    labels : (n_cells,) int64, bit ``i`` set iff the cell lies inside ``atoms[i]``
+    base_cell : (n_cells,) int64, the base cell containing each cell
+    depth : (n_cells,) int64, number of bisections from the base cell
+    outside_state : int, ``n_cells``
+    """
+
+    def __init__(self, base: Partition, _tree=None):
+        if not isinstance(base, Partition):
+            raise InvalidInputError(f"base must be a Partition; got {type(base).__name__}")
+        self.base = base
+        self.space, self.regions, self.atoms, self.dim = base.space, base.regions, base.atoms, base.dim
+        nb = base.n_cells
+        if _tree is None:  # one leaf per base cell
+            _tree = (np.full(nb, -1, dtype=np.int64), np.full(nb, np.nan), np.full(nb, -1, dtype=np.int64),
+                     np.arange(nb, dtype=np.int64))
+        axis, split, child, cell = (np.array(a) for a in _tree)
+        self._axis, self._split, self._child, self._cell = axis, split, child, cell
+        leaves = np.flatnonzero(axis < 0)
+        n = leaves.size
+        node_of_cell = np.full(n, -1, dtype=np.int64)
+        if np.any(cell[leaves] < 0) or np.any(cell[leaves] >= n):
+            raise InvalidInputError("BoxPartition tree: leaf cell indices must lie in [0, n_cells)")
+        node_of_cell[cell[leaves]] = leaves
+        if np.any(node_of_cell < 0):
+            raise InvalidInputError("BoxPartition tree: every cell index must belong to exactly one leaf")
+        # node boxes, parents before children (children always have larger node indices)
+        nlo = np.empty((axis.size, self.dim))
+        nhi = np.empty((axis.size, self.dim))
+        nlo[:nb], nhi[:nb] = base.cells_lower, base.cells_upper
+        rootof = np.empty(axis.size, dtype=np.int64)
+        rootof[:nb] = np.arange(nb)
+        depth = np.zeros(axis.size, dtype=np.int64)
+        seen = np.zeros(axis.size, dtype=bool)
+        seen[:nb] = True
+        frontier = np.flatnonzero(axis[:nb] >= 0)
+        while frontier.size:  # level by level; the children of k are child[k] and child[k] + 1
+            a, m, c = axis[frontier], split[frontier], child[frontier]
+            ok = (a < self.dim) & (c > frontier) & (c + 1 < axis.size)
+            ok[ok] &= (nlo[frontier[ok], a[ok]] < m[ok]) & (m[ok] < nhi[frontier[ok], a[ok]])
+            ok[ok] &= ~seen[c[ok]] & ~seen[c[ok] + 1]
+            if not np.all(ok):
+                k = int(frontier[np.flatnonzero(~ok)[0]])
+                raise InvalidInputError(f"BoxPartition tree: node {k} has an invalid split "
+                                        f"(axis {axis[k]}, value {split[k]!r}, child {child[k]})")
+            for cc in (c, c + 1):
+                seen[cc] = True
+                nlo[cc], nhi[cc] = nlo[frontier], nhi[frontier]
+                rootof[cc], depth[cc] = rootof[frontier], depth[frontier] + 1
+            nhi[c, a] = m
+            nlo[c + 1, a] = m
+            nxt = np.concatenate([c, c + 1])
+            frontier = nxt[axis[nxt] >= 0]
+        if not np.all(seen):
+            raise InvalidInputError(f"BoxPartition tree: node {int(np.flatnonzero(~seen)[0])} is not reachable")
+        self.n_cells = n
+        self.outside_state = n
+        self._node_of_cell = node_of_cell
+        self.cells_lower = nlo[node_of_cell]
+        self.cells_upper = nhi[node_of_cell]
+        self.base_cell = rootof[node_of_cell]
+        self.depth = depth[node_of_cell]
+        self.labels = np.asarray(base.labels)[self.base_cell]  # a child has its parent's label
+        for a in (self.cells_lower, self.cells_upper, self.labels, self.base_cell, self.depth,
+                  self._axis, self._split, self._child, self._cell, self._node_of_cell):
+            a.setflags(write=False)
+        self._frozen = True
+
+    def __setattr__(self, name, value):  # invalid objects cannot exist: no mutation after __init__
+        if getattr(self, "_frozen", False):
+            raise AttributeError(f"BoxPartition is immutable; cannot set {name!r}")
+        object.__setattr__(self, name, value)
+
+    # ------------------------------------------------------------------ refinement
+    def split(self, cells, axes=None) -> "BoxPartition":
+        """A new partition with ``cells`` bisected at their midpoints.
+
+        Parameters
+        ----------
+        cells : (k,) int array
+            Distinct cell indices.
+        axes : (k,) int array, optional
+            The axis along which each cell is bisected (two children). Default: every axis
+            (``2**d`` children, a quad/oct-tree step).
+
+        Returns
+        -------
+        BoxPartition
+            Cell ``cells[i]`` keeps its index for the child at the lower end of the split axes;
+            the other children get ``n_cells, n_cells + 1, ...`` in the order of ``cells``.
+        """
+        cells = np.asarray(cells, dtype=np.int64).reshape(-1)
+        if np.any((cells < 0) | (cells >= self.n_cells)) or np.unique(cells).size != cells.size:
+            raise InvalidInputError(f"cells must be distinct indices in [0, {self.n_cells}); got {cells.tolist()[:10]}")
+        if axes is None:
+            k, N = cells.size, self.n_cells
+            out, pieces = self, cells[:, None]
+            for a in range(self.dim):  # bisect every piece of every cell along axis a
+                flat = pieces.ravel()
+                k0 = out.n_cells
+                out = out._bisect(flat, np.full(flat.size, a))
+                pieces = np.stack([pieces, (k0 + np.arange(flat.size)).reshape(pieces.shape)], axis=2).reshape(k, -1)
+            # renumber the appended children cell by cell: cells[i]'s j-th child (j >= 1) gets
+            # N + i (2^d - 1) + j - 1 (the bisections above appended them axis by axis)
+            perm = np.arange(out.n_cells)
+            perm[pieces[:, 1:].ravel()] = N + np.arange(k * (pieces.shape[1] - 1))
+            cell = out._cell.copy()
+            leaves = cell >= 0
+            cell[leaves] = perm[cell[leaves]]
+            return BoxPartition(self.base, (out._axis, out._split, out._child, cell))
+        axes = np.asarray(axes, dtype=np.int64).reshape(-1)
+        if axes.shape != cells.shape or np.any((axes < 0) | (axes >= self.dim)):
+            raise InvalidInputError(f"axes must hold one axis in [0, {self.dim}) per cell; got {axes.tolist()[:10]}")
+        return self._bisect(cells, axes)
+
+    def _bisect(self, cells, axes) -> "BoxPartition":
+        nodes = self._node_of_cell[cells]
+        lo = self.cells_lower[cells, axes]
+        hi = self.cells_upper[cells, axes]
+        mid = lo + 0.5 * (hi - lo)
+        bad = np.flatnonzero(~((lo < mid) & (mid < hi)))
+        if bad.size:
+            i = int(bad[0])
+            raise InvalidInputError(f"cell {int(cells[i])} is too small to bisect along axis {int(axes[i])} "
+                                    f"([{lo[i]!r}, {hi[i]!r}])")
+        k, N, n_nodes = cells.size, self.n_cells, self._axis.size
+        axis = np.concatenate([self._axis, np.full(2 * k, -1, dtype=np.int64)])
+        split = np.concatenate([self._split, np.full(2 * k, np.nan)])
+        child = np.concatenate([self._child, np.full(2 * k, -1, dtype=np.int64)])
+        cell = np.concatenate([self._cell, np.full(2 * k, -1, dtype=np.int64)])
+        first = n_nodes + 2 * np.arange(k)
+        axis[nodes], split[nodes], child[nodes], cell[nodes] = axes, mid, first, -1
+        cell[first] = cells  # the lower child keeps the index
+        cell[first + 1] = N + np.arange(k)
+        return BoxPartition(self.base, (axis, split, child, cell))
+
+
+    # ------------------------------------------------------------------ queries
+    def label_sets(self) -> list:
+        """List of ``frozenset`` of atom names, one per cell."""
+        return [frozenset(a for i, a in enumerate(self.atoms) if (lab >> i) & 1) for lab in self.labels.tolist()]
+
+    def contains(self, x) -> np.ndarray:
+        """``(k,)`` bool: points in X (closed)."""
+        return self.space.contains(x)
+
+    def cell_box(self, index: int) -> Box:
+        """The closed box of cell ``index``."""
+        return Box(self.cells_lower[index], self.cells_upper[index])
+
+    def volumes(self) -> np.ndarray:
+        """``(n_cells,)`` float: the volume (area in 2-D) of every cell."""
+        return np.prod(self.cells_upper - self.cells_lower, axis=1)
+
+    def locate(self, x) -> np.ndarray:
+        """Cell index of each point (``-1`` outside X), with :meth:`Partition.locate`'s convention.
+
+        The base cell is found per axis (half-open intervals, the last one closed at the upper
+        end of X); inside it, a point with ``x_a < m`` goes to the lower half of a node split at
+        ``m`` along axis ``a``, else to the upper half, so every point of X has exactly one cell.
+
+        Parameters
+        ----------
+        x : (k, d) or (d,) float array
+
+        Returns
+        -------
+        (k,) int64 array
+        """
+        x = np.atleast_2d(np.asarray(x, dtype=float))
+        out = self.base.locate(x)  # checks the shape and NaN
+        inside = np.flatnonzero(out >= 0)
+        node = out[inside]
+        while True:  # one level of the trees per pass, vectorised over points
+            a = self._axis[node]
+            go = np.flatnonzero(a >= 0)
+            if go.size == 0:
+                break
+            n_go = node[go]
+            node[go] = self._child[n_go] + (x[inside[go], a[go]] >= self._split[n_go])
+        out[inside] = self._cell[node]
+        return out
+
+    def intersecting(self, lower, upper):
+        """Every cell meeting each closed query box ``[lower[i], upper[i]]`` (the spatial index).
+
+        Parameters
+        ----------
+        lower, upper : (k, d) float arrays
+
+        Returns
+        -------
+        query, cell : (E,) int64 arrays
+            The pairs (query box, cell) whose closed boxes share a point, sorted by query, then
+            cell index. Closed boxes meet iff they overlap on every axis, as in
+            :mod:`robust_imdp.abstraction`.
+        """
+        lo = np.atleast_2d(np.asarray(lower, dtype=float))
+        hi = np.atleast_2d(np.asarray(upper, dtype=float))
+        if lo.shape != hi.shape or lo.shape[1] != self.dim:
+            raise DimensionError(f"lower and upper must both have shape (k, {self.dim}); got {lo.shape}, {hi.shape}")
+        k = lo.shape[0]
+        # base cells: per axis, the intervals [b_l, b_{l+1}] meeting [lo, hi] (closed)
+        bp = self.base.breakpoints
+        klo = np.empty((k, self.dim), dtype=np.int64)
+        cnt = np.empty((k, self.dim), dtype=np.int64)
+        for j in range(self.dim):
+            klo[:, j] = np.searchsorted(bp[j][1:], lo[:, j], side="left")  # first l: b_{l+1} >= lo
+            khi = np.searchsorted(bp[j][:-1], hi[:, j], side="right") - 1  # last l: b_l <= hi
+            cnt[:, j] = np.maximum(khi - klo[:, j] + 1, 0)
+        tot = np.prod(cnt, axis=1)
+        q = np.repeat(np.arange(k), tot)
+        off = np.zeros(k + 1, dtype=np.int64)
+        np.cumsum(tot, out=off[1:])
+        t = np.arange(q.size) - off[q]
+        multi = np.empty((q.size, self.dim), dtype=np.int64)
+        for j in range(self.dim - 1, -1, -1):  # C-order unravel of the local index
+            cj = np.maximum(cnt[q, j], 1)
+            multi[:, j] = klo[q, j] + t % cj
+            t = t // cj
+        node = np.ravel_multi_index(tuple(multi.T), self.base.shape) if q.size else np.zeros(0, dtype=np.int64)
+        out_q, out_c = [], []
+        while q.size:  # descend into the halves the query box meets
+            a = self._axis[node]
+            leaf = a < 0
+            out_q.append(q[leaf])
+            out_c.append(self._cell[node[leaf]])
+            q, node, a = q[~leaf], node[~leaf], a[~leaf]
+            m = self._split[node]
+            left = lo[q, a] <= m  # [cell lo, m] meets [lo, hi] (the parent meets it)
+            right = hi[q, a] >= m  # [m, cell hi] meets [lo, hi]
+            c = self._child[node]
+            q = np.concatenate([q[left], q[right]])
+            node = np.concatenate([c[left], c[right] + 1])
+        qq = np.concatenate(out_q) if out_q else np.zeros(0, dtype=np.int64)
+        cc = np.concatenate(out_c) if out_c else np.zeros(0, dtype=np.int64)
+        order = np.lexsort((cc, qq))
+        return qq[order], cc[order]
+
+    def grid_index(self):
+        """The cells on the grid of all their faces: ``(breakpoints, table)``.
+
+        ``breakpoints`` lists per axis every face coordinate of every cell, and ``table`` (one
+        entry per elementary box of that grid, C order) the cell holding it. Locating a point
+        there (per-axis ``searchsorted``, as :meth:`Partition.locate`) and reading the table
+        gives :meth:`locate`'s cell; a deployed controller needs nothing else.
+        """
+        bps = [np.unique(np.concatenate([self.cells_lower[:, j], self.cells_upper[:, j]])) for j in range(self.dim)]
+        table = np.full(tuple(len(b) - 1 for b in bps), -1, dtype=np.int64)
+        i0 = [np.searchsorted(bps[j], self.cells_lower[:, j]) for j in range(self.dim)]
+        i1 = [np.searchsorted(bps[j], self.cells_upper[:, j]) for j in range(self.dim)]
+        for c in range(self.n_cells):  # set-up only
+            table[tuple(slice(i0[j][c], i1[j][c]) for j in range(self.dim))] = c
+        return bps, table
+
+    # ------------------------------------------------------------------ serialisation
+    def to_dict(self) -> dict:
+        """JSON-able description; :meth:`from_dict` (or :func:`partition_from_dict`) rebuilds it exactly."""
+        return {
+            "kind": "boxes",
+            "base": self.base.to_dict(),
+            "axis": self._axis.tolist(),
+            "split": [None if np.isnan(v) else float(v) for v in self._split.tolist()],
+            "child": self._child.tolist(),
+            "cell": self._cell.tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, d: Mapping) -> "BoxPartition":
+        try:
+            tree = (np.asarray(d["axis"], dtype=np.int64), np.array([np.nan if v is None else v for v in d["split"]],
+                                                                     dtype=float),
+                    np.asarray(d["child"], dtype=np.int64), np.asarray(d["cell"], dtype=np.int64))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InvalidInputError(f"BoxPartition description is incomplete or malformed ({exc})") from None
+        if len({t.shape for t in tree}) != 1 or tree[0].ndim != 1:
+            raise InvalidInputError("BoxPartition description: axis, split, child and cell must have one length")
+        return cls(Partition.from_dict(d["base"]), tree)
+
+    def __repr__(self) -> str:
+        return (f"BoxPartition(n_cells={self.n_cells}, base={self.base.shape}, max depth="
+                f"{int(self.depth.max(initial=0))}, atoms={self.atoms})")
+
+
+def partition_from_dict(d: Mapping):
+    """A :class:`Partition` or a :class:`BoxPartition` from its ``to_dict()`` description."""
+    if d.get("kind") == "boxes":
+        return BoxPartition.from_dict(d)
+    return Partition.from_dict(d)
