@@ -281,8 +281,10 @@ def test_impossible_sample_is_refused_at_load_like_the_assumption_check(tmp_path
     residuals = [0.1] * 11 + [r] + [0.2] * 3  # the bad sample is data row 12: file line 13
     path = _one_mode(tmp_path, residuals)
     if refused:
-        with pytest.raises(AssumptionError, match=r"d.csv, line 13 \(mode 'a'\): the residual x_next - f_u\(x\) = "
-                                                  rf"{r:g} in component 1 is impossible.*\|residual\| <= 3.05"):
+        with pytest.raises(AssumptionError, match=r"\[gp\].rkhs_bound = 3 is refuted by the data: mode 'a', component "
+                                                  r"1 .* sample 11 \(data file .*d.csv, line 13\): its residual "
+                                                  rf"{r:g} in component 1 is impossible under the assumption, since "
+                                                  r".* = 3.05 everywhere"):
             load_problem(path)
     else:
         assert load_problem(path).data.x.shape == (15, 2)
@@ -302,8 +304,10 @@ def test_other_impossible_samples_are_counted(tmp_path):
     from robust_imdp.io import load_problem
 
     path = _one_mode(tmp_path, [0.0] * 10 + [99.0, 5.0, -4.0])  # lines 12, 13, 14; 99 is the worst
-    with pytest.raises(AssumptionError, match=r"line 12 .* = 99 .*; 2 more such samples \(lines 13, 14\).*"
-                                              r"rkhs_bound above 98.95"):
+    # a single sample needs ||g|| >= |99| - 0.05 = 98.95 (|h(x)| <= ||h|| for the unit-amplitude kernel)
+    with pytest.raises(AssumptionError, match=r"at least 98.95 .* sample 10 \(data file .*, line 12\): its "
+                                              r"residual 99 .*; 2 more samples of this mode and component are "
+                                              r"impossible too \(lines 13, 14\)\. Choose rkhs_bound >= 98.95"):
         load_problem(path)
 
 

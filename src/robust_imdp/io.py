@@ -453,7 +453,11 @@ def _rows_text(rows, idx, limit: int = 5) -> str:
 
 
 def _check_samples_possible(spec, noise, x, u, x_next, rows) -> None:
-    """Refuse samples that no system allowed by the assumption can produce (see :func:`load_problem`)."""
+    """Refuse samples that no system allowed by the assumption can produce (see :func:`load_problem`).
+
+    The message reads like the pipeline's assumption check (``rkhs.check_assumption``), which
+    refuses the same samples, and adds where they are in the data file.
+    """
     from robust_imdp.errors import AssumptionError
     from robust_imdp.pipeline import CHECK_DELTA
     from robust_imdp.rkhs import min_rkhs_norm, noise_bound_at_confidence
@@ -464,30 +468,33 @@ def _check_samples_possible(spec, noise, x, u, x_next, rows) -> None:
     # the pipeline's assumption check uses this bound (unbounded noise: all samples at 1 - 1e-6)
     nb, fail = noise_bound_at_confidence(noise, x.shape[0], CHECK_DELTA)
     nb = np.broadcast_to(np.asarray(nb, float), (x.shape[1],))
-    where = f"data file {spec['data_file']}"
     names = list(spec["modes"])
+    bad = []  # (single-sample minimum norm, mode, component, data row, residual, limit, other rows)
     for m, (A, b) in enumerate(spec["modes"].values()):
         sel = np.flatnonzero(u == m)
         res = x_next[sel] - (x[sel] @ A.T + b)
         for i in range(res.shape[1]):
             r = min_rkhs_norm(x[sel], res[:, i], lengthscale, float(nb[i]), tau, solver=False)
-            if r["single_minimum"] <= B:
-                continue
-            worst = sel[r["sample"]]
-            limit = B + tau + float(nb[i])
-            bad = sel[np.abs(res[:, i]) > limit]
-            others = [k for k in bad.tolist() if k != worst]
-            noise_text = (f"[noise].bound {nb[i]:g}" if fail == 0 else
-                          f"the noise bound {nb[i]:.4g} that all {x.shape[0]} samples respect with probability "
-                          f"1 - {CHECK_DELTA:g}")
-            raise AssumptionError(
-                f"{where}, {_rows_text(rows, [worst])} (mode {names[m]!r}): the residual x_next - f_u(x) = "
-                f"{res[r['sample'], i]:.6g} in component {i + 1} is impossible under the assumption: every allowed "
-                f"g has |g| <= [gp].rkhs_bound + misspecification = {B:g} + {tau:g} everywhere (unit-amplitude "
-                f"kernel), and the noise adds at most {noise_text}, so |residual| <= {limit:.6g}"
-                + (f"; {len(others)} more such samples ({_rows_text(rows, np.array(others))})" if others else "")
-                + ". The guarantees would rest on a false premise: fix or remove the sample, or choose "
-                f"[gp].rkhs_bound above {r['single_minimum']:.4g}")
+            if r["single_minimum"] > B:
+                limit = B + tau + float(nb[i])
+                others = [k for k in sel[np.abs(res[:, i]) > limit].tolist() if k != sel[r["sample"]]]
+                bad.append((r["single_minimum"], m, i, int(sel[r["sample"]]), float(res[r["sample"], i]), limit,
+                            others))
+    if not bad:
+        return
+    minimum, m, i, row, residual, limit, others = max(bad, key=lambda c: c[0])
+    where = f"data file {spec['data_file']}, {_rows_text(rows, [row])}"
+    raise AssumptionError(
+        f"[gp].rkhs_bound = {B:g} is refuted by the data: mode {names[m]!r}, component {i + 1} needs an RKHS norm "
+        f"of at least {minimum:.4g} (lengthscale {np.asarray(lengthscale).tolist()}); sample {row} ({where}): its "
+        f"residual {residual:.6g} in component {i + 1} is impossible under the assumption, since |g| <= B + noise "
+        f"bound + misspecification = {limit:.6g} everywhere"
+        + (f" (the noise bound holds for all {x.shape[0]} samples with probability 1 - {CHECK_DELTA:g})" if fail else "")
+        + (f"; {len(others)} more samples of this mode and component are impossible too "
+           f"({_rows_text(rows, np.array(others))})" if others else "")
+        + f". Choose rkhs_bound >= {minimum:.4g} (with a margin; the check of all samples together may ask for "
+        "more), a different lengthscale, a misspecification allowance, or check the data"
+        + (f" ({len(bad)} of {len(names) * x.shape[1]} components are refuted)" if len(bad) > 1 else ""))
 
 
 def _warn_few_samples(spec, u, rows) -> None:
