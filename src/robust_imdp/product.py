@@ -191,22 +191,35 @@ def evaluate_product_strategy(imdp: IMDP, letters, dfa, strategy, *, avoid=None,
 
 
 def materialize_product(imdp: IMDP, letters, dfa, *, avoid=None) -> MaterializedProduct:
-    """The explicit product IMDP (S * n states); floor mass listed explicitly (small models).
+    """The explicit product IMDP (S * n states); floor mass listed explicitly.
 
     Product state ``s * n + q`` has the rows of q; the listed successor q' of a row becomes
     ``delta(s, L(q')) * n + q'``, and, for a floor row, every unlisted base state q' is listed
-    with [0, floor] at ``delta(s, L(q')) * n + q'`` (see the module docstring).
+    with [0, floor] at ``delta(s, L(q')) * n + q'`` (see the module docstring).  Rows without
+    floor mass keep their listed entries (sorted by successor), so a model without floors
+    costs S x its own memory; each floor row costs O(n).
     """
     nxt, target, zero, init = _dfa_arrays(imdp, letters, dfa, avoid)
     S, n = nxt.shape
-    lo, up = imdp.to_dense()  # (R, n), floor expanded
     R = imdp.n_choices
-    listed = np.zeros((R, n), dtype=bool)
-    entry_row = np.repeat(np.arange(R), np.diff(imdp.row_ptr))
-    listed[entry_row, imdp.col] = True
-    keep = listed | (up > 0)  # drop unlisted [0, 0] entries only
-    rows_c, cols_c = np.nonzero(keep)
-    lo_e, up_e = lo[rows_c, cols_c], up[rows_c, cols_c]
+    rl = np.diff(imdp.row_ptr)
+    entry_row = np.repeat(np.arange(R), rl)
+    rows_c, cols_c, lo_e, up_e = entry_row, imdp.col, imdp.lower, imdp.upper
+    fl_rows = np.flatnonzero((imdp.floor > 0) & (imdp.n_unlisted > 0))
+    if fl_rows.size:
+        # unlisted states of the floor rows get [0, floor]: O(n) per floor row
+        listed = np.zeros((fl_rows.size, n), dtype=bool)
+        pos = np.full(R, -1, dtype=np.int64)
+        pos[fl_rows] = np.arange(fl_rows.size)
+        sel = pos[entry_row] >= 0
+        listed[pos[entry_row[sel]], imdp.col[sel]] = True
+        fr, fc = np.nonzero(~listed)
+        rows_c = np.concatenate([rows_c, fl_rows[fr]])
+        cols_c = np.concatenate([cols_c, fc])
+        lo_e = np.concatenate([lo_e, np.zeros(fr.size)])
+        up_e = np.concatenate([up_e, imdp.floor[fl_rows[fr]]])
+    order = np.lexsort((cols_c, rows_c))  # rows in order, successors sorted inside each row
+    rows_c, cols_c, lo_e, up_e = rows_c[order], cols_c[order], lo_e[order], up_e[order]
     per_row = np.bincount(rows_c, minlength=R)
     # product rows: layer-major, then the base rows in order
     col = (nxt[:, cols_c] * n + cols_c[None, :]).reshape(-1)

@@ -54,9 +54,19 @@ value V* is its *least* fixed point (for every combination max/min x max/min).
   The check is a Gauss-Seidel sweep ``u(s) <- B_up(u)(s)`` over the nodes in order; if no value
   increased, the final u_f is proven: with u^(s) the vector when s was processed, u_f <= u^(s)
   (values only decreased), hence ``B(u_f)(s) <= B(u^(s))(s) <= B_up(u^(s))(s) = u_f(s)``.
-  The guess is ``u = min(proven upper, lower + delta)`` after the lower iteration reached an
-  estimated error below delta; a refuted or undecided guess is discarded (the previous proven
-  vector is restored), so only proven vectors are ever reported.
+  Guesses: ``u = min(proven upper, lower + delta)`` once the lower iteration's estimated error
+  is below delta, or the Aitken extrapolation of the lower iterates plus a margin (see
+  :func:`ovi_component`); a refuted or undecided guess is discarded (the last proven vector is
+  restored), so only proven vectors are ever reported.
+* **Lower guesses** need a unique fixed point.  In a component C without end component (no set
+  D in C where every node has a row with an admissible p supported in D; found liberally, see
+  :func:`_end_components`) the restricted operator has one: for fixed points x, y let
+  M = max(x - y) > 0 be attained on D; at s in D take x's row a and y's adversary choice p_y of
+  that row (or symmetrically, depending on who maximises); then
+  ``M = x(s) - y(s) <= p_y.(x - y) <= M`` forces p_y into D (the outside is common, difference
+  0 < M), so D would be an end component.  Hence ``x <= B(x)`` implies x <= gfp = lfp = V*
+  (Knaster-Tarski), checked by a Gauss-Seidel sweep ``x(s) <- B_down(x)(s)`` that decreased no
+  value (the mirror image of the upper argument).
 * **Topological order.**  Components C of the graph of possible successors are solved in
   reverse topological order; when C is solved, every successor outside C has its final
   bracket l <= V* <= u.  Lower sweeps on C read l outside: still below V* by monotonicity.
@@ -825,9 +835,12 @@ def stay_exit_bounds(state_ptr, row_ptr, col, lower, upper, floor, nxt, comp, co
 
 
 @njit(cache=True)
-def stayable_rows(state_ptr, row_ptr, col, lower, upper, floor, nxt, comp, comp_cnt, rowmask):
+def stayable_rows(state_ptr, row_ptr, col, lower, upper, floor, nxt, comp, comp_cnt, rowmask, liberal):
     """(L*R,) bool: row r in layer l (in ``rowmask``) has an admissible distribution supported
-    inside the component of its node (conservative, with a rounding margin)."""
+    inside the component of its node.  ``liberal``: also when it may have one within the
+    rounding of the capacity sum (then a row that can stay is never missed, so a component found
+    free of end components is free of them: the unique-fixed-point argument of the lower OVI
+    guesses); otherwise conservative (only when it surely has one)."""
     L = nxt.shape[0]
     n = state_ptr.shape[0] - 1
     R = row_ptr.shape[0] - 1
@@ -852,7 +865,9 @@ def stayable_rows(state_ptr, row_ptr, col, lower, upper, floor, nxt, comp, comp_
                         lowOut += lower[j]
                 unlIn = comp_cnt[l, c] - listedIn
                 cap = upIn + floor[r] * unlIn
-                out[l * R + r] = lowOut == 0.0 and cap - _sum_slack(listedIn, floor[r] > 0.0 and unlIn > 0) >= 1.0
+                slack = _sum_slack(listedIn, floor[r] > 0.0 and unlIn > 0)
+                # lowOut == 0 is exact: a float sum of non-negative numbers is 0 iff all are 0
+                out[l * R + r] = lowOut == 0.0 and (cap + slack >= 1.0 if liberal else cap - slack >= 1.0)
     return out
 
 
@@ -924,17 +939,20 @@ def fill_local_order(row_ptr, perm, L):
 
 
 @njit(cache=True)
-def node_sweep(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, V, Vlo, ctrl, strat, adv_max,
-               mode, perm, keys, idx):
+def node_sweep(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, V, other, ctrl, strat, adv_max,
+               mode, perm, keys, idx, incr):
     """One Gauss-Seidel sweep over ``nodes`` (in that order), updating the flat vector ``V`` in place.
 
-    mode 0 (lower): ``V[s] = max(V[s], B_down(V)(s))``; 1 (upper, verification):
-    ``V[s] = B_up(V)(s)``; 2 (upper, sound): ``V[s] = min(V[s], B_up(V)(s))``.
+    mode 0 (lower): ``V[s] = max(V[s], B_down(V)(s))``, and ``incr[t]`` = the increase of
+    ``nodes[t]`` when ``incr`` is not empty; 1 (upper guess check): ``V[s] = B_up(V)(s)``;
+    2 (upper): ``V[s] = min(V[s], B_up(V)(s))``; 3 (lower guess check): ``V[s] = B_down(V)(s)``.
     ctrl: 0 = controller maximises over rows, 1 = minimises, 2 = fixed row ``strat[node]``.
-    Returns (largest increase, largest decrease, crossed), where ``crossed`` (mode 1) says that
-    some ``B_up(V)(s) < Vlo[s]``: then V was not an upper bound (if V >= V*, B(V) >= V* >= Vlo).
+    Returns (largest increase, largest decrease, crossed): ``crossed`` says that in mode 1 some
+    ``B_up(V)(s) < other[s]`` (a proven lower bound; then V was not an upper bound, since V >= V*
+    gives B(V) >= V*), or in mode 3 some ``B_down(V)(s) > other[s]`` (a proven upper bound).
     """
     nnz = col.shape[0]
+    rec = incr.shape[0] > 0
     inc = 0.0
     dec = 0.0
     crossed = False
@@ -953,7 +971,7 @@ def node_sweep(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, V,
             j1 = row_ptr[r + 1]
             v, left = row_value_cached(j0, j1, l * nnz + j0, col, lower, upper, V, nxt, l, n, layered, adv_max,
                                        perm, keys, idx)
-            if mode == 0:
+            if mode == 0 or mode == 3:
                 v = v - row_err(j1 - j0)
                 if v < 0.0:
                     v = 0.0  # safe: every true value is >= 0
@@ -967,24 +985,29 @@ def node_sweep(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, V,
                 best = v
         old = V[node]
         if mode == 0:
-            if best > old:
+            d = best - old
+            if d > 0.0:
                 V[node] = best
-                if best - old > inc:
-                    inc = best - old
-        elif mode == 1:
+                if d > inc:
+                    inc = d
+            else:
+                d = 0.0
+            if rec:
+                incr[t] = d
+        elif mode == 2:
+            if best < old:
+                V[node] = best
+                if old - best > dec:
+                    dec = old - best
+        else:
             if best > old:
                 if best - old > inc:
                     inc = best - old
             elif old - best > dec:
                 dec = old - best
             V[node] = best
-            if best < Vlo[node]:
+            if (mode == 1 and best < other[node]) or (mode == 3 and best > other[node]):
                 crossed = True
-        else:
-            if best < old:
-                V[node] = best
-                if old - best > dec:
-                    dec = old - best
     return inc, dec, crossed
 
 
@@ -1023,31 +1046,60 @@ def _exit_gap(nodes, c, comp, n, state_ptr, row_ptr, col, upper, nxt, layered, c
     return g
 
 
-#: Optimistic value iteration: verification sweeps per guess, and failed guesses before the
-#: component falls back to interval iteration (each failure asks the lower iteration for a 16x
-#: smaller estimated error before the next guess).
+#: Optimistic value iteration: sweeps per check of a guess; refuted plain guesses before the
+#: component falls back to interval iteration (each asks the lower iteration for a 16x smaller
+#: estimated error); extrapolated guesses tried per component; their offsets ``off (v + KAPPA)``.
 OVI_VERIFY_SWEEPS = 12
 OVI_MAX_FAILS = 4
+OVI_EXTRAP_VERIFY_SWEEPS = 2
+OVI_MAX_EXTRAP = 12
+OVI_EXTRAP_EVERY = 4
+OVI_KAPPA = 0.25
+
+
+@njit(cache=True)
+def _check_guess(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, V, other, ctrl, strat, adv_max,
+                 mode, perm, keys, idx, n_sweeps):
+    """Check sweeps of a guess in ``V`` (mode 1: upper, 3: lower); True when one of at most
+    ``n_sweeps`` sweeps moved no value in the wrong direction (then V is proven), False when
+    refuted (crossed the other bound) or undecided.  Returns (proven, sweeps)."""
+    none = np.empty(0)
+    for k in range(n_sweeps):
+        inc, dec, crossed = node_sweep(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, V, other, ctrl,
+                                       strat, adv_max, mode, perm, keys, idx, none)
+        if crossed:
+            return False, k + 1
+        if (mode == 1 and inc <= 0.0) or (mode == 3 and dec <= 0.0):
+            return True, k + 1
+    return False, n_sweeps
 
 
 @njit(cache=True)
 def ovi_component(nodes, c, comp, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, ctrl, strat, adv_max,
-                  lo, up, perm, keys, idx, prec, max_sweeps, saved):
-    """Solve one strongly connected component (no end component inside) to a bracket <= ``prec``.
+                  lo, up, perm, keys, idx, prec, max_sweeps, saved, saved_lo, incr, cen):
+    """Solve one strongly connected component without end components to a bracket <= ``prec``.
 
-    Its successors outside have their final brackets.  Optimistic value iteration (Hartmanns &
-    Kaminski, CAV 2020) adapted to the interval Bellman operator: Gauss-Seidel lower sweeps until
-    the estimated error ``r lam / (1 - lam)`` (residual r, contraction estimate lam from two
-    residuals) is below ``tol``; then the guess ``u = min(proven, lo + delta)`` and at most
-    ``OVI_VERIFY_SWEEPS`` verification sweeps ``u <- B_up(u)`` (mode 1).  A sweep in which no
-    node increased proves that u bounds the value from above (module docstring, Lemma OVI);
-    a node with ``B_up(u) < lo`` refutes the guess.  After ``OVI_MAX_FAILS`` refuted guesses the
-    component falls back to interval iteration (lower and mode-2 upper sweeps from the last
-    proven upper vector, initially 1).
+    Its successors outside have their final brackets (width <= ``dgap``).  Optimistic value
+    iteration (Hartmanns & Kaminski, CAV 2020) adapted to the interval Bellman operator, with
+    Gauss-Seidel lower sweeps and two kinds of guesses, each checked by sweeps of the module
+    docstring's Lemma OVI (a refuted or undecided guess is discarded, restoring the last proven
+    vectors ``saved``/``saved_lo``):
+
+    * *extrapolated* (once the per-node increments ``d`` of the lower sweeps decay by a stable
+      factor lam, so ``V* ~ c = lo + d lam / (1 - lam)``, Aitken): upper ``c + dgap + off (v + KAPPA)``
+      and lower ``c - off (v + KAPPA)`` with ``v = d / max(d)``; the lower one is proven by a sweep
+      that decreases no value, which needs the unique fixed point of a component without end
+      components (module docstring);
+    * *plain*: when the estimated error ``r lam / (1 - lam)`` of the lower vector (residual r) is
+      below ``tol``, the upper guess ``min(proven, lo + delta)``.
+
+    After ``OVI_MAX_FAILS`` refuted plain guesses: interval iteration (lower and mode-2 upper
+    sweeps from the last proven upper vector, initially 1).
     Returns (sweeps, status): status 0 proven by a guess, 1 by interval iteration, 2 not within
     ``max_sweeps`` (the bracket is still sound).
     """
     m = nodes.shape[0]
+    none = np.empty(0)
     dgap = _exit_gap(nodes, c, comp, n, state_ptr, row_ptr, col, upper, nxt, layered, ctrl, strat, lo, up)
     if dgap < prec:
         target = prec
@@ -1057,58 +1109,113 @@ def ovi_component(nodes, c, comp, n, state_ptr, row_ptr, col, lower, upper, nxt,
         margin = 0.5 * prec
     delta = dgap + 0.5 * margin
     tol = 0.125 * margin
+    off = 0.4 * margin / (1.0 + OVI_KAPPA)  # extrapolated bracket: dgap + 2 off (1 + KAPPA) <= target
     for t in range(m):
         saved[t] = up[nodes[t]]
     sweeps = 0
     fails = 0
-    while sweeps < max_sweeps and fails < OVI_MAX_FAILS:
-        prev = np.inf
-        k = 0
-        while sweeps < max_sweeps:
-            r = node_sweep(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, lo, lo, ctrl, strat,
-                           adv_max, 0, perm, keys, idx)[0]
-            sweeps += 1
-            k += 1
-            if r <= 0.0:
-                break
-            if k >= 2 and r < prev:
-                lam = r / prev
-                if r * lam / (1.0 - lam) <= tol:
-                    break
-            prev = r
-        if sweeps >= max_sweeps:
-            break
-        for t in range(m):
-            g = lo[nodes[t]] + delta
-            up[nodes[t]] = g if g < saved[t] else saved[t]
-        ok = False
-        for _ in range(OVI_VERIFY_SWEEPS):
-            if sweeps >= max_sweeps:
-                break
-            inc, dec, crossed = node_sweep(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, up, lo,
-                                           ctrl, strat, adv_max, 1, perm, keys, idx)
-            sweeps += 1
-            if crossed:
-                break
-            if inc <= 0.0:
-                ok = True
-                break
-        if ok:
-            # proven: B(u) <= u on the component (and the outside is final), so u >= V*; the
-            # minimum with the previously proven upper vector is an upper bound as well
-            for t in range(m):
-                if saved[t] < up[nodes[t]]:
-                    up[nodes[t]] = saved[t]
+    k = 0
+    prev = np.inf
+    have_cen = False
+    attempts = 0
+    next_try = 3
+    while sweeps < max_sweeps:
+        r = node_sweep(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, lo, up, ctrl, strat, adv_max,
+                       0, perm, keys, idx, incr)[0]
+        sweeps += 1
+        k += 1
+        if _max_gap(nodes, lo, up) <= target:
             return sweeps, 0
+        lam = 1.0
+        est = np.inf
+        if r <= 0.0:
+            est = 0.0
+        elif k >= 2 and r < prev:
+            lam = r / prev
+            est = r * lam / (1.0 - lam)
+        prev = r
+        if est <= tol:
+            # plain guess
+            for t in range(m):
+                g = lo[nodes[t]] + delta
+                up[nodes[t]] = g if g < saved[t] else saved[t]
+            ok, s = _check_guess(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, up, lo, ctrl, strat,
+                                 adv_max, 1, perm, keys, idx, min(OVI_VERIFY_SWEEPS, max_sweeps - sweeps))
+            sweeps += s
+            if ok:
+                # proven: B(u) <= u on the component (the outside is final), so u >= V*; the
+                # minimum with the previously proven upper vector is an upper bound as well
+                for t in range(m):
+                    if saved[t] < up[nodes[t]]:
+                        up[nodes[t]] = saved[t]
+                return sweeps, 0
+            for t in range(m):
+                up[nodes[t]] = saved[t]  # refuted or undecided: back to the proven vector
+            fails += 1
+            tol *= 0.0625
+            if fails >= OVI_MAX_FAILS:
+                break
+            continue
+        if attempts >= OVI_MAX_EXTRAP or lam >= 1.0 or k < next_try:
+            have_cen = False
+            continue
+        # Aitken extrapolation of the lower iterates, and whether it has settled
+        cf = lam / (1.0 - lam)
+        dmax = 0.0
+        vmax = 0.0
         for t in range(m):
-            up[nodes[t]] = saved[t]  # refuted or undecided: back to the proven vector
-        fails += 1
-        tol *= 0.0625
+            x = lo[nodes[t]] + incr[t] * cf
+            if have_cen and abs(x - cen[t]) > dmax:
+                dmax = abs(x - cen[t])
+            cen[t] = x
+            if incr[t] > vmax:
+                vmax = incr[t]
+        settled = have_cen and dmax <= 0.1 * margin and vmax > 0.0
+        have_cen = True
+        if not settled:
+            continue
+        attempts += 1
+        next_try = k + OVI_EXTRAP_EVERY
+        have_cen = False
+        # the upper guess is checked unless the proven one is already close enough
+        need_up = False
+        for t in range(m):
+            if saved[t] - (cen[t] - off * (incr[t] / vmax + OVI_KAPPA)) > target:
+                need_up = True
+                break
+        if need_up:
+            for t in range(m):
+                g = cen[t] + dgap + off * (incr[t] / vmax + OVI_KAPPA)
+                up[nodes[t]] = g if g < saved[t] else saved[t]
+            ok, s = _check_guess(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, up, lo, ctrl, strat,
+                                 adv_max, 1, perm, keys, idx, min(OVI_EXTRAP_VERIFY_SWEEPS, max_sweeps - sweeps))
+            sweeps += s
+            for t in range(m):
+                if ok and up[nodes[t]] < saved[t]:
+                    saved[t] = up[nodes[t]]  # proven upper vector (min with the old one: also proven)
+                up[nodes[t]] = saved[t]
+        for t in range(m):
+            saved_lo[t] = lo[nodes[t]]
+            g = cen[t] - off * (incr[t] / vmax + OVI_KAPPA)
+            if g > saved_lo[t]:
+                lo[nodes[t]] = g
+        ok, s = _check_guess(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, lo, up, ctrl, strat,
+                             adv_max, 3, perm, keys, idx, min(OVI_EXTRAP_VERIFY_SWEEPS, max_sweeps - sweeps))
+        sweeps += s
+        for t in range(m):
+            if not ok or lo[nodes[t]] < saved_lo[t]:
+                lo[nodes[t]] = saved_lo[t] if not ok else max(lo[nodes[t]], saved_lo[t])
+        if _max_gap(nodes, lo, up) <= target:
+            return sweeps, 0
+        if ok:
+            prev = np.inf  # the lower vector jumped: restart the contraction estimate
+            k = 0
+            next_try = 3
     while sweeps < max_sweeps:
         node_sweep(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, lo, lo, ctrl, strat, adv_max, 0,
-                   perm, keys, idx)
+                   perm, keys, idx, none)
         node_sweep(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, up, lo, ctrl, strat, adv_max, 2,
-                   perm, keys, idx)
+                   perm, keys, idx, none)
         sweeps += 2
         if _max_gap(nodes, lo, up) <= target:
             return sweeps, 1
@@ -1136,6 +1243,10 @@ def solve_components(c0, order, comp_ptr, kind, comp, n, state_ptr, row_ptr, col
         if comp_ptr[c + 1] - comp_ptr[c] > biggest:
             biggest = comp_ptr[c + 1] - comp_ptr[c]
     saved = np.empty(biggest)
+    saved_lo = np.empty(biggest)
+    incr = np.empty(biggest)
+    cen = np.empty(biggest)
+    none = np.empty(0)
     nc = comp_ptr.shape[0] - 1
     for c in range(c0, nc):
         if kind[c] == 2:
@@ -1143,14 +1254,15 @@ def solve_components(c0, order, comp_ptr, kind, comp, n, state_ptr, row_ptr, col
         nodes = order[comp_ptr[c]:comp_ptr[c + 1]]
         if kind[c] == 0:
             node_sweep(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, lo, lo, ctrl, strat, adv_max,
-                       0, perm, keys, idx)
+                       0, perm, keys, idx, none)
             node_sweep(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, up, lo, ctrl, strat, adv_max,
-                       2, perm, keys, idx)
+                       2, perm, keys, idx, none)
             comp_sweeps[c] = 2
             comp_status[c] = 0
         else:
             s, st = ovi_component(nodes, c, comp, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, ctrl,
-                                  strat, adv_max, lo, up, perm, keys, idx, prec, max_sweeps, saved)
+                                  strat, adv_max, lo, up, perm, keys, idx, prec, max_sweeps, saved, saved_lo, incr,
+                                  cen)
             comp_sweeps[c] = s
             comp_status[c] = st
     return nc
@@ -1549,8 +1661,13 @@ def _end_components(imdp, nxt, active, ctrl, flat_strat, want_sccs=False):
     Any set works for soundness; tight sets make the iteration converge.  We use the
     maximal end components of the graph of *stay-able* rows (rows with an admissible
     distribution supported inside the component), found by the usual refinement: SCCs of the
-    listed positive-upper edges, drop rows that cannot stay, repeat.  Returns
-    (comp (L*n,) int with -1 for none, number of components, comp_cnt (L, C)).
+    listed positive-upper edges, drop rows that cannot stay, repeat.  Stay-ability is tested
+    liberally and the refinement stops after 8 rounds at the latest, so every end component lies
+    inside a returned component (invariant of the refinement: an end component is strongly
+    connected through its own rows, which stay inside it); nodes outside them are in no end
+    component.  Returns (comp (L*n,) int with -1 for none, number of components, comp_cnt
+    (L, C), sccs): with ``want_sccs``, ``sccs`` = (labels of the strongly connected components of
+    all active nodes, in reverse topological order (Tarjan), -1 elsewhere; self-loop flags).
     """
     L, n = nxt.shape
     N = L * n
@@ -1578,8 +1695,9 @@ def _end_components(imdp, nxt, active, ctrl, flat_strat, want_sccs=False):
             lab_succ = lab.reshape(L, n)[nxt[l], np.arange(n)]
             ok = lab_succ >= 0
             cnt[l] = np.bincount(lab_succ[ok], minlength=nc)
+        # liberal: every end component survives the refinement (Lemma D holds for any set C)
         stay = stayable_rows(imdp.state_ptr, imdp.row_ptr, imdp.col, imdp.lower, imdp.upper, imdp.floor, nxt,
-                             lab, cnt, rowmask)
+                             lab, cnt, rowmask, True)
         newmask = rowmask & stay
         same = np.array_equal(lab, comp)
         comp = lab
