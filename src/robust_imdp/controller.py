@@ -31,6 +31,8 @@ Locating a point x: outside X (any coordinate outside ``[space_lower, space_uppe
 leaving X. Otherwise ``i_j = min(searchsorted(breakpoints_j, x_j, side="right") - 1,
 shape[j] - 1)`` (half-open intervals, the last one closed at the upper end of X) and the cell is
 ``ravel_multi_index(i, shape)`` (C order), as :meth:`robust_imdp.geometry.Partition.locate`.
+Cells of different sizes (a refined ``geometry.BoxPartition``): the breakpoints are every cell
+face and the ``.npz`` also holds ``cell_map`` int64 (shape): the cell is ``cell_map[i]``.
 
 Run: ``s = delta[initial][cell_letters[q0]]``; while ``s`` is neither accepting (satisfied) nor
 a sink (violated) and ``t < k``, apply ``strategy[(t,) q, s]``, observe the next state, stop as
@@ -123,6 +125,9 @@ class Controller:
     threshold : float, optional
     p_low, p_up, p_up_star : (n_cells,) float arrays, optional
         Bounds of the synthesis, kept for inspection and saving.
+    cell_map : int array of shape ``tuple(len(b) - 1 for b in breakpoints)``, optional
+        Cells of different sizes: the cell of each box of the breakpoint grid (every cell is a
+        union of such boxes; ``BoxPartition.grid_index``). Default: the boxes are the cells.
     metadata : dict, optional
         JSON-serialisable information (formula, ...).
 
@@ -153,6 +158,7 @@ class Controller:
         p_up: Any = None,
         p_up_star: Any = None,
         metadata: dict | None = None,
+        cell_map: Any = None,
     ):
         self.atoms = tuple(atoms)
         self.dfa_delta = np.array(dfa_delta, dtype=np.int64)
@@ -179,6 +185,15 @@ class Controller:
         self.shape = tuple(len(b) - 1 for b in self.breakpoints)
         self.dim = len(self.shape)
         self.n_cells = int(np.prod(self.shape))
+        self.cell_map = None
+        if cell_map is not None:
+            self.cell_map = np.array(cell_map, dtype=np.int64)
+            if self.cell_map.shape != self.shape:
+                raise DimensionError(f"cell_map must have the breakpoint grid's shape {self.shape}; got "
+                                     f"{self.cell_map.shape}")
+            self.n_cells = int(self.cell_map.max(initial=-1)) + 1
+            if self.cell_map.min(initial=0) < 0 or np.unique(self.cell_map).size != self.n_cells:
+                raise InvalidModelError("cell_map must map every grid box to a cell 0 .. n_cells-1 and use every cell")
         self.space_lower = np.array(space_lower, dtype=np.float64).reshape(-1)
         self.space_upper = np.array(space_upper, dtype=np.float64).reshape(-1)
         if self.space_lower.shape != (self.dim,) or self.space_upper.shape != (self.dim,):
@@ -251,9 +266,12 @@ class Controller:
             )
         dfa = result.dfa
         meta = {"formula": dfa.formula, "horizon": result.horizon}
+        # cells of different sizes (geometry.BoxPartition): the grid of all cell faces and its cell map
+        grid, cell_map = (partition.grid_index() if hasattr(partition, "grid_index")
+                          else (partition.breakpoints, None))
         return cls(
             result.strategy, dfa.delta, dfa.initial, dfa.accepting, dfa.atoms, result.labels,
-            partition.breakpoints, partition.space.lower, partition.space.upper,
+            grid, partition.space.lower, partition.space.upper, cell_map=cell_map,
             modes=mode_names, threshold=result.threshold, p_low=result.p_low, p_up=result.p_up,
             p_up_star=result.p_up_star, metadata=meta,
         )
@@ -282,6 +300,8 @@ class Controller:
         out = np.full(x.shape[0], -1, dtype=np.int64)
         if np.any(inside):
             out[inside] = np.ravel_multi_index(tuple(multi[inside].T), self.shape)
+            if self.cell_map is not None:  # cells of different sizes
+                out[inside] = self.cell_map.reshape(-1)[out[inside]]
         return out
 
     def _locate_one(self, x: Any) -> int:
@@ -396,6 +416,8 @@ class Controller:
             "p_up": self.p_up,
             "p_up_star": self.p_up_star,
         }
+        if self.cell_map is not None:
+            arrays["cell_map"] = self.cell_map
         for j, b in enumerate(self.breakpoints):
             arrays[f"breakpoints_{j}"] = b
         with open(npz_path, "wb") as fh:
@@ -425,6 +447,7 @@ class Controller:
             doc["dfa"]["initial"], accepting, doc["atoms"], arr["cell_letters"], bps,
             arr["space_lower"], arr["space_upper"], modes=doc["modes"], threshold=doc["threshold"],
             p_low=arr["p_low"], p_up=arr["p_up"], p_up_star=arr["p_up_star"], metadata=doc["metadata"],
+            cell_map=arr.get("cell_map"),
         )
 
     def __repr__(self) -> str:

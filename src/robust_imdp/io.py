@@ -15,6 +15,9 @@ Problem file contract (keys in ``[brackets]`` are tables; ``?`` marks optional k
                     "tune": minutes, it bounds every candidate), optimize?, info_gain? ("data" |
                     "trivial"), bound_tol? (1e-3), bound_max_boxes? (2000)
     [abstraction]?  eta?, eps_rule?, combine?, guarantee? ("confidence" | "paper"), confidence?
+    [refine]?       max_cells, max_rounds? (8), min_cell_size? (float or n floats), time_budget? (s),
+                    split? ("longest" | "all"), growth? (0.35): adaptive refinement of the
+                    undecided cells (on when the table is present; see robust_imdp.refine)
 
 Data files: ``.csv`` with header ``x_1..x_n,u,x_next_1..x_next_n`` (``u`` holds mode names), or
 ``.npz`` with arrays ``x`` (m, n), ``u`` (m,) and ``x_next`` (m, n). Every mode name in ``u``
@@ -77,9 +80,10 @@ _SCHEMA: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
                              "signal_variance",
                              "optimize", "info_gain", "bound_tol", "bound_max_boxes")),
     "abstraction": ((), ("eta", "eps_rule", "combine", "guarantee", "confidence")),
+    "refine": (("max_cells",), ("max_rounds", "min_cell_size", "time_budget", "split", "growth")),
 }
 _TOP_REQUIRED = ("space", "regions", "spec", "data", "modes", "noise", "gp")
-_TOP_OPTIONAL = ("abstraction",)
+_TOP_OPTIONAL = ("abstraction", "refine")
 _NOISE_KEYS = {
     "truncated_gaussian": ("sigma", "bound"),
     "gaussian": ("sigma",),
@@ -339,10 +343,35 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
                 )
             ab[key] = ab_in[key]
 
+    refine = None
+    if "refine" in doc:  # issue 13: adaptive refinement (robust_imdp.refine.RefineOptions)
+        r_in = doc["refine"]
+        refine = {"max_cells": _number(r_in["max_cells"], "[refine].max_cells", where, lo=1, integer=True)}
+        if "max_rounds" in r_in:
+            refine["max_rounds"] = _number(r_in["max_rounds"], "[refine].max_rounds", where, lo=0, integer=True)
+        if "min_cell_size" in r_in:
+            refine["min_cell_size"] = _positive_vector(r_in["min_cell_size"], "[refine].min_cell_size", where, n)
+        if "time_budget" in r_in:
+            refine["time_budget"] = float(_number(r_in["time_budget"], "[refine].time_budget", where))
+            if not refine["time_budget"] > 0:
+                raise ProblemFileError(f"{where}: [refine].time_budget must be > 0 seconds; got {r_in['time_budget']!r}")
+        if "growth" in r_in:
+            refine["growth"] = float(_number(r_in["growth"], "[refine].growth", where))
+            if not 0 < refine["growth"] <= 1:
+                raise ProblemFileError(f"{where}: [refine].growth must lie in (0, 1]; got {r_in['growth']!r}")
+        if "split" in r_in:
+            if r_in["split"] not in ("longest", "all"):
+                raise ProblemFileError(f"{where}: [refine].split must be one of longest, all; got {r_in['split']!r}")
+            refine["split"] = r_in["split"]
+        if gp.get("error_bound", "optimal") == "chowdhury" or gp.get("iid_noise"):
+            raise ProblemFileError(f"{where}: [refine] needs [gp].error_bound = \"optimal\" or \"ridge\" without "
+                                   "iid_noise (the bounds of new cells must hold on the same event as the grid's)")
+
     return {
         "lower": lower, "upper": upper, "cell_size": cell_size, "regions": regions,
         "formula": formula, "threshold": threshold, "horizon": horizon,
         "data_path": data_path, "modes": modes, "noise": noise, "gp": gp, "abstraction": ab,
+        "refine": refine,
     }
 
 
@@ -435,6 +464,7 @@ def load_problem(path):
         bound_tol=bound_tol, bound_max_boxes=bound_max_boxes, eta=ab["eta"], eps_rule=ab["eps_rule"], combine=ab["combine"],
         guarantee=ab["guarantee"], confidence=ab["confidence"], error_bound=error_bound,
         misspecification=misspecification, iid_noise=iid_noise, local_points=local_points,
+        refine=spec["refine"],
     )
 
 

@@ -116,6 +116,10 @@ class Problem:
         Let only the ``local_points`` data points nearest to each cell carry certificate weight
         (``rkhs.local_pools``): the cost per cell no longer grows with the data, and no m x m
         kernel matrix is built. None: all points up to ``LOCAL_AUTO`` points per mode, else 100.
+    refine : refine.RefineOptions, dict or None
+        Adaptive refinement of the undecided cells after the first solve (the problem file's
+        ``[refine]`` table: ``max_cells``, ``max_rounds``, ``min_cell_size``, ``time_budget``,
+        ``split``, ``growth``; see :mod:`robust_imdp.refine`). None: the uniform grid only.
     """
 
     space_lower: np.ndarray
@@ -142,6 +146,7 @@ class Problem:
     misspecification: float = 0.0
     iid_noise: bool = False
     local_points: int | None = None
+    refine: Any = None
 
     def __post_init__(self):
         if self.guarantee not in GUARANTEES:
@@ -178,6 +183,16 @@ class Problem:
                 raise InvalidInputError(
                     f"gp_options {extra} apply only to error_bound 'chowdhury' (a GP posterior); error_bound "
                     f"{self.error_bound!r} uses the unit-amplitude kernel with the given lengthscale only")
+        if self.refine is not None:
+            from robust_imdp.refine import RefineOptions
+
+            object.__setattr__(self, "refine", RefineOptions.from_dict(self.refine))
+            if self.error_bound == "chowdhury" or self.iid_noise:
+                # new cells need bounds of the same statement: the GP route folds the error in at
+                # the end, and iid_noise's union bound counts the cells of the grid
+                raise InvalidInputError(
+                    "[refine] needs error_bound 'optimal' or 'ridge' without iid_noise (the bounds of new cells "
+                    f"must hold on the same event); got error_bound={self.error_bound!r}, iid_noise={self.iid_noise!r}")
 
     def replace(self, **changes) -> "Problem":
         """A copy with some attributes changed (e.g. ``formula=...``)."""
@@ -465,6 +480,7 @@ def _parameters(problem: Problem, abstraction) -> dict:
         "iid_noise": bool(problem.iid_noise),
         "local_points": problem.local_points,
         "abstraction_key": abstraction_key(problem),
+        "refine": None if problem.refine is None else problem.refine.to_dict(),
     }
     from robust_imdp.jsonable import jsonable as _jsonable
 
@@ -523,7 +539,11 @@ def _serial():
 
 
 def _build_abstraction(problem: Problem, partition, log: _Log, cache_dir=None, run: "_Run | None" = None):
-    """Learn + bound (or load them from the cache) and abstract; returns (abstraction, diagnostics)."""
+    """Learn + bound (or load them from the cache) and abstract.
+
+    Returns (abstraction, diagnostics, image boxes abstracted or None when the GP error enters
+    the probabilities).
+    """
     from robust_imdp.abstraction import abstract, confidence_cell_bounds
 
     run = run if run is not None else _Run()
@@ -556,7 +576,7 @@ def _build_abstraction(problem: Problem, partition, log: _Log, cache_dir=None, r
     diagnostics["successors_per_row"] = float(np.mean(abstraction.nnz_per_row))
     log.info(f"IMDP: {abstraction.imdp.n_states} states, {int(np.sum(abstraction.nnz_per_row))} "
              f"listed transitions ({diagnostics['successors_per_row']:.1f} per row)")
-    return abstraction, diagnostics
+    return abstraction, diagnostics, (cell_bounds if error_models is None else None)
 
 
 def _residual_data(problem: Problem):
@@ -955,7 +975,7 @@ def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cac
                               _region_objects(problem))
     log.info(f"partition: {partition.n_cells} cells")
 
-    abstraction, from_cache, diagnostics = None, False, {}
+    abstraction, from_cache, diagnostics, cell_bounds = None, False, {}, None
     cache_file = diag_file = None
     if abstraction_cache is not None:
         cache_file = Path(abstraction_cache) / f"abstraction-{abstraction_key(problem)}.npz"
@@ -970,7 +990,7 @@ def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cac
             from_cache = True
             log.info(f"reused abstraction {cache_file.name}")
     if abstraction is None:
-        abstraction, diagnostics = _build_abstraction(problem, partition, log, abstraction_cache, run)
+        abstraction, diagnostics, cell_bounds = _build_abstraction(problem, partition, log, abstraction_cache, run)
         if cache_file is not None:  # write under a temporary name, then rename (atomic)
             from robust_imdp.jsonable import jsonable as _jsonable
 
@@ -985,12 +1005,104 @@ def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cac
     if why:
         log.info(why)
     syn, classes = _synthesize(problem, partition, abstraction, dfa, log)
+    parameters = _parameters(problem, abstraction)
+    if problem.refine is not None:  # issue 13: adaptive refinement of the undecided cells
+        partition, abstraction, syn, classes, diagnostics, parameters["abstraction_key"] = _refine(
+            problem, partition, abstraction, syn, cell_bounds, dfa, log, run, abstraction_cache, diagnostics)
     log.timings["total"] = time.perf_counter() - log.t0
     result = Result(problem=problem, partition=partition, abstraction=abstraction, dfa=dfa,
                     synthesis=syn, class_names=classes, timings=dict(log.timings),
-                    parameters=_parameters(problem, abstraction), from_cache=from_cache,
+                    parameters=parameters, from_cache=from_cache,
                     diagnostics=diagnostics)
     return result
+
+
+def _cell_bounder(problem: Problem, partition, log: _Log, run: _Run):
+    """``bound_cells(lower, upper) -> (image_lower, image_upper)`` for new cells: the bound stage's settings.
+
+    The same data, noise bound (one event over the data, whatever the cells), weights and local
+    pools as :func:`_learn_and_bound`, so a new cell's box holds on the same event as the grid's.
+    """
+    from robust_imdp.rkhs import check_ranges, noise_bound_at_confidence
+
+    data = _residual_data(problem)
+    data_fail, _ = _failure_budget(problem)
+    m_total = sum(x.shape[0] for x, _, _ in data)
+    noise_bound, _ = noise_bound_at_confidence(problem.noise, m_total, data_fail if data_fail > 0 else 0.5)
+    settings = {"lengthscale": problem.gp_options.get("lengthscale", 1.0), "rkhs_bound": problem.rkhs_bound,
+                "noise_bound": noise_bound, "misspecification": problem.misspecification,
+                "method": problem.error_bound, "iid_theta": None, "iid_factor": None}
+    local = _local_settings(problem, data, partition, noise_bound)
+    sched = run.scheduler(log)
+    shared = [(sched.share(np.ascontiguousarray(x)), sched.share(np.ascontiguousarray(y))) for x, y, _ in data]
+    M, n = len(problem.mode_names), len(problem.space_lower)
+
+    def bound_cells(lower, upper):
+        k = lower.shape[0]
+        chunk = _chunk_cells(run, k, 256)
+        tasks = [(u, s0) for u in range(M) for s0 in range(0, k, chunk)]
+        args = [(*shared[u], problem.maps[u].A, problem.maps[u].b, lower[s0:s0 + chunk], upper[s0:s0 + chunk],
+                 local[u]) for u, s0 in tasks]
+        lo, hi = np.empty((M, k, n)), np.empty((M, k, n))
+        for i, res in sched.run(_bound_task, args, settings):
+            u, s0 = tasks[i]
+            lo[u, s0:s0 + chunk], hi[u, s0:s0 + chunk] = res["lower"], res["upper"]
+        for u in range(M):
+            check_ranges(lo[u], hi[u], u)
+        return lo, hi
+
+    return bound_cells
+
+
+def refined_key(problem: Problem) -> str:
+    """Hash of everything a refined abstraction depends on: the abstraction's, the options and the spec."""
+    h = hashlib.sha256(abstraction_key(problem).encode())
+    _fingerprint(h, [problem.refine.to_dict(), problem.formula, float(problem.threshold), problem.horizon])
+    return h.hexdigest()[:20]
+
+
+def _refine(problem: Problem, partition, abstraction, syn, cell_bounds, dfa, log: _Log, run: _Run, cache_dir,
+            diagnostics):
+    """Refinement rounds from the grid's result (``refine.refine``); cached under :func:`refined_key`."""
+    from robust_imdp.abstraction import Abstraction
+    from robust_imdp.geometry import BoxPartition
+    from robust_imdp.jsonable import jsonable as _jsonable
+    from robust_imdp.refine import refine
+
+    key = refined_key(problem)
+    diagnostics = dict(diagnostics)
+    cache_file = None if cache_dir is None else Path(cache_dir) / f"abstraction-{key}.npz"
+    if cache_file is not None and cache_file.exists():
+        with log.stage("load_abstraction"):
+            abstraction = Abstraction.load(cache_file)
+            diag_file = cache_file.with_suffix(".json")
+            if diag_file.exists():
+                diagnostics["refinement"] = json.loads(diag_file.read_text()).get("refinement")
+        log.info(f"reused refined abstraction {cache_file.name}")
+        partition = abstraction.partition
+        syn, classes = _synthesize(problem, partition, abstraction, dfa, log)
+        return partition, abstraction, syn, classes, diagnostics, key
+    with log.stage("refine"):
+        if cell_bounds is None:  # the grid's abstraction came from the cache: its boxes too
+            cell_bounds = _build_abstraction(problem, partition, _Log(False), cache_dir, run)[2]
+        out = refine(BoxPartition(partition), cell_bounds, _cell_bounder(problem, partition, log, run),
+                     problem.noise, dfa, threshold=problem.threshold, horizon=problem.horizon,
+                     options=problem.refine, abstraction=abstraction, synthesis=syn,
+                     abstraction_options={"eta": problem.eta, "eps_rule": problem.eps_rule,
+                                          "combine": problem.combine},
+                     progress=log.info if log.enabled else None)
+    diagnostics["refinement"] = _jsonable({"stopped": out.stopped, "options": problem.refine.to_dict(),
+                                           "rounds": [r.to_dict() for r in out.rounds]})
+    log.info(f"refinement stopped ({out.stopped}) at {out.partition.n_cells} cells")
+    if cache_file is not None:
+        tmp = cache_file.with_name(cache_file.stem + ".part.json")
+        tmp.write_text(json.dumps({"refinement": diagnostics["refinement"]}))
+        tmp.replace(cache_file.with_suffix(".json"))
+        tmp = cache_file.with_name(cache_file.stem + ".part.npz")
+        out.abstraction.save(tmp)
+        tmp.replace(cache_file)
+    classes = _class_names(out.synthesis.classes, out.synthesis, problem.threshold)
+    return out.partition, out.abstraction, out.synthesis, classes, diagnostics, key
 
 
 def resynthesize(result: Result, *, formula: str | None = None, threshold: float | None = None,
