@@ -272,6 +272,35 @@ def test_certificate_bounds_the_exact_value_including_cancellation():
     assert naive_wrong > 0  # the test can tell a missing error term
 
 
+def test_certificate_is_sound_for_huge_cancelling_weights():
+    # Weights t (e_i - e_j) with t = 1e5 on two points 1e-4 apart nearly cancel in feature space:
+    # the float quadratic form ||phi - Phi* w||^2 sums terms of size t^2 ~ 1e10 to a value of
+    # ~1e-3, losing ~1e-6 -- far more than the upward rounding of <phi, phi>, so only the explicit
+    # error term (added before the square root) keeps the certificate on the safe side of the
+    # 50-digit value. Both sides, 16 problems; the float error has either sign, so dropping the
+    # error term fails here (benchmarks/mutations.py: rkhs-quadform-error-off).
+    rng = np.random.default_rng(15)
+    for trial in range(16):
+        base = rng.uniform(-1, 1, (6, 1))
+        X = np.concatenate([base, base + 1e-4])
+        y = rng.uniform(-1, 1, 12)
+        model = rkhs.KernelModel(X, y, 1.0)
+        c, r = rkhs.cell_centres(np.array([[0.05]]), np.array([[0.07]]))
+        vp = rkhs.vertex_problems(model, c, r)
+        j = trial % 2
+        b, eb, s0 = vp["b"][0, j], vp["b_err"][0, j], vp["s0"][0, j]
+        w = rng.uniform(-0.1, 0.1, 12)
+        i = trial % 6
+        w[i] += 1e5 * (1 + trial / 7)
+        w[i + 6] -= 1e5 * (1 + trial / 7)
+        for side in (1, -1):
+            cert = rkhs.certify_weights(model, b[None], eb[None], np.array([s0]), w[None], noise_l1=0.0,
+                                        rkhs_bound=1.0, side=side)[0]
+            exact, _ = mp_certificate(X, y, model.inv_l2, c[0], vp["v"][0, j], w, 0, 0, 1, side)
+            assert (mp.mpf(cert) - exact) * side >= 0
+            assert abs(mp.mpf(cert) - exact) < mp.mpf("1e-3")  # not vacuous
+
+
 def test_certificate_with_l2_term_and_shrunk_version_fails():
     rng = np.random.default_rng(5)
     X = rng.uniform(-1, 1, (10, 1))
