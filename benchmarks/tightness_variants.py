@@ -84,7 +84,7 @@ def main(argv=None) -> int:
             "variants": rows, "sweep": sweep, "references": refs}
     OUT.mkdir(exist_ok=True)
     (OUT / "tightness_variants.json").write_text(json.dumps(data, indent=1))
-    lines = [f"# Tightness variants (`benchmarks/tightness_variants.py`)", "",
+    lines = ["# Tightness variants (`benchmarks/tightness_variants.py`)", "",
              f"{data['note']}; {data['date']}; commit {data['commit']}. Q_yes against the known-dynamics "
              "reference; one setting of the shipped problem changed at a time.", "",
              "| variant | problem | Q_yes | reference | fraction | confidence | eps median | pipeline s |",

@@ -80,7 +80,7 @@ from typing import Any, Callable, Sequence
 import numba
 import numpy as np
 
-from robust_imdp.errors import AssumptionError, ConvergenceWarning, DimensionError, InvalidInputError
+from robust_imdp.errors import AssumptionError, DimensionError, InvalidInputError
 
 __all__ = [
     "KernelModel", "NormCheck", "CellRange", "ImageRanges", "METHODS",
@@ -923,6 +923,16 @@ def _scaled_remainder_sqrt_up(a, t) -> np.ndarray:
     return np.where((t <= 3.0) & (a >= 0.5) & (a <= 1.0), out, np.inf)
 
 
+def _known_at_vertices(c, r, signs, a_row, offset: float):
+    """The known affine part at every vertex, ``f(c + v) = a.c + b + a.v`` (n, V), and its rounding error."""
+    v_all = signs[None, :, :] * r[:, None, :]
+    lin_v = (c @ a_row + offset)[:, None] + v_all @ a_row
+    d = c.shape[1]
+    lin_err = (2 * d + 4) * _U * 1.01 * ((np.abs(c) @ np.abs(a_row) + abs(offset))[:, None]
+                                          + np.abs(v_all) @ np.abs(a_row)) + 1e-300
+    return lin_v, lin_err
+
+
 def _combine_vertices(lin_v, lin_err, su, sl, t_max, G: float, tau: float):
     """Cell bounds from the vertex bounds of ``<h, phi_v>`` (eq. C), best of two feature scalings.
 
@@ -1010,12 +1020,7 @@ def cell_ranges(model: KernelModel, cells_lower, cells_upper, *, rkhs_bound: flo
     dbar = float(_up(float(noise_bound) + tau))  # |h(x_i) - y_i| <= dbar + tau
     c, r = cell_centres(lower, upper)
     signs = vertex_signs(d)
-    V = signs.shape[0]
-    # Known affine part at every vertex, f_u(c + v) = a.c + b_i + a.v, and its rounding error.
-    v_all = signs[None, :, :] * r[:, None, :]
-    lin_v = (c @ a_row + known_offset)[:, None] + v_all @ a_row
-    lin_err = (2 * d + 4) * _U * 1.01 * ((np.abs(c) @ np.abs(a_row) + abs(known_offset))[:, None]
-                                          + np.abs(v_all) @ np.abs(a_row)) + 1e-300
+    lin_v, lin_err = _known_at_vertices(c, r, signs, a_row, float(known_offset))
     t_max = _up(np.sum(r * r * model.inv_l2, axis=1) * (1 + (d + 4) * _U))
     n_unconv = 0
     if method == "optimal":
@@ -1535,12 +1540,9 @@ def _local_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_boun
     t_max = _up(np.sum(r * r * inv_l2, axis=1) * (1 + (d + 4) * _U))
     A = np.asarray(A, float)
     b = np.asarray(b, float)
-    v_all = signs[None, :, :] * r[:, None, :]
     out = {key: np.empty((lower.shape[0], n)) for key in ("lower", "upper", "eps")}
     for i in range(n):
-        lin_v = (c @ A[i] + b[i])[:, None] + v_all @ A[i]
-        lin_err = (2 * d + 4) * _U * 1.01 * ((np.abs(c) @ np.abs(A[i]) + abs(b[i]))[:, None]
-                                              + np.abs(v_all) @ np.abs(A[i])) + 1e-300
+        lin_v, lin_err = _known_at_vertices(c, r, signs, A[i], float(b[i]))
         su, sl = val[:, :, i, 0], val[:, :, i, 1]
         lo_i, up_i, taylor = _combine_vertices(lin_v, lin_err, su, sl, t_max, G_eff, tau)
         out["lower"][:, i], out["upper"][:, i] = lo_i, up_i
