@@ -1046,15 +1046,20 @@ def _exit_gap(nodes, c, comp, n, state_ptr, row_ptr, col, upper, nxt, layered, c
     return g
 
 
-#: Optimistic value iteration: sweeps per check of a guess; refuted plain guesses before the
-#: component falls back to interval iteration (each asks the lower iteration for a 16x smaller
-#: estimated error); extrapolated guesses tried per component; their offsets ``off (v + KAPPA)``.
-OVI_VERIFY_SWEEPS = 12
-OVI_MAX_FAILS = 4
-OVI_EXTRAP_VERIFY_SWEEPS = 2
-OVI_MAX_EXTRAP = 12
-OVI_EXTRAP_EVERY = 4
-OVI_KAPPA = 0.25
+#: How a component was solved (``solve_components``' ``comp_status``): one node without a
+#: self-loop (exact in one step); proven by guesses without / with a successful extrapolated
+#: one; by interval iteration; not within ``max_iterations``; holds an end component (interval
+#: iteration with deflation).
+ST_EXACT, ST_PLAIN, ST_EXTRAP, ST_INTERVAL, ST_OPEN, ST_DEFLATED = 0, 1, 2, 3, 4, 5
+
+#: Optimistic value iteration parameters (passed to the kernels at every solve):
+#: [0] sweeps per check of a plain guess; [1] refuted plain guesses before the component falls
+#: back to interval iteration (each asks the lower iteration for a 16x smaller estimated
+#: error); [2] sweeps per check of an extrapolated guess; [3] extrapolated guesses tried per
+#: component (0: none); [4] KAPPA of their offsets ``off (v + KAPPA)``; [5] lower sweeps
+#: between two extrapolated guesses; [6] a shift of every guess toward the other bound (0; the
+#: tests set it > 0 to feed the checks wrong guesses, which must be refuted).
+OVI_PARAMS = np.array([12.0, 4.0, 2.0, 12.0, 0.25, 4.0, 0.0])
 
 
 @njit(cache=True)
@@ -1076,7 +1081,7 @@ def _check_guess(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, 
 
 @njit(cache=True)
 def ovi_component(nodes, c, comp, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, ctrl, strat, adv_max,
-                  lo, up, perm, keys, idx, prec, max_sweeps, saved, saved_lo, incr, cen):
+                  lo, up, perm, keys, idx, prec, max_sweeps, saved, saved_lo, incr, cen, params):
     """Solve one strongly connected component without end components to a bracket <= ``prec``.
 
     Its successors outside have their final brackets (width <= ``dgap``).  Optimistic value
@@ -1093,13 +1098,21 @@ def ovi_component(nodes, c, comp, n, state_ptr, row_ptr, col, lower, upper, nxt,
     * *plain*: when the estimated error ``r lam / (1 - lam)`` of the lower vector (residual r) is
       below ``tol``, the upper guess ``min(proven, lo + delta)``.
 
-    After ``OVI_MAX_FAILS`` refuted plain guesses: interval iteration (lower and mode-2 upper
+    After ``params[1]`` (``OVI_PARAMS``) refuted plain guesses: interval iteration (lower and mode-2 upper
     sweeps from the last proven upper vector, initially 1).
-    Returns (sweeps, status): status 0 proven by a guess, 1 by interval iteration, 2 not within
-    ``max_sweeps`` (the bracket is still sound).
+    Returns (sweeps, status): status ``ST_PLAIN`` (proven without a successful extrapolated
+    guess), ``ST_EXTRAP`` (with one), ``ST_INTERVAL`` (by interval iteration), ``ST_OPEN`` (not
+    within ``max_sweeps``; the bracket is still sound).
     """
     m = nodes.shape[0]
     none = np.empty(0)
+    verify_sweeps = int(params[0])
+    max_fails = int(params[1])
+    extrap_sweeps = int(params[2])
+    max_extrap = int(params[3])
+    kappa = params[4]
+    extrap_every = int(params[5])
+    shift = params[6]
     dgap = _exit_gap(nodes, c, comp, n, state_ptr, row_ptr, col, upper, nxt, layered, ctrl, strat, lo, up)
     if dgap < prec:
         target = prec
@@ -1109,7 +1122,7 @@ def ovi_component(nodes, c, comp, n, state_ptr, row_ptr, col, lower, upper, nxt,
         margin = 0.5 * prec
     delta = dgap + 0.5 * margin
     tol = 0.125 * margin
-    off = 0.4 * margin / (1.0 + OVI_KAPPA)  # extrapolated bracket: dgap + 2 off (1 + KAPPA) <= target
+    off = 0.4 * margin / (1.0 + kappa)  # extrapolated bracket: dgap + 2 off (1 + kappa) <= target
     for t in range(m):
         saved[t] = up[nodes[t]]
     sweeps = 0
@@ -1119,13 +1132,14 @@ def ovi_component(nodes, c, comp, n, state_ptr, row_ptr, col, lower, upper, nxt,
     have_cen = False
     attempts = 0
     next_try = 3
-    while sweeps < max_sweeps:
+    extrap_ok = False  # some extrapolated guess was proven
+    while sweeps < max_sweeps and fails < max_fails:
         r = node_sweep(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, lo, up, ctrl, strat, adv_max,
                        0, perm, keys, idx, incr)[0]
         sweeps += 1
         k += 1
         if _max_gap(nodes, lo, up) <= target:
-            return sweeps, 0
+            return sweeps, ST_EXTRAP if extrap_ok else ST_PLAIN
         lam = 1.0
         est = np.inf
         if r <= 0.0:
@@ -1137,10 +1151,10 @@ def ovi_component(nodes, c, comp, n, state_ptr, row_ptr, col, lower, upper, nxt,
         if est <= tol:
             # plain guess
             for t in range(m):
-                g = lo[nodes[t]] + delta
+                g = lo[nodes[t]] + delta - shift
                 up[nodes[t]] = g if g < saved[t] else saved[t]
             ok, s = _check_guess(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, up, lo, ctrl, strat,
-                                 adv_max, 1, perm, keys, idx, min(OVI_VERIFY_SWEEPS, max_sweeps - sweeps))
+                                 adv_max, 1, perm, keys, idx, min(verify_sweeps, max_sweeps - sweeps))
             sweeps += s
             if ok:
                 # proven: B(u) <= u on the component (the outside is final), so u >= V*; the
@@ -1148,15 +1162,15 @@ def ovi_component(nodes, c, comp, n, state_ptr, row_ptr, col, lower, upper, nxt,
                 for t in range(m):
                     if saved[t] < up[nodes[t]]:
                         up[nodes[t]] = saved[t]
-                return sweeps, 0
+                return sweeps, ST_EXTRAP if extrap_ok else ST_PLAIN
             for t in range(m):
                 up[nodes[t]] = saved[t]  # refuted or undecided: back to the proven vector
             fails += 1
             tol *= 0.0625
-            if fails >= OVI_MAX_FAILS:
+            if fails >= max_fails:
                 break
             continue
-        if attempts >= OVI_MAX_EXTRAP or lam >= 1.0 or k < next_try:
+        if attempts >= max_extrap or lam >= 1.0 or k < next_try:
             have_cen = False
             continue
         # Aitken extrapolation of the lower iterates, and whether it has settled
@@ -1175,38 +1189,40 @@ def ovi_component(nodes, c, comp, n, state_ptr, row_ptr, col, lower, upper, nxt,
         if not settled:
             continue
         attempts += 1
-        next_try = k + OVI_EXTRAP_EVERY
+        next_try = k + extrap_every
         have_cen = False
         # the upper guess is checked unless the proven one is already close enough
         need_up = False
         for t in range(m):
-            if saved[t] - (cen[t] - off * (incr[t] / vmax + OVI_KAPPA)) > target:
+            if saved[t] - (cen[t] - off * (incr[t] / vmax + kappa)) > target:
                 need_up = True
                 break
         if need_up:
             for t in range(m):
-                g = cen[t] + dgap + off * (incr[t] / vmax + OVI_KAPPA)
+                g = cen[t] + dgap + off * (incr[t] / vmax + kappa) - shift
                 up[nodes[t]] = g if g < saved[t] else saved[t]
             ok, s = _check_guess(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, up, lo, ctrl, strat,
-                                 adv_max, 1, perm, keys, idx, min(OVI_EXTRAP_VERIFY_SWEEPS, max_sweeps - sweeps))
+                                 adv_max, 1, perm, keys, idx, min(extrap_sweeps, max_sweeps - sweeps))
             sweeps += s
+            extrap_ok = extrap_ok or ok
             for t in range(m):
                 if ok and up[nodes[t]] < saved[t]:
                     saved[t] = up[nodes[t]]  # proven upper vector (min with the old one: also proven)
                 up[nodes[t]] = saved[t]
         for t in range(m):
             saved_lo[t] = lo[nodes[t]]
-            g = cen[t] - off * (incr[t] / vmax + OVI_KAPPA)
+            g = cen[t] - off * (incr[t] / vmax + kappa) + shift
             if g > saved_lo[t]:
                 lo[nodes[t]] = g
         ok, s = _check_guess(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, lo, up, ctrl, strat,
-                             adv_max, 3, perm, keys, idx, min(OVI_EXTRAP_VERIFY_SWEEPS, max_sweeps - sweeps))
+                             adv_max, 3, perm, keys, idx, min(extrap_sweeps, max_sweeps - sweeps))
         sweeps += s
+        extrap_ok = extrap_ok or ok
         for t in range(m):
             if not ok or lo[nodes[t]] < saved_lo[t]:
                 lo[nodes[t]] = saved_lo[t] if not ok else max(lo[nodes[t]], saved_lo[t])
         if _max_gap(nodes, lo, up) <= target:
-            return sweeps, 0
+            return sweeps, ST_EXTRAP if extrap_ok else ST_PLAIN
         if ok:
             prev = np.inf  # the lower vector jumped: restart the contraction estimate
             k = 0
@@ -1218,13 +1234,13 @@ def ovi_component(nodes, c, comp, n, state_ptr, row_ptr, col, lower, upper, nxt,
                    perm, keys, idx, none)
         sweeps += 2
         if _max_gap(nodes, lo, up) <= target:
-            return sweeps, 1
-    return sweeps, 2
+            return sweeps, ST_INTERVAL
+    return sweeps, ST_OPEN
 
 
 @njit(cache=True)
 def solve_components(c0, order, comp_ptr, kind, comp, n, state_ptr, row_ptr, col, lower, upper, nxt, layered,
-                     ctrl, strat, adv_max, lo, up, perm, prec, max_sweeps, comp_sweeps, comp_status):
+                     ctrl, strat, adv_max, lo, up, perm, prec, max_sweeps, comp_sweeps, comp_status, params):
     """Solve the components ``c0, c0+1, ...`` (reverse topological order: every successor
     component comes first) until one that contains an end component (``kind`` 2, returned for
     the caller) or the last one (returns the number of components).
@@ -1258,11 +1274,11 @@ def solve_components(c0, order, comp_ptr, kind, comp, n, state_ptr, row_ptr, col
             node_sweep(nodes, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, up, lo, ctrl, strat, adv_max,
                        2, perm, keys, idx, none)
             comp_sweeps[c] = 2
-            comp_status[c] = 0
+            comp_status[c] = ST_EXACT
         else:
             s, st = ovi_component(nodes, c, comp, n, state_ptr, row_ptr, col, lower, upper, nxt, layered, ctrl,
                                   strat, adv_max, lo, up, perm, keys, idx, prec, max_sweeps, saved, saved_lo, incr,
-                                  cen)
+                                  cen, params)
             comp_sweeps[c] = s
             comp_status[c] = st
     return nc
@@ -1784,11 +1800,12 @@ def _topological(imdp, nxt, lo, up, active, ctrl, adv_max, flat_strat, precision
     c = 0
     while c < nc:
         c = solve_components(c, order, comp_ptr, kind, comp, n, *args, lof, upf, perm, precision, max_iterations,
-                             comp_sweeps, comp_status)
+                             comp_sweeps, comp_status, np.asarray(OVI_PARAMS, dtype=np.float64))
         if c < nc:  # a component holding an end component: interval iteration with deflation
             members = order[comp_ptr[c]:comp_ptr[c + 1]]
             comp_sweeps[c] = _deflated_component(imdp, nxt, lo, up, members, mcomp, mcnt, ctrl, adv_max, flat_strat,
                                                  precision, max_iterations)
+            comp_status[c] = ST_DEFLATED
             c += 1
     return int(comp_sweeps.max())
 
