@@ -68,7 +68,7 @@ def test_result_identical_for_any_chunking_and_threads():
     assert canonical(synthesize_from_data(p, progress=False, workers=1, chunk_cells=48)) == base
     # in process with two numba threads (what workers=None picks for small work)
     with parallel.InProcess(threads=2) as sched:
-        assert sched.n_workers == 1
+        assert sched.n_workers == 2  # cores in use
     two = synthesize_from_data(p, progress=False, workers=None, chunk_cells=32)
     assert canonical(two) == base
 

@@ -70,7 +70,7 @@ class InProcess(Scheduler):
 
     def __init__(self, threads: int = 1):
         self.threads = max(1, int(threads))
-        self.n_workers = 1
+        self.n_workers = self.threads  # cores in use (numba threads inside each task)
         self.description = f"in process, {self.threads} thread{'s' if self.threads > 1 else ''}"
 
     def run(self, fn, args, kwargs=None):
