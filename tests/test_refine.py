@@ -402,10 +402,15 @@ def test_selection_scores_by_hand():
     m = IMDP.from_csr([0, 1, 2, 3, 4], [0, 4, 5, 6, 7], [0, 1, 2, 3, 1, 2, 3],
                       [0.0, 0.1, 0.0, 0.0, 1.0, 1.0, 1.0], [0.6, 0.5, 0.2, 0.1, 1.0, 1.0, 1.0])
     syn = SimpleNamespace(classes=np.array(["maybe", "yes", "no"]), error=np.array([0.3, 0.4, 0.25]),
+                          p_up_star=np.array([0.95, 1.0, 0.5]), threshold=0.9,
                           strategy=np.zeros((3, 1), int), initial_dfa_state=np.zeros(3, int))
     score = select_cells(P, m, syn, 1)
     # own volume + volume x upper into itself, times the error; successors: 1 x upper x error
     np.testing.assert_allclose(score, [(1 + 0.6) * 0.3, 0.5 * 0.4, 0.2 * 0.25])
+    np.testing.assert_array_equal(select_cells(P, m, syn, 1, "undecided"), score)  # cell 2 cannot become Q_yes
+    syn.p_up_star[2] = 0.92  # now it can (its strategy's p_up is below 0.9, the best one's is not)
+    np.testing.assert_allclose(select_cells(P, m, syn, 1), score + [0, 0, (2 + 2 * 1.0) * 0.25])  # row: itself, [1, 1]
+    np.testing.assert_array_equal(select_cells(P, m, syn, 1, "undecided"), score)
 
 
 def test_options_from_the_problem_table():
@@ -469,3 +474,28 @@ def test_pipeline_refinement_end_to_end(tmp_path):
     assert "refine" not in again.timings and again.partition.n_cells == P.n_cells
     np.testing.assert_array_equal(again.synthesis.p_low, syn.p_low)
     assert again.diagnostics["refinement"] == info
+
+
+def test_refine_table_in_the_problem_file():
+    import tomllib
+
+    from robust_imdp.errors import ProblemFileError
+    from robust_imdp.io import parse_problem_dict
+
+    base = (__import__("pathlib").Path(__file__).parent.parent / "examples/problems/three_mode_linear.toml").read_text()
+    spec = parse_problem_dict(tomllib.loads(base))
+    assert spec["refine"] is None  # no table: no refinement
+    spec = parse_problem_dict(tomllib.loads(base + "\n[refine]\nmax_cells = 2048\nmin_cell_size = 0.01\n"
+                                                   "split = \"all\"\nfocus = \"undecided\"\n"))
+    assert spec["refine"]["max_cells"] == 2048 and spec["refine"]["min_cell_size"].tolist() == [0.01, 0.01]
+    opts = RefineOptions.from_dict(spec["refine"])
+    assert opts.split == "all" and opts.focus == "undecided" and opts.max_rounds == 8
+    for extra, match in (("max_cell = 3", "unknown key 'max_cell' .*did you mean 'max_cells'"),
+                         ("max_cells = 0", "max_cells must lie in"), ("max_cells = 9\nsplit = \"oct\"", "split"),
+                         ("max_cells = 9\ngrowth = 1.5", "growth"), ("max_cells = 9\ntime_budget = 0", "time_budget"),
+                         ("max_rounds = 2", "missing required key 'max_cells'")):
+        with pytest.raises(ProblemFileError, match=match):
+            parse_problem_dict(tomllib.loads(base + "\n[refine]\n" + extra + "\n"))
+    gp = base.replace("[gp]\n", "[gp]\niid_noise = true\n")
+    with pytest.raises(ProblemFileError, match=r"\[refine\] needs"):
+        parse_problem_dict(tomllib.loads(gp + "\n[refine]\nmax_cells = 9\n"))

@@ -16,8 +16,9 @@ Problem file contract (keys in ``[brackets]`` are tables; ``?`` marks optional k
                     "trivial"), bound_tol? (1e-3), bound_max_boxes? (2000)
     [abstraction]?  eta?, eps_rule?, combine?, guarantee? ("confidence" | "paper"), confidence?
     [refine]?       max_cells, max_rounds? (8), min_cell_size? (float or n floats), time_budget? (s),
-                    split? ("longest" | "all"), growth? (0.35): adaptive refinement of the
-                    undecided cells (on when the table is present; see robust_imdp.refine)
+                    split? ("longest" | "all"), growth? (0.35), focus? ("open" | "undecided"):
+                    adaptive refinement of the undecided cells (on when the table is present;
+                    see robust_imdp.refine)
 
 Data files: ``.csv`` with header ``x_1..x_n,u,x_next_1..x_next_n`` (``u`` holds mode names), or
 ``.npz`` with arrays ``x`` (m, n), ``u`` (m,) and ``x_next`` (m, n). Every mode name in ``u``
@@ -80,7 +81,7 @@ _SCHEMA: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
                              "signal_variance",
                              "optimize", "info_gain", "bound_tol", "bound_max_boxes")),
     "abstraction": ((), ("eta", "eps_rule", "combine", "guarantee", "confidence")),
-    "refine": (("max_cells",), ("max_rounds", "min_cell_size", "time_budget", "split", "growth")),
+    "refine": (("max_cells",), ("max_rounds", "min_cell_size", "time_budget", "split", "growth", "focus")),
 }
 _TOP_REQUIRED = ("space", "regions", "spec", "data", "modes", "noise", "gp")
 _TOP_OPTIONAL = ("abstraction", "refine")
@@ -363,6 +364,10 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
             if r_in["split"] not in ("longest", "all"):
                 raise ProblemFileError(f"{where}: [refine].split must be one of longest, all; got {r_in['split']!r}")
             refine["split"] = r_in["split"]
+        if "focus" in r_in:
+            if r_in["focus"] not in ("open", "undecided"):
+                raise ProblemFileError(f"{where}: [refine].focus must be one of open, undecided; got {r_in['focus']!r}")
+            refine["focus"] = r_in["focus"]
         if gp.get("error_bound", "optimal") == "chowdhury" or gp.get("iid_noise"):
             raise ProblemFileError(f"{where}: [refine] needs [gp].error_bound = \"optimal\" or \"ridge\" without "
                                    "iid_noise (the bounds of new cells must hold on the same event as the grid's)")

@@ -112,7 +112,26 @@ def _outline_segments(bx, by, ind) -> list:
     segs += [((bx[i], by[j]), (bx[i], by[j + 1])) for i, j in zip(vi, vj)]
     hi, hj = np.nonzero(pad[1:-1, 1:] != pad[1:-1, :-1])  # horizontal edges at y = by[hj]
     segs += [((bx[i], by[j]), (bx[i + 1], by[j])) for i, j in zip(hi, hj)]
-    return segs
+    return _merge_collinear(segs)
+
+
+def _merge_collinear(segs) -> list:
+    """Join axis-parallel segments that continue each other (refined cells make many short ones,
+    whose haloes would overlap at every joint and stripe the line)."""
+    out, runs = [], {}
+    for (x0, y0), (x1, y1) in segs:
+        key = ("v", x0) if x0 == x1 else ("h", y0)
+        runs.setdefault(key, []).append((y0, y1) if x0 == x1 else (x0, x1))
+    for (kind, c), spans in runs.items():
+        spans.sort()
+        a, b = spans[0]
+        for lo, hi in spans[1:] + [(np.inf, np.inf)]:
+            if lo == b:
+                b = hi
+                continue
+            out.append(((c, a), (c, b)) if kind == "v" else ((a, c), (b, c)))
+            a, b = lo, hi
+    return out
 
 
 def _draw_regions(ax, res: ResultFile, *, fill: bool, label_text: bool = True, lw: float = 1.6,

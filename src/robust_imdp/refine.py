@@ -4,11 +4,13 @@ Refining a uniform grid everywhere spends almost all of its cells where nothing 
 :func:`refine` starts from an abstraction on a :class:`~robust_imdp.geometry.BoxPartition` (an
 unsplit one is the rectilinear grid, bit for bit) and repeats, round by round:
 
-1. **select** the cells whose splitting can most change an undecided (Q_?) cell's class
-   (:func:`select_cells`): an undecided cell q, weighted by its volume, points at itself and
-   at every successor c its chosen mode can reach (upper bound > 0), in proportion to
-   ``upper(q, u, c)``; each candidate's score is that weight times its own error
-   ``p_up_star - p_low`` (cells whose value is already exact, such as obstacles, score 0);
+1. **select** the cells whose splitting can most change the class of an open cell -- one that
+   can still become Q_yes: Q_?, or Q_no with ``p_up_star >= threshold`` (``focus="open"``, the
+   default), or Q_? only (``focus="undecided"``) -- (:func:`select_cells`): an open cell q,
+   weighted by its volume, points at itself and at every successor c its chosen mode can reach
+   (upper bound > 0), in proportion to ``upper(q, u, c)``; each candidate's score is that
+   weight times its own error ``p_up_star - p_low`` (cells whose value is already exact, such
+   as obstacles, score 0);
 2. **split** the best ones (bisect the longest side, or every side) within the round's share of
    the cell budget and above ``min_cell_size``;
 3. **bound** only the new cells (``bound_cells``, e.g. the certified RKHS bounds of
@@ -23,7 +25,7 @@ unsplit one is the rectilinear grid, bit for bit) and repeats, round by round:
 5. **re-solve** the product (``synthesis.synthesize``; the solver takes no initial values, so
    there is no warm start: the state space changes every round anyway).
 
-It stops when no cell is undecided, at the cell budget (``max_cells``), after ``max_rounds``,
+It stops when no cell is open (undecided), at the cell budget (``max_cells``), after ``max_rounds``,
 when the time budget is spent, or when no undecided cell can be split further
 (``min_cell_size``). Each round's cells, Q_yes / Q_no / Q_? volume shares and times are recorded
 (:class:`RefineRound`).
@@ -46,9 +48,10 @@ from robust_imdp.abstraction import AbstractionRows, CellBounds, abstract_rows, 
 from robust_imdp.errors import DimensionError, InvalidInputError
 from robust_imdp.geometry import BoxPartition, Partition
 
-__all__ = ["RefineOptions", "RefineRound", "RefineResult", "refine", "select_cells", "class_shares"]
+__all__ = ["RefineOptions", "RefineRound", "RefineResult", "refine", "select_cells", "focus_cells", "class_shares"]
 
 SPLITS = ("longest", "all")
+FOCUS = ("open", "undecided")
 
 
 @dataclass(frozen=True)
@@ -72,6 +75,9 @@ class RefineOptions:
     growth : float in (0, 1]
         A round adds at most ``growth * n_cells`` cells (a few rounds, each aimed at the cells
         the last solve found undecided).
+    focus : {"open", "undecided"}
+        Which cells refinement tries to decide (:func:`select_cells`): every cell that can still
+        become Q_yes (default), or the Q_? cells only.
     """
 
     max_cells: int
@@ -80,6 +86,7 @@ class RefineOptions:
     time_budget: float | None = None
     split: str = "longest"
     growth: float = 0.35
+    focus: str = "open"
 
     def __post_init__(self):
         if isinstance(self.max_cells, bool) or not isinstance(self.max_cells, (int, np.integer)) or self.max_cells < 1:
@@ -96,10 +103,12 @@ class RefineOptions:
             raise InvalidInputError(f"[refine].time_budget must be a positive number of seconds; got {self.time_budget!r}")
         if self.split not in SPLITS:
             raise InvalidInputError(f"[refine].split must be one of {SPLITS}; got {self.split!r}")
+        if self.focus not in FOCUS:
+            raise InvalidInputError(f"[refine].focus must be one of {FOCUS}; got {self.focus!r}")
         if not (0 < float(self.growth) <= 1):
             raise InvalidInputError(f"[refine].growth must lie in (0, 1]; got {self.growth!r}")
 
-    KEYS = ("max_cells", "max_rounds", "min_cell_size", "time_budget", "split", "growth")
+    KEYS = ("max_cells", "max_rounds", "min_cell_size", "time_budget", "split", "growth", "focus")
 
     @classmethod
     def from_dict(cls, d) -> "RefineOptions":
@@ -120,7 +129,7 @@ class RefineOptions:
         return {"max_cells": int(self.max_cells), "max_rounds": int(self.max_rounds),
                 "min_cell_size": None if m is None else np.asarray(m, float).tolist(),
                 "time_budget": None if self.time_budget is None else float(self.time_budget),
-                "split": self.split, "growth": float(self.growth)}
+                "split": self.split, "growth": float(self.growth), "focus": self.focus}
 
 
 @dataclass(frozen=True)
@@ -207,7 +216,15 @@ def _min_size(options: RefineOptions, partition: BoxPartition) -> np.ndarray:
     return np.broadcast_to(np.asarray(options.min_cell_size, dtype=float), (partition.dim,)).copy()
 
 
-def select_cells(partition: BoxPartition, imdp, synthesis, n_modes: int):
+def focus_cells(synthesis, focus: str = "open") -> np.ndarray:
+    """``(n_cells,)`` bool: the cells refinement tries to decide (see :class:`RefineOptions`)."""
+    classes = np.asarray(synthesis.classes)
+    if focus == "undecided":
+        return classes == "maybe"
+    return (classes == "maybe") | ((classes == "no") & (np.asarray(synthesis.p_up_star) >= synthesis.threshold))
+
+
+def select_cells(partition: BoxPartition, imdp, synthesis, n_modes: int, focus: str = "open"):
     """Scores of every cell for splitting (see the module docstring, step 1).
 
     Parameters
@@ -218,6 +235,10 @@ def select_cells(partition: BoxPartition, imdp, synthesis, n_modes: int):
     synthesis : SynthesisResult
         ``classes``, ``error``, ``strategy`` and ``initial_dfa_state`` of the last solve.
     n_modes : int
+    focus : {"open", "undecided"}
+        The cells whose class refinement tries to change: the undecided ones (Q_?), or every cell
+        that can still become Q_yes (Q_? and the Q_no cells whose optimistic bound ``p_up_star``
+        reaches the threshold: their strategy's ``p_up`` is below it, the best strategy's is not).
 
     Returns
     -------
@@ -226,7 +247,7 @@ def select_cells(partition: BoxPartition, imdp, synthesis, n_modes: int):
     N = partition.n_cells
     vol = partition.volumes()
     err = np.asarray(synthesis.error, dtype=float)
-    maybe = np.flatnonzero(np.asarray(synthesis.classes) == "maybe")
+    maybe = np.flatnonzero(focus_cells(synthesis, focus))
     weight = np.zeros(N)
     weight[maybe] += vol[maybe]
     if maybe.size:
@@ -375,7 +396,7 @@ def refine(partition, cell_bounds: CellBounds, bound_cells: Callable, noise, dfa
     per_child = (2 ** partition.dim - 1) if options.split == "all" else 1
     stopped = "max_rounds"
     for rnd in range(1, options.max_rounds + 1):
-        if counts["maybe"] == 0:
+        if not focus_cells(synthesis, options.focus).any():
             stopped = "no undecided cells"
             break
         if partition.n_cells + per_child > options.max_cells:
@@ -386,7 +407,7 @@ def refine(partition, cell_bounds: CellBounds, bound_cells: Callable, noise, dfa
             break
         # -- 1. select
         t0 = time.perf_counter()
-        score = select_cells(partition, abstraction.imdp, synthesis, M)
+        score = select_cells(partition, abstraction.imdp, synthesis, M, options.focus)
         cand = np.flatnonzero(score > 0)
         axes = _split_axes(partition, cand, min_size, options.split)
         cand, axes = cand[axes >= 0], axes[axes >= 0]
@@ -429,6 +450,6 @@ def refine(partition, cell_bounds: CellBounds, bound_cells: Callable, noise, dfa
         if progress:
             progress(rounds[-1].line())
     else:
-        stopped = "no undecided cells" if counts["maybe"] == 0 else "max_rounds"
+        stopped = "max_rounds" if focus_cells(synthesis, options.focus).any() else "no undecided cells"
     return RefineResult(partition=partition, cell_bounds=cell_bounds, abstraction=abstraction, synthesis=synthesis,
                         rounds=tuple(rounds), stopped=stopped, options=options)
