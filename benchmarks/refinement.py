@@ -165,7 +165,25 @@ def plot(rows: dict, results: dict) -> None:
 
     from robust_imdp.plotting import CLASS_COLOURS, plot_classes
 
-    fig, axes = plt.subplots(1, len(rows), figsize=(5.6 * len(rows), 4.4), constrained_layout=True, squeeze=False)
+    fig, axes = plt.subplots(2, len(rows), figsize=(5.6 * len(rows), 7.4), constrained_layout=True, squeeze=False,
+                             gridspec_kw={"height_ratios": [3, 2]})
+    floor = 1e-5  # a zero share is drawn here on the log axis
+    for ax, (stem, row) in zip(axes[1], rows.items()):  # the undecided share on a log scale
+        rounds = row["refined"]["rounds"]
+        ax.plot([r["n_cells"] for r in rounds], [max(r["shares"]["maybe"], floor) for r in rounds], "-o",
+                color=CLASS_COLOURS["maybe"], ms=4, label="Q_?, refined (round by round)")
+        ax.plot([row["unrefined"]["n_cells"], row["uniform_fine"]["n_cells"]],
+                [max(row["unrefined"]["shares"]["maybe"], floor), max(row["uniform_fine"]["shares"]["maybe"], floor)],
+                ls=":", marker="s", mfc="white", color=CLASS_COLOURS["maybe"], label="Q_?, uniform grid, our bounds")
+        ax.axhline(0.5 * row["unrefined"]["shares"]["maybe"], color="grey", lw=0.8, ls="--",
+                   label="half of the unrefined Q_?")
+        ax.set_xscale("log", base=2)
+        ax.set_yscale("log")
+        ax.set_ylim(floor / 2, 1)
+        ax.set_xlabel("cells")
+        ax.set_ylabel(f"Q_? share of the area (0 drawn at {floor:g})")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=6.5, loc="upper right")
     for ax, (stem, row) in zip(axes[0], rows.items()):
         rounds = row["refined"]["rounds"]
         cells = [r["n_cells"] for r in rounds]
@@ -182,7 +200,6 @@ def plot(rows: dict, results: dict) -> None:
                     ls="none", marker="^", color=CLASS_COLOURS[c], mfc="none", ms=7,
                     label="uniform grid, known dynamics" if c == "yes" else None)
         ax.set_xscale("log", base=2)
-        ax.set_xlabel("cells")
         ax.set_ylabel("share of the area of X")
         ax.set_ylim(0, 1)
         ax.set_title(f"{stem}\n{row['formula']!r}", fontsize=9)
@@ -255,7 +272,11 @@ def main(argv=None) -> int:
     ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "robust_imdp_bench_refinement")
     ap.add_argument("--no-validate", action="store_true")
     ap.add_argument("--save-abstractions", type=Path, default=None)
+    ap.add_argument("--replot", action="store_true", help="redraw refinement.png from refinement.json only")
     args = ap.parse_args(argv)
+    if args.replot:
+        plot(json.loads((OUT / "refinement.json").read_text())["problems"], {})
+        return 0
     stems = args.only or list(CASES)
     rows, results = {}, {}
     for stem in stems:
