@@ -28,6 +28,7 @@ bench: venv
 	$(PY) benchmarks/reference.py
 	$(PY) benchmarks/tightness_variants.py
 	$(PY) benchmarks/scale.py
+	$(PY) benchmarks/refinement.py
 
 clean:
 	rm -rf $(VENV) results
