@@ -179,7 +179,7 @@ def test_guess_checks_prove_good_guesses_and_refute_shrunk_ones():
         perm = np.empty(m.nnz, dtype=np.uint8)
         solve.fill_local_order(m.row_ptr, perm, 1)
         keys, idx = np.empty(64), np.empty(64, dtype=np.uint8)
-        nxt = np.zeros((1, n), dtype=np.int64)
+        nxt = np.zeros(n, dtype=np.int64)
 
         def check(guess, other, mode):
             V = guess.copy()
@@ -376,8 +376,7 @@ def test_cached_order_rows_round_outward(maximize):
         elif trial % 3 == 2:
             perm[:k] = rng.permutation(k)
         keys, idx = np.empty(k), np.empty(k, dtype=np.uint16)
-        args = (np.zeros(1, np.int64), n, m.state_ptr, m.row_ptr, m.col, m.lower, m.upper, np.zeros((1, n), np.int64),
-                False)
+        args = (np.zeros(1, np.int64), n, m.state_ptr, m.row_ptr, m.col, m.lower, m.upper, np.zeros(n, np.int64), False)
         out = {}
         # modes 0 / 3: lower sweep / lower-guess check (rounded down); 2 / 1: upper sweep / check (up)
         for mode, start in ((0, 0.0), (3, 1.0), (2, 1.0), (1, 0.0)):
@@ -386,7 +385,7 @@ def test_cached_order_rows_round_outward(maximize):
             out[mode] = Fraction(V[0])
             assert np.all(np.diff(-w[perm[:k]] if maximize else w[perm[:k]]) >= 0)  # order written back
         assert out[0] <= exact and out[3] <= exact and out[2] >= exact and out[1] >= exact
-        plain = solve.row_value_cached(0, k, 0, m.col, m.lower, m.upper, np.r_[0.0, w], np.zeros((1, n), np.int64), 0,
-                                       n, False, maximize, perm, keys, idx)[0]
+        plain = solve.row_value_cached(0, k, 0, m.col, m.lower, m.upper, np.r_[0.0, w], np.zeros(n, np.int64), 0, n,
+                                       False, maximize, perm, keys, idx)[0]
         wrong_side += Fraction(plain) != exact
     assert wrong_side > 0

@@ -106,7 +106,10 @@ from dataclasses import dataclass
 from enum import Enum
 
 import numpy as np
-from numba import njit
+from llvmlite import ir
+from numba import njit, types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 from robust_imdp.errors import ConvergenceWarning, DimensionError, InvalidInputError
 from robust_imdp.imdp import IMDP
@@ -872,6 +875,36 @@ def stayable_rows(state_ptr, row_ptr, col, lower, upper, floor, nxt, comp, comp_
 
 
 # =========================================================================== topological OVI kernels
+def _prefetch_name():
+    """The mangled name of LLVM's prefetch intrinsic for this llvmlite (typed or opaque pointers)."""
+    return "llvm.prefetch.p0" if str(ir.IntType(8).as_pointer()) == "ptr" else "llvm.prefetch.p0i8"
+
+
+@intrinsic
+def prefetch(typingctx, arr, i):
+    """Hint the CPU to fetch ``arr[i]`` (1-D array) into the cache; no effect on results.  The
+    successor values of a large model are gathered at random: fetching those of an entry
+    ``PREFETCH_DISTANCE`` entries ahead hides the memory latency (3x on 1M states)."""
+    sig = types.void(arr, i)
+
+    def codegen(context, builder, signature, args):
+        aryty = signature.args[0]
+        ary = context.make_array(aryty)(context, builder, args[0])
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [args[1]], wraparound=False)
+        i8p = ir.IntType(8).as_pointer()
+        i32 = ir.IntType(32)
+        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32]),
+                                            _prefetch_name())
+        # read access, high temporal locality, data cache
+        builder.call(fn, [builder.bitcast(ptr, i8p), ir.Constant(i32, 0), ir.Constant(i32, 3), ir.Constant(i32, 1)])
+        return context.get_dummy_value()
+    return sig, codegen
+
+
+#: Entries ahead whose successor value is prefetched (about three rows of 20).
+PREFETCH_DISTANCE = 64
+
+
 # The default unbounded engine (``method="vi"``, models without floor rows): strongly connected
 # components in reverse topological order, Gauss-Seidel sweeps over a node list, and per
 # component optimistic value iteration (guess an upper vector from the lower one and prove it
@@ -887,17 +920,28 @@ def row_value_cached(j0, j1, po, col, lower, upper, V, nxt, l, n, layered, adv_m
     insertion: O(k) compares with predictable branches while the order of the successor values
     does not change, which is the usual case once the iteration settles.  The new order is
     written back.  ``V`` is the flat (L*n,) value vector; with ``layered`` the successor of
-    entry j is node ``nxt[l, col[j]] * n + col[j]``.
+    entry j is node ``nxt[l * n + col[j]] * n + col[j]`` (``nxt`` flat (L*n,)).
     """
     k = j1 - j0
+    nnz = col.shape[0]
     val = 0.0
     rem = 1.0
+    moved = False
     for t in range(k):
+        jp = j0 + t + PREFETCH_DISTANCE
+        if jp < nnz:
+            qp = col[jp]
+            if layered:
+                if jp + PREFETCH_DISTANCE < nnz:
+                    prefetch(nxt, l * n + col[jp + PREFETCH_DISTANCE])
+                prefetch(V, nxt[l * n + qp] * n + qp)
+            else:
+                prefetch(V, qp)
         li = perm[po + t]
         j = j0 + li
         q2 = col[j]
         if layered:
-            x = V[nxt[l, q2] * n + q2]
+            x = V[nxt[l * n + q2] * n + q2]
         else:
             x = V[q2]
         lj = lower[j]
@@ -911,8 +955,11 @@ def row_value_cached(j0, j1, po, col, lower, upper, V, nxt, l, n, layered, adv_m
             i -= 1
         keys[i] = kk
         idx[i] = li
-    for t in range(k):
-        perm[po + t] = idx[t]
+        if i != t:
+            moved = True
+    if moved:  # write the order back only when it changed (no store traffic in the steady state)
+        for t in range(k):
+            perm[po + t] = idx[t]
     if rem <= 0.0:
         return val, 0.0  # sum(lower) >= 1 (within the model tolerance): p = lower
     for t in range(k):
@@ -1038,7 +1085,7 @@ def _exit_gap(nodes, c, comp, n, state_ptr, row_ptr, col, upper, nxt, layered, c
             if upper[j] <= 0.0:
                 continue
             q2 = col[j]
-            s2 = nxt[l, q2] * n + q2 if layered else q2
+            s2 = nxt[l * n + q2] * n + q2 if layered else q2
             if comp[s2] != c:
                 d = up[s2] - lo[s2]
                 if d > g:
@@ -1334,6 +1381,9 @@ class ReachabilityResult:
     strategy : (n,) int array, or (k, n) with a horizon
         Choice index within each state (``strategy[t]`` is used at time t for k-step).
     iterations : int
+        Unbounded, default method: the largest number of Bellman sweeps (lower, upper and guess
+        checks) spent on one strongly connected component; ``method="interval"``: lower/upper
+        sweep pairs.  k-step: k.
     precision : float
         Achieved ``max(upper - lower)``.
     converged : bool
@@ -1642,7 +1692,7 @@ def _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, pre
             gap = float(np.max(up - lo))
     converged = gap <= precision
     if not converged:
-        warnings.warn(f"interval iteration stopped after {it} iterations with max(upper - lower) = {gap:.3g} > "
+        warnings.warn(f"value iteration stopped after {it} iterations with max(upper - lower) = {gap:.3g} > "
                       f"precision {precision:g}; the returned bounds are sound but loose", ConvergenceWarning,
                       stacklevel=3)
     # strategy: optimal rows w.r.t. the final lower values (value-1 nodes included), ties
@@ -1793,7 +1843,7 @@ def _topological(imdp, nxt, lo, up, active, ctrl, adv_max, flat_strat, precision
     fill_local_order(imdp.row_ptr, perm, L)
     lof, upf = lo.reshape(-1), up.reshape(-1)
     strat = flat_strat if ctrl == 2 else np.zeros(1, dtype=np.int64)
-    nx = np.ascontiguousarray(nxt, dtype=np.int64)
+    nx = np.ascontiguousarray(nxt, dtype=np.int64).reshape(-1)  # flat: node (l, q') -> layer of its successor
     comp_sweeps = np.zeros(nc, dtype=np.int64)
     comp_status = np.zeros(nc, dtype=np.int64)
     args = (imdp.state_ptr, imdp.row_ptr, imdp.col, imdp.lower, imdp.upper, nx, L > 1, ctrl, strat, adv_max)
