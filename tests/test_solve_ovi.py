@@ -389,3 +389,44 @@ def test_cached_order_rows_round_outward(maximize):
                                        False, maximize, perm, keys, idx)[0]
         wrong_side += Fraction(plain) != exact
     assert wrong_side > 0
+
+
+# --------------------------------------------------------------------------- floor rows (Jacobi OVI)
+def with_floor(m, floor):
+    return IMDP.from_csr(m.state_ptr, m.row_ptr, m.col, m.lower, m.upper, floor=np.full(m.n_choices, floor))
+
+
+@pytest.mark.parametrize("variant", sorted(PARAMS))
+def test_floor_models_every_path(monkeypatch, variant):
+    """Floor rows (the GP abstraction's shape) use optimistic value iteration with Jacobi checks
+    on the whole model: brackets hold the dense reference (floors expanded) with teeth, for each
+    parameter variant (wrong guesses included), both adversaries and objectives."""
+    monkeypatch.setattr(solve, "OVI_PARAMS", PARAMS[variant])
+    rng = np.random.default_rng(4)
+    m = with_floor(leaking_model(rng, 30, 2, 4), 0.004)
+    assert m.has_floor
+    t = np.zeros(30, bool)
+    t[0] = True
+    z = np.zeros(30, bool)
+    z[1] = True
+    for adversary, objective in COMBOS:
+        ref = dense_value(m, t, z, solve.adversary_maximises(adversary, objective), objective == "maximize")
+        r = solve_reachability(m, t, avoid=z, adversary=adversary, objective=objective)
+        assert r.converged and r.precision <= 1e-8
+        assert_bracket_with_teeth(r.lower, r.upper, ref, 1e-12, (variant, adversary, objective))
+
+
+@pytest.mark.parametrize("adversary", ["pessimistic", "optimistic"])
+def test_floor_models_with_end_components_against_lp(monkeypatch, adversary):
+    """Floor rows and end components (upper guesses checked with Lemma D's caps on the end
+    components): the default method and the wrong-guess variant contain the LP values."""
+    rng = np.random.default_rng(23)
+    m = with_floor(tiny_model(rng, 6, 2, 3), 0.05)
+    lp = solve_reachability_lp(m, [0], avoid=[1], adversary=adversary)
+    ref = 0.5 * (lp.lower + lp.upper)
+    comp = solve._end_components(m, np.zeros((1, 6), np.int64), np.ones((1, 6), bool), 0, np.zeros(1, np.int64))[0]
+    assert np.any(comp >= 0)  # the model has end components
+    for params in (PARAMS["ovi"], PARAMS["wrong-guesses"]):
+        monkeypatch.setattr(solve, "OVI_PARAMS", params)
+        r = solve_reachability(m, [0], avoid=[1], adversary=adversary)
+        assert check_bracket(r.lower, r.upper, ref, 1e-7) == 0, adversary

@@ -58,6 +58,17 @@ value V* is its *least* fixed point (for every combination max/min x max/min).
   is below delta, or the Aitken extrapolation of the lower iterates plus a margin (see
   :func:`ovi_component`); a refuted or undecided guess is discarded (the last proven vector is
   restored), so only proven vectors are ever reported.
+* **OVI with end components** (Jacobi checks, :func:`_ovi_jacobi`).  Rounding makes ``B_up(u) <=
+  u`` fail where a row can stay in a cycle of equal values, so a node s of an end component C
+  may pass instead by ``cap_C <= u(s)``, with ``cap_C = max(0, e_C)`` Lemma D's bound computed
+  from u (row values ``B_up(u)``, exit ratios of u).  If every node passes one way, u >= V*.
+  *Proof.*  Let P be the nodes passing by the cap, ``w = cap_C`` on P (of C) and ``w = u``
+  elsewhere, ``V' = min(V*, w) <= u``.  On C, ``V' <= cap_C`` everywhere: on P by definition,
+  elsewhere in C because such a node failed the cap (``u < cap_C``).  At s in P every row gives
+  at most cap_C: a stay-able row (minimising adversary) ``p.V' <= max_C V'``, a non-stay-able
+  one ``B_a(V')(s) <= B_a(u)(s) <= e_C``, a maximising adversary ``p.V' <= p(C) cap_C + p_out.u
+  <= cap_C``; elsewhere ``B(V')(s) <= B(u)(s) <= u(s) = w(s)``.  With ``B(V') <= B(V*) = V*``,
+  V' is a pre-fixed point, so V* <= V' <= u.  QED.
 * **Lower guesses** need a unique fixed point.  In a component C without end component (no set
   D in C where every node has a row with an admissible p supported in D; found liberally, see
   :func:`_end_components`) the restricted operator has one: for fixed points x, y let
@@ -76,15 +87,19 @@ value V* is its *least* fixed point (for every combination max/min x max/min).
   ``u_C >= lfp(B_C) >= lfp(B*_C) = V*_C``, and interval iteration on C (and Lemma D, which
   holds for any set C) is sound from a proven start as before.  Components without an end
   component have a unique fixed point (every strategy and adversary leave them), which is
-  what makes the guess succeed; components with one use interval iteration with Lemma D.
+  what makes the guesses succeed; components with one use the checks with Lemma D's caps
+  above, falling back to interval iteration with Lemma D.
 
 Strategy extraction: rows within ``_TIE_TOL`` of the best (w.r.t. the final lower values) are
 optimal; among them a backward attractor picks rows that make progress toward the target, so a
 maximising strategy is never trapped in an end component by a tie.
 
 Hot loop: numba (``@njit(cache=True)``), serial.  A numpy formulation needs a per-row sort
-(``np.lexsort`` over all nnz entries each iteration) and several nnz-sized temporaries; see
-``benchmarks/results/solver.md`` for the measured numbers behind the choice.
+(``np.lexsort`` over all nnz entries each iteration) and several nnz-sized temporaries.  The
+default engine's sweep (:func:`node_sweep`) keeps each row's order of successor values from the
+previous sweep (1 byte per entry) and re-sorts by insertion, which costs O(k) once the order has
+settled, and prefetches the successor values of the entries ``PREFETCH_DISTANCE`` ahead (the
+gathers of a large model miss the caches); ``benchmarks/results/solver.md`` has the numbers.
 
 Rounding-error bound of one row (ROW_ERR)
 -----------------------------------------
@@ -1677,6 +1692,11 @@ def _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, pre
         it = _topological(imdp, nxt, lo, up, active2, ctrl, adv_max, flat_strat, precision, max_iterations, sccs,
                           (comp, ncomp, comp_cnt))
         gap = float(np.max(up - lo)) if up.size else 0.0
+    elif method == "vi":
+        # floor rows: optimistic value iteration with Jacobi sweeps on the whole model
+        lo, up, it = _ovi_jacobi(sw, imdp, nxt, lo, up, active2, ctrl, adv_max, flat_strat, precision,
+                                 max_iterations, (comp, ncomp, comp_cnt))
+        gap = float(np.max(up - lo)) if up.size else 0.0
     else:
         # interval iteration on the whole model (floor rows: their global order needs Jacobi sweeps)
         it = 0
@@ -1783,8 +1803,9 @@ def _end_components(imdp, nxt, active, ctrl, flat_strat, want_sccs=False):
     return comp, int(keep.sum()), np.ascontiguousarray(cnt), sccs
 
 
-def _deflate(imdp, nxt, up, rows, comp, ncomp, comp_cnt, adv_max, ctrl, flat_strat):
-    """Lemma D: in each component C, ``V* <= max(0, e_C)``; apply ``up <- min(up, max(0, e_C))``."""
+def _deflation_caps(imdp, nxt, up, rows, comp, ncomp, comp_cnt, adv_max, ctrl, flat_strat):
+    """Lemma D's cap ``max(0, e_C)`` of every node in a component C (+inf elsewhere), from the
+    vector ``up`` and its upper row values ``rows`` (``_Sweeper.sweep(up, +1, want_rows=True)``)."""
     L, n = nxt.shape
     uf = up.reshape(-1)
     best_out = np.zeros(L)
@@ -1805,8 +1826,138 @@ def _deflate(imdp, nxt, up, rows, comp, ncomp, comp_cnt, adv_max, ctrl, flat_str
     e = np.full(ncomp, -np.inf)
     inc = comp >= 0
     np.maximum.at(e, comp[inc], bound[inc])
-    cap = np.maximum(e, 0.0)  # Lemma D with e = -inf: every row stays, the value is 0
-    uf[inc] = np.minimum(uf[inc], cap[comp[inc]])
+    cap = np.full(L * n, np.inf)
+    cap[inc] = np.maximum(e, 0.0)[comp[inc]]  # Lemma D with e = -inf: every row stays, the value is 0
+    return cap
+
+
+def _deflate(imdp, nxt, up, rows, comp, ncomp, comp_cnt, adv_max, ctrl, flat_strat):
+    """Lemma D: in each component C, ``V* <= max(0, e_C)``; apply ``up <- min(up, max(0, e_C))``."""
+    uf = up.reshape(-1)
+    np.minimum(uf, _deflation_caps(imdp, nxt, up, rows, comp, ncomp, comp_cnt, adv_max, ctrl, flat_strat), out=uf)
+
+
+def _ovi_jacobi(sw, imdp, nxt, lo, up, active, ctrl, adv_max, flat_strat, precision, max_iterations, mec,
+                dgap=0.0):
+    """Optimistic value iteration with Jacobi sweeps on the ``active`` nodes: models with floor
+    rows (whose global order forbids Gauss-Seidel and whose floors connect everything: one
+    component), and components holding end components (``dgap``: the largest bracket width of
+    a successor outside, as in :func:`ovi_component`).
+
+    The guesses of :func:`ovi_component` (plain and extrapolated), with Jacobi checks: an upper
+    guess u is proven when at every node ``B_up(u) <= u`` or, for a node of an end component C,
+    Lemma D's cap of C computed from u is <= u there (module docstring, "OVI with end
+    components"); a lower guess x (only without end components: unique fixed point) when
+    ``B_down(x) >= x``.  Falls back to interval iteration with deflation.  Returns
+    (lo, up, sweeps).
+    """
+    comp, ncomp, comp_cnt = mec
+    p = np.asarray(OVI_PARAMS, dtype=np.float64)
+    verify, max_fails, extrap_sweeps, max_extrap, kappa, every, shift = (
+        int(p[0]), int(p[1]), int(p[2]), int(p[3]), float(p[4]), int(p[5]), float(p[6]))
+    act = active
+    inmec = act & (comp.reshape(act.shape) >= 0)
+    unique = ncomp == 0
+    if dgap < precision:
+        target, margin = precision, precision - dgap
+    else:  # the successors' brackets are already wider than precision: aim a little above them
+        target, margin = dgap + 0.5 * precision, 0.5 * precision
+    delta, tol, off = dgap + 0.5 * margin, 0.125 * margin, 0.4 * margin / (1.0 + kappa)
+    sweeps = 0
+
+    def gap():
+        return float(np.max(np.where(act, up - lo, 0.0))) if act.any() else 0.0
+
+    def check_upper(u):
+        """(proven, B_up(u)) for the guess u; counts its sweep."""
+        new, _, rows = sw.sweep(u, +1, want_rows=ncomp > 0)
+        bad = act & (new > u)
+        if ncomp and np.any(bad & inmec):
+            cap = _deflation_caps(imdp, nxt, u, rows, comp, ncomp, comp_cnt, adv_max, ctrl, flat_strat).reshape(u.shape)
+            bad &= ~(inmec & (cap <= u))
+        return not bad.any(), new
+
+    def try_upper(g):
+        nonlocal up, sweeps
+        u = np.where(act, np.minimum(up, g), up)
+        for _ in range(verify):
+            ok, new = check_upper(u)
+            sweeps += 1
+            if ok:
+                up = np.minimum(u, new)  # u >= V* proven, so B_up(u) >= V* as well
+                return True
+            if np.any(new[act] < lo[act]):
+                return False  # B_up(u) < lo <= V*: u was not an upper bound
+            u = np.where(act, new, up)
+        return False
+
+    def try_lower(g):
+        nonlocal lo, sweeps
+        x = np.where(act, np.maximum(lo, g), lo)
+        for _ in range(extrap_sweeps):
+            new = sw.sweep(x, -1)[0]
+            sweeps += 1
+            if np.all(new[act] >= x[act]):
+                lo = np.maximum(x, new)  # x <= V* proven (unique fixed point), so B_down(x) <= V* too
+                return True
+            if np.any(new[act] > up[act]):
+                return False
+            x = np.where(act, new, lo)
+        return False
+
+    fails = attempts = k = 0
+    prev = np.inf
+    next_try = 3
+    cen = None
+    while sweeps < max_iterations and fails < max_fails and gap() > target:
+        old = lo.copy()  # the sweep may update lo in place (Gauss-Seidel)
+        lo = sw.sweep(lo, -1, inplace=True)[0]
+        sweeps += 1
+        k += 1
+        d = np.where(act, lo - old, 0.0)
+        r = float(d.max()) if d.size else 0.0
+        if gap() <= target:
+            break
+        lam, est = 1.0, np.inf
+        if r <= 0.0:
+            est = 0.0
+        elif k >= 2 and r < prev:
+            lam = r / prev
+            est = r * lam / (1.0 - lam)
+        prev = r
+        if est <= tol:
+            if try_upper(lo + delta - shift) and gap() <= target:
+                break
+            fails += 1
+            tol *= 0.0625
+            continue
+        if attempts >= max_extrap or lam >= 1.0 or k < next_try:
+            cen = None
+            continue
+        c = lo + d * (lam / (1.0 - lam))
+        settled = cen is not None and float(np.max(np.abs(np.where(act, c - cen, 0.0)))) <= 0.1 * margin and r > 0
+        cen = c
+        if not settled:
+            continue
+        attempts += 1
+        next_try = k + every
+        cen = None
+        v = d / r + kappa
+        if np.max(np.where(act, up - (c - off * v), 0.0)) > target:
+            try_upper(c + dgap + off * v - shift)
+        if unique and try_lower(c - off * v + shift):
+            prev, k, next_try = np.inf, 0, 3  # the lower vector jumped: restart the estimate
+    # interval iteration with deflation (also the fallback)
+    it = 0
+    while gap() > target and sweeps < max_iterations:
+        it += 1
+        lo = sw.sweep(lo, -1, inplace=True)[0]
+        deflate = ncomp > 0 and (it <= 3 or it % 4 == 0)
+        up, _, rows = sw.sweep(up, +1, want_rows=deflate, inplace=True)
+        if deflate:
+            _deflate(imdp, nxt, up, rows, comp, ncomp, comp_cnt, adv_max, ctrl, flat_strat)
+        sweeps += 2
+    return lo, up, sweeps
 
 
 def _topological(imdp, nxt, lo, up, active, ctrl, adv_max, flat_strat, precision, max_iterations, sccs, mec):
@@ -1862,32 +2013,34 @@ def _topological(imdp, nxt, lo, up, active, ctrl, adv_max, flat_strat, precision
 
 def _deflated_component(imdp, nxt, lo, up, members, mcomp, mcnt, ctrl, adv_max, flat_strat, precision,
                         max_iterations):
-    """Interval iteration with deflation (Lemma D) on one component that holds end components;
-    its successors outside have their final brackets.  Returns the number of sweeps."""
+    """One component that holds end components (its successors outside have their final
+    brackets): :func:`_ovi_jacobi` restricted to it, with upper guesses checked by Lemma D's caps
+    and interval iteration with deflation as the fallback.  ``lo``/``up`` (L, n) are updated in
+    place.  Returns the number of sweeps."""
     L, n = nxt.shape
     mask = np.zeros(L * n, dtype=bool)
     mask[members] = True
     strategy = None if ctrl != 2 else flat_strat.reshape(1, L, n)
     sw = _Sweeper(imdp, nxt, mask.reshape(L, n), ctrl, adv_max, strategy)
-    # only this component's end components are deflated (rows elsewhere are not evaluated)
+    # only this component's end components are used (rows elsewhere are not evaluated)
     comp = np.where(mask, mcomp, -1)
     ids = np.unique(comp[comp >= 0])
     remap = np.full(int(mcomp.max()) + 1, -1, dtype=np.int64)
     remap[ids] = np.arange(ids.size)
     comp = np.where(comp >= 0, remap[np.maximum(comp, 0)], -1)
     cnt = np.ascontiguousarray(mcnt[:, ids])
-    it = 0
-    gap = float(np.max((up - lo).reshape(-1)[members]))
-    while gap > precision and it < max_iterations:
-        it += 1
-        lo[...] = sw.sweep(lo, -1, inplace=True)[0]
-        deflate = it <= 3 or it % 4 == 0
-        new, _, rows = sw.sweep(up, +1, want_rows=deflate, inplace=True)
-        up[...] = new
-        if deflate:
-            _deflate(imdp, nxt, up, rows, comp, ids.size, cnt, adv_max, ctrl, flat_strat)
-        gap = float(np.max((up - lo).reshape(-1)[members]))
-    return 2 * it
+    # the largest bracket width of a possible successor outside the component
+    nx = np.ascontiguousarray(nxt, dtype=np.int64).reshape(-1)
+    cid = np.where(mask, 0, -1).astype(np.int64)
+    strat = flat_strat if ctrl == 2 else np.zeros(1, dtype=np.int64)
+    dgap = _exit_gap(members, 0, cid, n, imdp.state_ptr, imdp.row_ptr, imdp.col, imdp.upper, nx, L > 1, ctrl, strat,
+                     lo.reshape(-1), up.reshape(-1))
+    new_lo, new_up, sweeps = _ovi_jacobi(sw, imdp, nxt, lo, up, mask.reshape(L, n), ctrl, adv_max, flat_strat,
+                                         precision, max_iterations, (comp, ids.size, cnt), dgap=dgap)
+    lo[...] = new_lo
+    up[...] = new_up
+    return sweeps
+
 
 __all__ = ["Adversary", "Objective", "ReachabilityResult", "solve_reachability", "evaluate_strategy",
            "adversary_maximises", "check_strategy", "solve_layered"]
