@@ -430,3 +430,41 @@ def test_floor_models_with_end_components_against_lp(monkeypatch, adversary):
         monkeypatch.setattr(solve, "OVI_PARAMS", params)
         r = solve_reachability(m, [0], avoid=[1], adversary=adversary)
         assert check_bracket(r.lower, r.upper, ref, 1e-7) == 0, adversary
+
+
+def all_in_end_component(rng):
+    """T = 0, Z = 1; states 2, 3, 4 each have an exit row (random intervals on T, Z and each
+    other) and a row that can cycle 2 -> 3 -> 4 -> 2 (upper 1, zero lower elsewhere): the three
+    active states form one end component, so every node of an upper guess must pass by the cap."""
+    n = 5
+    lo, up = np.zeros((n, 2, n)), np.zeros((n, 2, n))
+    lo[0, :, 0] = up[0, :, 0] = lo[1, :, 1] = up[1, :, 1] = 1.0
+    for s in (2, 3, 4):
+        p = rng.dirichlet(np.ones(n))
+        lo[s, 0] = np.clip(p - 0.1, 0.0, 1.0)
+        up[s, 0] = np.clip(p + 0.1, 0.0, 1.0)
+        nxt_s = 2 + (s - 1) % 3
+        up[s, 1, nxt_s] = 1.0
+        up[s, 1, [0, 1]] = 0.2
+    return IMDP.from_dense(lo, up)
+
+
+@pytest.mark.parametrize("adversary, objective", COMBOS)
+def test_guesses_on_an_end_component_are_checked_by_the_cap(monkeypatch, statuses, adversary, objective):
+    """Every active state lies in one end component, so upper guesses are proven only through
+    Lemma D's caps: with the default parameters and with guesses moved 1e-4 to the wrong side
+    (a check that let end-component nodes pass unchecked would report an upper end ~1e-4 below
+    the value), the bracket contains the LP value."""
+    rng = np.random.default_rng(2)
+    m = all_in_end_component(rng)
+    comp = solve._end_components(m, np.zeros((1, 5), np.int64), np.r_[False, False, True, True, True][None], 0,
+                                 np.zeros(1, np.int64))[0]
+    assert np.all(comp[2:] == comp[2]) and comp[2] >= 0
+    lp = solve_reachability_lp(m, [0], avoid=[1], adversary=adversary, objective=objective)
+    ref = 0.5 * (lp.lower + lp.upper)
+    for params in (PARAMS["ovi"], PARAMS["wrong-guesses"]):
+        monkeypatch.setattr(solve, "OVI_PARAMS", params)
+        r = solve_reachability(m, [0], avoid=[1], adversary=adversary, objective=objective)
+        assert check_bracket(r.lower, r.upper, ref, 1e-7) == 0, (adversary, objective)
+        if informative(ref).any() and r.converged:
+            assert check_bracket(r.lower, drop_upper(r.upper), ref, 1e-7) > 0  # teeth
