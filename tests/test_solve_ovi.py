@@ -285,11 +285,12 @@ def test_product_against_storm_on_the_materialised_product(adversary):
     n = 300
     m = storm_model(rng, n, 2, 6)
     letters = np.where(rng.uniform(size=n) < 0.08, 1, np.where(rng.uniform(size=n) < 0.08, 2, 0))
-    r = solve_product(m, letters, G_NOT_OBS_F_DES, adversary=adversary)
     mp = materialize_product(m, letters, G_NOT_OBS_F_DES)
     ref = storm_reachability(mp.imdp, mp.target, avoid=mp.avoid, adversary=adversary, precision=1e-12)
-    assert r.converged
-    assert_bracket_with_teeth(r.lower.reshape(-1), r.upper.reshape(-1), ref, 1e-9, adversary)
+    for method in ("interval", "vi"):
+        r = solve_product(m, letters, G_NOT_OBS_F_DES, adversary=adversary, method=method)
+        assert r.converged
+        assert_bracket_with_teeth(r.lower.reshape(-1), r.upper.reshape(-1), ref, 1e-9, (adversary, method))
     ev = evaluate_product_strategy(m, letters, G_NOT_OBS_F_DES, r.strategy, adversary=adversary)
     # the strategy as a product IMDP with one row per state
     rows = mp.imdp.state_ptr[:-1] + r.strategy.reshape(-1)

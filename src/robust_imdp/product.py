@@ -7,17 +7,21 @@ product state of cell q is (q, delta(s0, L(q))).  Accepting DFA states are absor
 DFA states that cannot reach acceptance are sinks with value 0.
 
 Lazy: values live in an (S, n) array (DFA state, base state).  Layer s reuses the base IMDP's
-rows with successor values ``w_s[q'] = V[delta(s, L(q')), q']`` (a gather), so no product row is
-materialised, memory stays that of the base IMDP plus O(S n) values, and a floor row stays a
-floor row: its unlisted base states are exactly the unlisted product successors reachable from
-layer s.  The soundness argument of :mod:`robust_imdp.solve` applies verbatim to the layered
-operator (it is the Bellman operator of the materialised product).
+rows with successor values ``w_s[q'] = V[delta(s, L(q')), q']`` (a gather: per entry in the
+default Gauss-Seidel engine, per layer and sweep in the Jacobi one), so no product row is
+materialised, memory stays that of the base IMDP plus O(S n) values (and the solver's row
+orders, S bytes per base entry), and a floor row stays a floor row: its unlisted base states
+are exactly the unlisted product successors reachable from layer s.  The soundness argument of
+:mod:`robust_imdp.solve` applies verbatim to the layered operator (it is the Bellman operator of
+the materialised product); its strongly connected components may span layers and are solved
+in reverse topological order.
 
-A materialised product (:func:`materialize_product`) is provided for export and for checking
-the lazy solver.  There a base floor row cannot stay a floor row: the unlisted base state q'
-is one product state (delta(s, L(q')), q'), while every other product state of q' must get
-upper 0, which a uniform floor cannot express.  The floor mass is therefore listed explicitly
-([0, floor] on each such successor): O(n) per floor row, for small models only.
+A materialised product (:func:`materialize_product`) is provided for export (e.g. to Storm) and
+for checking the lazy solver.  There a base floor row cannot stay a floor row: the unlisted
+base state q' is one product state (delta(s, L(q')), q'), while every other product state of q'
+must get upper 0, which a uniform floor cannot express.  The floor mass is therefore listed
+explicitly ([0, floor] on each such successor): O(n) per floor row, for small models only;
+rows without floor mass cost their listed entries.
 """
 
 from __future__ import annotations
@@ -28,7 +32,7 @@ import numpy as np
 
 from robust_imdp.errors import DimensionError, InvalidInputError, InvalidModelError
 from robust_imdp.imdp import IMDP
-from robust_imdp.solve import Adversary, _as_mask, _enum, check_strategy, solve_layered
+from robust_imdp.solve import Adversary, _as_mask, _check_method, _enum, check_strategy, solve_layered
 
 
 @dataclass(frozen=True)
@@ -139,7 +143,7 @@ def _result(res, initial_state) -> ProductResult:
 
 
 def solve_product(imdp: IMDP, letters, dfa, *, avoid=None, adversary="pessimistic", horizon=None,
-                  precision=1e-8, max_iterations=100_000) -> ProductResult:
+                  precision=1e-8, max_iterations=100_000, method="vi") -> ProductResult:
     """Maximal probability of reaching an accepting DFA state, on the lazy product.
 
     Parameters
@@ -155,26 +159,31 @@ def solve_product(imdp: IMDP, letters, dfa, *, avoid=None, adversary="pessimisti
     horizon : int or None
         k-step bounded satisfaction; the strategy is then (k, S, n).
     precision : float
+    method : {"vi", "interval"}
+        As in :func:`robust_imdp.solve.solve_reachability` (the product's components across
+        DFA layers are solved in reverse topological order by default).
 
     Returns
     -------
     ProductResult
     """
+    _check_method(method)
     nxt, target, zero, init = _dfa_arrays(imdp, letters, dfa, avoid)
     adv_max = _enum(Adversary, adversary, "adversary") is Adversary.OPTIMISTIC
     res = solve_layered(imdp, nxt, target, zero, ctrl=0, adv_max=adv_max, horizon=horizon,
-                        precision=precision, max_iterations=max_iterations)
+                        precision=precision, max_iterations=max_iterations, method=method)
     return _result(res, init)
 
 
 def evaluate_product_strategy(imdp: IMDP, letters, dfa, strategy, *, avoid=None, adversary="pessimistic",
-                              horizon=None, precision=1e-8, max_iterations=100_000) -> ProductResult:
+                              horizon=None, precision=1e-8, max_iterations=100_000, method="vi") -> ProductResult:
     """Bounds of the satisfaction probability of a fixed product strategy.
 
     ``strategy`` is (S, n) (stationary) or (k, S, n) with ``horizon=k``: the choice index within
     base state q used in DFA state s.  ``adversary="pessimistic"`` minimises the probability,
-    ``"optimistic"`` maximises it.
+    ``"optimistic"`` maximises it.  ``method`` as in :func:`solve_product`.
     """
+    _check_method(method)
     nxt, target, zero, init = _dfa_arrays(imdp, letters, dfa, avoid)
     S, n = nxt.shape
     st = np.asarray(strategy)
@@ -186,7 +195,7 @@ def evaluate_product_strategy(imdp: IMDP, letters, dfa, strategy, *, avoid=None,
     strat = st.astype(np.int64) if st.ndim == 3 else st.astype(np.int64)[None]
     adv_max = _enum(Adversary, adversary, "adversary") is Adversary.OPTIMISTIC
     res = solve_layered(imdp, nxt, target, zero, ctrl=2, adv_max=adv_max, horizon=horizon,
-                        precision=precision, max_iterations=max_iterations, strategy=strat)
+                        precision=precision, max_iterations=max_iterations, strategy=strat, method=method)
     return _result(res, init)
 
 
