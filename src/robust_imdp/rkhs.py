@@ -105,6 +105,11 @@ def _gamma(n: float) -> float:
     return n * _U / (1.0 - n * _U)
 
 
+def _writable(a) -> np.ndarray:
+    """A writable C-contiguous float64 array (a copy only when needed)."""
+    return np.require(np.asarray(a, dtype=np.float64), requirements=["C", "W"])
+
+
 def _up(x, err=0.0):
     """Upper bound of a real known to lie within ``err`` of the float ``x`` (one more ulp up)."""
     return np.nextafter(np.asarray(x, float) + err, np.inf)
@@ -269,8 +274,11 @@ class KernelModel:
     inv_l2: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self):
-        X = np.ascontiguousarray(self.X, float)
-        y = np.ascontiguousarray(self.y, float)
+        # Writable C-contiguous copies: numba compiles (and caches) one specialisation per array
+        # type, and arrays received from a Dask worker's deserialiser are read-only (a second
+        # 12-s compilation in every worker otherwise).
+        X = _writable(self.X)
+        y = _writable(self.y)
         if X.ndim != 2 or X.shape[0] < 1:
             raise DimensionError(f"X must be a (m, d) float array with m >= 1; got shape {X.shape}")
         if y.shape != (X.shape[0],):
@@ -516,7 +524,7 @@ def _chol_solve2(P, n, L, r1, r2, o1, o2):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
-def _active_set(K, ys, b, s0, dbar, G, S, sg, w, nS, cap, max_iter, tol, bS_idx, bw):  # pragma: no cover
+def _active_set(K, ys, b, s0, dbar, G, S, sg, w, nS, cap, max_iter, tol, bS_idx, bw, P, L):  # pragma: no cover
     """Approximately ``min_w ys.w + dbar ||w||_1 + G sqrt(s0 - 2 b.w + w.K w)`` (a heuristic).
 
     Primal active-set method on the sign-constrained orthant: on a support S with signs sg the
@@ -530,7 +538,10 @@ def _active_set(K, ys, b, s0, dbar, G, S, sg, w, nS, cap, max_iter, tol, bS_idx,
     than ``tol``, when the objective stalls (anti-cycling), or after ``max_iter`` steps.
 
     ``S, sg, w`` hold a warm start in their first ``nS`` entries and receive the result; the
-    best point met is returned in ``bS_idx[:nb], bw[:nb]``. Returns ``(nS, nb, iters, status)``
+    best point met is returned in ``bS_idx[:nb], bw[:nb]``. ``P`` and ``L`` are (cap, cap)
+    workspaces allocated once by the caller: allocating them per call costs a page-faulting
+    mmap each time where glibc's mmap threshold is fixed (Dask workers set
+    MALLOC_TRIM_THRESHOLD_, measured 1.7x slower). Returns ``(nS, nb, iters, status)``
     (status 0 optimal, 1 iteration cap, 2 data inconsistent with the norm bound, 3 factorisation
     failed, 4 support cap, 5 stalled).
     """
@@ -538,8 +549,6 @@ def _active_set(K, ys, b, s0, dbar, G, S, sg, w, nS, cap, max_iter, tol, bS_idx,
     inS = np.zeros(m, dtype=np.bool_)
     for k in range(nS):
         inS[S[k]] = True
-    P = np.empty((cap, cap))
-    L = np.empty((cap, cap))
     bSv = np.empty(cap)
     aS = np.empty(cap)
     uu = np.empty(cap)
@@ -691,7 +700,8 @@ def optimal_weights(model: KernelModel, b, s0: float, *, noise: float, rkhs_boun
     bw = np.zeros(cap)
     ys = np.ascontiguousarray(float(side) * model.y)
     _, nb, _, status = _active_set(model.K, ys, np.ascontiguousarray(b, float), float(s0), float(noise),
-                                   float(rkhs_bound), S, sg, w, 0, cap, int(max_iter), float(tol), bidx, bw)
+                                   float(rkhs_bound), S, sg, w, 0, cap, int(max_iter), float(tol), bidx, bw,
+                                   np.empty((cap, cap)), np.empty((cap, cap)))
     out = np.zeros(m)
     out[bidx[:nb]] = bw[:nb]
     return out, int(status)
@@ -727,6 +737,8 @@ def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, 
         lastn = np.zeros(2, dtype=np.int64)
         bidx = np.zeros(cap, dtype=np.int64)
         bw = np.zeros(cap)
+        Pw = np.empty((cap, cap))  # workspaces of _active_set, once per chunk
+        Lw = np.empty((cap, cap))
         B = np.empty((V, m))
         EB = np.empty((V, m))
         s0 = np.empty(V)
@@ -762,7 +774,7 @@ def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, 
                         stat[q, jv, side] = 6
                         continue
                     res = _active_set(K, ys, B[jv], s0[jv], dbar, G, S[side], sg[side], w[side], nS[side], cap,
-                                      max_iter, tol, bidx, bw)
+                                      max_iter, tol, bidx, bw, Pw, Lw)
                     nS[side] = res[0]
                     nb = res[1]
                     stat[q, jv, side] = res[3]
@@ -1326,6 +1338,8 @@ def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_
         nS = np.zeros((n_out, 2), dtype=np.int64)
         bidx = np.zeros(k, dtype=np.int64)
         bw = np.zeros(k)
+        Pw = np.empty((k, k))  # workspaces of _active_set, once per chunk
+        Lw = np.empty((k, k))
         for q in range(ch * chunk, min(n, (ch + 1) * chunk)):
             for p in range(k):
                 for a in range(d):
@@ -1372,7 +1386,7 @@ def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_
                             for i in range(k):
                                 ys[i] = sgn * Yp[i, o]
                             res = _active_set(Kp, ys, b, s0, a1[o], G, S[o, sd], sg[o, sd], ws[o, sd], nS[o, sd], k,
-                                              max_iter, tol, bidx, bw)
+                                              max_iter, tol, bidx, bw, Pw, Lw)
                             nS[o, sd] = res[0] if (res[3] != 2 and res[3] != 3) else 0
                             nb = res[1]
                             for i in range(k):
@@ -1511,8 +1525,8 @@ def _local_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_boun
     """:func:`bound_chunk` with local weights (see its ``local_points``)."""
     if method not in METHODS:
         raise InvalidInputError(f"method must be one of {METHODS}; got {method!r}")
-    X = np.ascontiguousarray(X, float)
-    Y = np.ascontiguousarray(np.asarray(Y, float).reshape(X.shape[0], -1))
+    X = _writable(X)
+    Y = _writable(np.asarray(Y, float).reshape(X.shape[0], -1))
     m, d = X.shape
     n = Y.shape[1]
     lower, upper = _check_cells(cells_lower, cells_upper, d)
