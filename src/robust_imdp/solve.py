@@ -1301,6 +1301,35 @@ def ovi_component(nodes, c, comp, n, state_ptr, row_ptr, col, lower, upper, nxt,
 
 
 @njit(cache=True)
+def component_levels(order, comp_ptr, comp, n, state_ptr, row_ptr, col, upper, nxt, layered, ctrl, strat):
+    """Level of every component in the DAG of components: 0 without successor components,
+    else 1 + the largest level of a successor component.  Components must come in reverse
+    topological order (successor components first), as Tarjan numbers them."""
+    nc = comp_ptr.shape[0] - 1
+    level = np.zeros(nc, dtype=np.int64)
+    for c in range(nc):
+        lv = 0
+        for t in range(comp_ptr[c], comp_ptr[c + 1]):
+            node = order[t]
+            l = node // n
+            q = node - l * n
+            r0 = state_ptr[q]
+            r1 = state_ptr[q + 1]
+            if ctrl == 2:
+                r0 = r0 + strat[node]
+                r1 = r0 + 1
+            for j in range(row_ptr[r0], row_ptr[r1]):
+                if upper[j] <= 0.0:
+                    continue
+                q2 = col[j]
+                c2 = comp[nxt[l * n + q2] * n + q2 if layered else q2]
+                if c2 >= 0 and c2 != c and level[c2] + 1 > lv:
+                    lv = level[c2] + 1
+        level[c] = lv
+    return level
+
+
+@njit(cache=True)
 def solve_components(c0, order, comp_ptr, kind, comp, n, state_ptr, row_ptr, col, lower, upper, nxt, layered,
                      ctrl, strat, adv_max, lo, up, perm, prec, max_sweeps, comp_sweeps, comp_status, params):
     """Solve the components ``c0, c0+1, ...`` (reverse topological order: every successor
@@ -1989,12 +2018,26 @@ def _topological(imdp, nxt, lo, up, active, ctrl, adv_max, flat_strat, precision
         in_mec = np.zeros(nc, dtype=bool)
         in_mec[comp[mcomp >= 0]] = True
         kind[in_mec] = 2
+    strat = flat_strat if ctrl == 2 else np.zeros(1, dtype=np.int64)
+    nx = np.ascontiguousarray(nxt, dtype=np.int64).reshape(-1)  # flat: node (l, q') -> layer of its successor
+    level = np.zeros(nc, dtype=np.int64)
+    if nmec:
+        # components of one level do not depend on each other: order them by level (still
+        # reverse topological), end-component ones last in their level, so that those of a level
+        # are solved together by one (Python-level) call
+        level = component_levels(order, comp_ptr, comp, n, imdp.state_ptr, imdp.row_ptr, imdp.col, imdp.upper, nx,
+                                 L > 1, ctrl, strat)
+        new = np.lexsort((np.arange(nc), kind == 2, level))
+        sizes = size[new]
+        new_ptr = np.r_[0, np.cumsum(sizes)].astype(np.int64)
+        order = order[np.repeat(comp_ptr[new] - new_ptr[:-1], sizes) + np.arange(order.size)]
+        comp_ptr = new_ptr
+        kind, level = kind[new], level[new]
+        comp[order] = np.repeat(np.arange(nc), sizes)
     maxk = int(np.max(np.diff(imdp.row_ptr))) if imdp.n_choices else 1
     perm = np.empty(L * imdp.nnz, dtype=np.uint8 if maxk <= 256 else (np.uint16 if maxk <= 65536 else np.int32))
     fill_local_order(imdp.row_ptr, perm, L)
     lof, upf = lo.reshape(-1), up.reshape(-1)
-    strat = flat_strat if ctrl == 2 else np.zeros(1, dtype=np.int64)
-    nx = np.ascontiguousarray(nxt, dtype=np.int64).reshape(-1)  # flat: node (l, q') -> layer of its successor
     comp_sweeps = np.zeros(nc, dtype=np.int64)
     comp_status = np.zeros(nc, dtype=np.int64)
     args = (imdp.state_ptr, imdp.row_ptr, imdp.col, imdp.lower, imdp.upper, nx, L > 1, ctrl, strat, adv_max)
@@ -2002,12 +2045,17 @@ def _topological(imdp, nxt, lo, up, active, ctrl, adv_max, flat_strat, precision
     while c < nc:
         c = solve_components(c, order, comp_ptr, kind, comp, n, *args, lof, upf, perm, precision, max_iterations,
                              comp_sweeps, comp_status, np.asarray(OVI_PARAMS, dtype=np.float64))
-        if c < nc:  # a component holding an end component: interval iteration with deflation
-            members = order[comp_ptr[c]:comp_ptr[c + 1]]
-            comp_sweeps[c] = _deflated_component(imdp, nxt, lo, up, members, mcomp, mcnt, ctrl, adv_max, flat_strat,
-                                                 precision, max_iterations)
-            comp_status[c] = ST_DEFLATED
-            c += 1
+        if c < nc:
+            # the components holding end components of this level, together (their successors
+            # outside are final: lower levels come first)
+            c2 = c + 1
+            while c2 < nc and kind[c2] == 2 and level[c2] == level[c]:
+                c2 += 1
+            members = order[comp_ptr[c]:comp_ptr[c2]]
+            comp_sweeps[c:c2] = _deflated_component(imdp, nxt, lo, up, members, mcomp, mcnt, ctrl, adv_max,
+                                                    flat_strat, precision, max_iterations)
+            comp_status[c:c2] = ST_DEFLATED
+            c = c2
     return int(comp_sweeps.max())
 
 
