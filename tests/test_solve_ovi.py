@@ -469,3 +469,46 @@ def test_guesses_on_an_end_component_are_checked_by_the_cap(monkeypatch, statuse
         assert check_bracket(r.lower, r.upper, ref, 1e-7) == 0, (adversary, objective)
         if informative(ref).any() and r.converged:
             assert check_bracket(r.lower, drop_upper(r.upper), ref, 1e-7) > 0  # teeth
+
+
+def test_many_end_components_solved_per_level_agree_with_interval_iteration(statuses, monkeypatch):
+    """60 copies of the three-state end component gadget feeding 20 states that mix them: the
+    end-component components of one level are solved together (far fewer kernel hand-overs than
+    components), and the brackets agree with the previous engine's (interval iteration with
+    deflation, itself checked against the LP in test_lp / test_solve) to within the precisions."""
+    rng = np.random.default_rng(6)
+    gadgets = [all_in_end_component(rng) for _ in range(60)]
+    g = 3
+    n = 2 + g * len(gadgets) + 20
+    lo, up = np.zeros((n, 2, n)), np.zeros((n, 2, n))
+    lo[0, :, 0] = up[0, :, 0] = lo[1, :, 1] = up[1, :, 1] = 1.0
+    for i, m in enumerate(gadgets):
+        dl, du = m.to_dense()
+        dl, du = dl.reshape(5, 2, 5), du.reshape(5, 2, 5)
+        idx = np.r_[0, 1, 2 + g * i + np.arange(g)]  # T, Z, the gadget's three states
+        for a in range(3):
+            lo[idx[2 + a], :, idx] = dl[2 + a].T
+            up[idx[2 + a], :, idx] = du[2 + a].T
+    for s in range(n - 20, n):  # upstream: two random gadget states and the previous upstream state
+        for a in range(2):
+            succ = rng.choice(np.arange(2, n - 20), size=2, replace=False)
+            lo[s, a, succ], up[s, a, succ] = 0.3, 0.6
+            prev_s = s - 1 if s > n - 20 else 0
+            lo[s, a, prev_s], up[s, a, prev_s] = 0.1, 0.4
+    m = IMDP.from_dense(lo, up)
+    calls = []
+    original = solve._deflated_component
+    monkeypatch.setattr(solve, "_deflated_component", lambda *a: calls.append(1) or original(*a))
+    with_teeth = 0
+    for adversary, objective in COMBOS:
+        ref = solve_reachability(m, [0], avoid=[1], adversary=adversary, objective=objective, method="interval")
+        r = solve_reachability(m, [0], avoid=[1], adversary=adversary, objective=objective)
+        assert ref.converged and r.converged
+        mid = 0.5 * (ref.lower + ref.upper)
+        assert check_bracket(r.lower, r.upper, mid, 1e-8) == 0, (adversary, objective)
+        if informative(mid).sum() >= 3:  # (values of max-max are all 0 or 1 here)
+            assert_bracket_with_teeth(r.lower, r.upper, mid, 1e-8, (adversary, objective))
+            with_teeth += 1
+    assert with_teeth >= 2
+    n_ec = max(int(np.sum(st == solve.ST_DEFLATED)) for st in statuses())
+    assert n_ec >= 30 and len(calls) <= 4 * 4  # at most a few levels per solve
