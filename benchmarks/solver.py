@@ -348,15 +348,20 @@ def sweeps(args, rng):
     if args.grid_side:
         g = grid_model(args.grid_side, rng)
         w = rng.random(g.n_states)
-        row = {"model": "grid", "n_states": g.n_states, "nnz": g.nnz, "repeat": args.repeat,
-               "ours": per_entry(sweep_fn(g, w), g, args.repeat)}
         shuffle = rng.permutation(g.n_states)
-        g = permuted(g, shuffle)  # the same model, states numbered at random
-        row["ours_shuffled"] = per_entry(sweep_fn(g, w[shuffle]), g, args.repeat)
-        order = rcm_order(g)
-        g = permuted(g, order)  # renumbered by reverse Cuthill-McKee
-        row["ours_rcm"] = per_entry(sweep_fn(g, w[shuffle][order]), g, args.repeat)
-        del g
+        gs = permuted(g, shuffle)  # the same model, states numbered at random
+        order = rcm_order(gs)
+        gr = permuted(gs, order)  # renumbered by reverse Cuthill-McKee
+        fns = {"ours": (sweep_fn(g, w), g), "ours_shuffled": (sweep_fn(gs, w[shuffle]), gs),
+               "ours_rcm": (sweep_fn(gr, w[shuffle][order]), gr)}
+        runs = {k: [] for k in fns}
+        for _ in range(args.repeat):  # interleaved, so that a change of the machine's load hits all three
+            for k, (fn, mm) in fns.items():
+                runs[k].append(per_entry(fn, mm, 1))
+        row = {"model": "grid", "n_states": g.n_states, "nnz": g.nnz, "repeat": args.repeat}
+        for k, rs in runs.items():
+            row[k] = {"wall_ns": med([x["wall_ns"] for x in rs]), "cpu_ns": med([x["cpu_ns"] for x in rs])}
+        del g, gs, gr, fns
         print(json.dumps(row), flush=True)
         rows.append(row)
     return rows
@@ -445,12 +450,16 @@ def notes(data) -> list[str]:
                    "the gain comes from prefetching the successor values.")
     grid = [r for r in data["sweeps"] if r["model"] == "grid"]
     for r in grid:
+        nat, shu, rcm = (r[k]["cpu_ns"] for k in ("ours", "ours_shuffled", "ours_rcm"))
+        verdict = (f"a random numbering costs {shu / nat:.1f}x and reverse Cuthill-McKee gets back to "
+                   f"{rcm / nat:.2f}x of the natural order" if shu > 1.15 * nat else
+                   "with prefetching the numbering hardly matters here (differences within the run-to-run noise "
+                   "of this shared machine)")
         out.append(f"Locality on a {r['n_states']:,}-state grid model (successors within distance 2, the shape of "
-                   f"a grid abstraction): natural order {r['ours']['wall_ns']:.1f}, shuffled "
-                   f"{r['ours_shuffled']['wall_ns']:.1f}, reverse Cuthill-McKee of the shuffled model "
-                   f"{r['ours_rcm']['wall_ns']:.1f} ns per entry: grid abstractions are already in a good order "
-                   "(cells in index order), so the solver does not reorder; RCM (benchmarks/solver.py: "
-                   "`rcm_order`, `permuted`) restores a lost order.")
+                   f"a grid abstraction; CPU ns per entry, medians of {r['repeat']} interleaved runs): natural "
+                   f"order {nat:.1f}, shuffled {shu:.1f}, reverse Cuthill-McKee of the shuffled model {rcm:.1f}: "
+                   f"{verdict}.  Grid abstractions number their cells in index order already, so the solver "
+                   "does not reorder (benchmarks/solver.py has `rcm_order` and `permuted`).")
     mem = data.get("memory", {})
     if "pessimistic" in mem:
         out.append(f"Memory: {max(mem[a]['total_bytes_per_entry'] for a in ('pessimistic', 'optimistic')):.1f} B "
@@ -467,6 +476,8 @@ def render(data) -> str:
           "other engineers' jobs were running); total {:.0f} s. Medians of {} alternating runs per cell; ratios "
           "are ours / Storm from the same run (wall clock, and process CPU time, which the other jobs disturb "
           "less).".format(meta["total_s"], meta["repeat"]), "",
+          *[f"Re-run later: {', '.join(r['parts'])} on {r['date']}, commit {r['commit']}, load average "
+            f"{r['load_start']} / {r.get('load_end')}." for r in meta.get("rerun", [])], "",
           "Ours: the default `solve_reachability(precision=1e-8)` returns a bracket of width <= 1e-8 that provably "
           "contains the value (both ends proven: outward rounding, optimistic value iteration checks, topological "
           "order). Storm: value iteration stopped when successive iterates differ by < 1e-8 (absolute), which "
@@ -537,6 +548,8 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--memory-probe", type=int, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--render", action="store_true", help="only re-render solver.md from solver.json")
+    ap.add_argument("--only", nargs="*", choices=["random", "floor", "case_study", "sweeps", "memory"], default=None,
+                    help="re-run these parts only and merge them into the existing solver.json")
     args = ap.parse_args(argv)
     if args.memory_probe:
         print(json.dumps(memory_probe(args.memory_probe, args.seed)))
@@ -556,13 +569,23 @@ def main(argv=None):
             "cores": os.cpu_count(), "date": time.strftime("%Y-%m-%d %H:%M"), "commit": commit,
             "load_start": loadavg(), "repeat": args.repeat, "actions": A, "successors": list(K_RANGE), "seed": args.seed}
     t0 = time.perf_counter()
-    data = {"meta": meta, "random": [random_case(n, rng, args) for n in sizes]}
-    data["floor"] = [floor_case(n, rng, args) for n in args.floor_sizes]
-    data["case_study"] = case_study(args)
-    data["sweeps"] = sweeps(args, rng)
-    data["memory"] = memory(args)
-    meta["total_s"] = time.perf_counter() - t0
-    meta["load_end"] = loadavg()
+    parts = {"random": lambda: [random_case(n, rng, args) for n in sizes],
+             "floor": lambda: [floor_case(n, rng, args) for n in args.floor_sizes],
+             "case_study": lambda: case_study(args), "sweeps": lambda: sweeps(args, rng), "memory": lambda: memory(args)}
+    if args.only:
+        data = json.loads((RESULTS / "solver.json").read_text())
+        rerun = data["meta"].setdefault("rerun", [])
+        rerun.append({"parts": args.only, "date": meta["date"], "commit": commit, "load_start": meta["load_start"]})
+        for k in args.only:
+            data[k] = parts[k]()
+        rerun[-1]["load_end"] = loadavg()
+        rerun[-1]["total_s"] = time.perf_counter() - t0
+    else:
+        data = {"meta": meta}
+        for k, fn in parts.items():
+            data[k] = fn()
+        meta["total_s"] = time.perf_counter() - t0
+        meta["load_end"] = loadavg()
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "solver.json").write_text(json.dumps(data, indent=1, default=float))
     (RESULTS / "solver.md").write_text(render(data))
