@@ -512,3 +512,55 @@ def test_many_end_components_solved_per_level_agree_with_interval_iteration(stat
     assert with_teeth >= 2
     n_ec = max(int(np.sum(st == solve.ST_DEFLATED)) for st in statuses())
     assert n_ec >= 30 and len(calls) <= 4 * 4  # at most a few levels per solve
+
+
+def response_gadget():
+    """T = 0, Z = 1, a = 2, b = 3, c = 4, X = 5 (value 0.3), E = 6 (value 0.6).  a: row 0 may stay
+    on {a, b} (upper 1), row 1 goes to X; b: row 0 may stay on {a, b}, row 1 goes to c; c: at most
+    0.5 to a, the rest to E.  Values (max-min): a = 0.3 (the adversary keeps row 0 on a), c = 0.5 a
+    + 0.3 = 0.45, b = 0.45.  {a, b} is the maximal end component and its best exit, b -> c, reads
+    c's upper bound, which reads a's: every vector with 0.6 on {a, b, c} is a fixed point of the
+    upper iteration with Lemma D on {a, b}.  Only the singleton {a} (the adversary's response to
+    the lower values) has the cap 0.3 (the 3-D case study stalled at gap 0.0134 on such a set)."""
+    n = 7
+    lo, up = np.zeros((n, 2, n)), np.zeros((n, 2, n))
+    for s in (0, 1):
+        lo[s, :, s] = up[s, :, s] = 1.0
+    lo[5, :, 0] = up[5, :, 0] = 0.3
+    lo[5, :, 1] = up[5, :, 1] = 0.7
+    lo[6, :, 0] = up[6, :, 0] = 0.6
+    lo[6, :, 1] = up[6, :, 1] = 0.4
+    up[2, 0, [2, 3]] = up[3, 0, [2, 3]] = 1.0
+    lo[2, 1, 5] = up[2, 1, 5] = lo[3, 1, 4] = up[3, 1, 4] = 1.0
+    up[4, :, 2] = 0.5
+    lo[4, :, 6], up[4, :, 6] = 0.5, 1.0
+    return IMDP.from_dense(lo, up)
+
+
+@pytest.mark.parametrize("method", ["vi", "interval"])
+def test_upper_bounds_converge_where_the_maximal_end_component_is_too_coarse(method):
+    """The response gadget: before the response end components, the upper bounds stayed at 0.6
+    (max_iterations sweeps, ConvergenceWarning); now both methods converge to the LP values
+    (0.3, 0.45, 0.45), and a bracket with its upper end shrunk by 0.1 % misses them."""
+    m = response_gadget()
+    lp = solve_reachability_lp(m, [0], avoid=[1], adversary="pessimistic", objective="maximize")
+    ref = 0.5 * (lp.lower + lp.upper)
+    assert np.allclose(ref[2:5], [0.3, 0.45, 0.45], atol=1e-7)  # the hand computation above
+    r = solve_reachability(m, [0], avoid=[1], adversary="pessimistic", method=method, max_iterations=5000)
+    assert r.converged and r.iterations < 1000
+    assert check_bracket(r.lower, r.upper, ref, 1e-7) == 0
+    assert check_bracket(r.lower, drop_upper(r.upper), ref, 1e-7) > 0  # teeth
+
+
+def test_a_stalled_upper_iteration_stops_early_and_says_so(monkeypatch):
+    """Without the response end components the gadget's upper iteration is at a fixed point: the
+    solver notices that a whole period changed nothing and stops long before max_iterations,
+    with converged=False, a ConvergenceWarning, and a bracket that is still sound."""
+    m = response_gadget()
+    monkeypatch.setattr(solve, "response_end_components",
+                        lambda members, *a: (np.full(a[5].size, -1, dtype=np.int64), 0))
+    with pytest.warns(solve.ConvergenceWarning):
+        r = solve_reachability(m, [0], avoid=[1], adversary="pessimistic", max_iterations=100_000)
+    assert not r.converged and r.iterations < 1000
+    assert np.allclose(r.upper[2:5], 0.6) and check_bracket(r.lower, r.upper, np.r_[1, 0, 0.3, 0.45, 0.45, 0.3, 0.6],
+                                                               1e-9) == 0

@@ -889,6 +889,138 @@ def stayable_rows(state_ptr, row_ptr, col, lower, upper, floor, nxt, comp, comp_
     return out
 
 
+@njit(cache=True)
+def response_end_components(members, state_ptr, row_ptr, col, lower, upper, nxt, lo, adv_max, ctrl, strat):
+    """End components of the adversary's *response* to the lower vector ``lo``: the family of
+    sets that :func:`_deflate` needs when the maximal end components are too coarse (Kelmendi
+    et al. CAV 2018 restrict the minimiser to its optimal actions for the same reason).
+
+    Each row (s, a) of a node in ``members`` is replaced by the support of the adversary's
+    ordering solution against ``lo`` (lowest ``lo`` first for a minimising adversary, highest
+    first for a maximising one; floor mass ignored); a row whose support leaves ``members`` is
+    dropped.  The maximal end components of that graph (SCCs, drop rows whose support leaves
+    their SCC, repeat) are returned as (comp (L*n,) int, -1 outside, count).
+
+    Example: a node whose row 1 can stay on itself (upper 1 on the self-loop) while row 2 exits
+    to a value 0.025 lies in a maximal end component with a neighbour that exits at 0.039; that
+    component's Lemma D cap is 0.039 and the upper iterates stall there, while the singleton
+    found here has the cap 0.025.  Lemma D holds for *any* set, so the family only decides how
+    fast the upper bounds converge, never whether they are sound.
+    """
+    L = nxt.shape[0]
+    n = state_ptr.shape[0] - 1
+    m = members.shape[0]
+    pos = np.full(L * n, -1, dtype=np.int64)
+    for t in range(m):
+        pos[members[t]] = t
+    # rows of the members and their response supports (local indices)
+    n_rows = 0
+    n_ent = 0
+    for t in range(m):
+        q = members[t] % n
+        if ctrl == 2:
+            r0 = state_ptr[q] + strat[members[t]]
+            r1 = r0 + 1
+        else:
+            r0 = state_ptr[q]
+            r1 = state_ptr[q + 1]
+        n_rows += r1 - r0
+        n_ent += row_ptr[r1] - row_ptr[r0]
+    row_node = np.empty(n_rows, dtype=np.int64)
+    sup_ptr = np.zeros(n_rows + 1, dtype=np.int64)
+    sup = np.empty(n_ent, dtype=np.int64)
+    alive = np.zeros(n_rows, dtype=np.bool_)
+    rr = 0
+    ne = 0
+    for t in range(m):
+        node = members[t]
+        l = node // n
+        q = node - l * n
+        if ctrl == 2:
+            r0 = state_ptr[q] + strat[node]
+            r1 = r0 + 1
+        else:
+            r0 = state_ptr[q]
+            r1 = state_ptr[q + 1]
+        for r in range(r0, r1):
+            j0 = row_ptr[r]
+            k = row_ptr[r + 1] - j0
+            vals = np.empty(k)
+            rem = 1.0
+            for i in range(k):
+                d = nxt[l, col[j0 + i]] * n + col[j0 + i]
+                vals[i] = -lo[d] if adv_max else lo[d]
+                rem -= lower[j0 + i]
+            order = np.argsort(vals, kind="mergesort")
+            inside = True
+            start = ne
+            for i in order:
+                j = j0 + i
+                take = upper[j] - lower[j]
+                if rem <= 0.0 or take <= 0.0:
+                    take = 0.0
+                elif take > rem:
+                    take = rem
+                rem -= take
+                if lower[j] > 0.0 or take > 0.0:
+                    d = nxt[l, col[j]] * n + col[j]
+                    if pos[d] < 0:
+                        inside = False
+                    else:
+                        sup[ne] = pos[d]
+                        ne += 1
+            if not inside:
+                ne = start
+            row_node[rr] = t
+            alive[rr] = inside and ne > start
+            sup_ptr[rr + 1] = ne
+            rr += 1
+    # maximal end components of the response graph
+    lab = np.full(m, -1, dtype=np.int64)
+    nc = 0
+    while True:
+        indptr = np.zeros(m + 1, dtype=np.int64)
+        for r in range(n_rows):
+            if alive[r]:
+                indptr[row_node[r] + 1] += sup_ptr[r + 1] - sup_ptr[r]
+        for t in range(m):
+            indptr[t + 1] += indptr[t]
+        indices = np.empty(indptr[m], dtype=np.int64)
+        fill = indptr[:m].copy()
+        for r in range(n_rows):
+            if alive[r]:
+                t = row_node[r]
+                for e in range(sup_ptr[r], sup_ptr[r + 1]):
+                    indices[fill[t]] = sup[e]
+                    fill[t] += 1
+        lab, nc = strong_components(indptr, indices)
+        changed = False
+        for r in range(n_rows):
+            if alive[r]:
+                c = lab[row_node[r]]
+                for e in range(sup_ptr[r], sup_ptr[r + 1]):
+                    if lab[sup[e]] != c:
+                        alive[r] = False
+                        changed = True
+                        break
+        if not changed:
+            break
+    has_row = np.zeros(nc, dtype=np.bool_)
+    for r in range(n_rows):
+        if alive[r]:
+            has_row[lab[row_node[r]]] = True
+    newid = np.full(nc, -1, dtype=np.int64)
+    cnt = 0
+    for c in range(nc):
+        if has_row[c]:
+            newid[c] = cnt
+            cnt += 1
+    comp = np.full(L * n, -1, dtype=np.int64)
+    for t in range(m):
+        comp[members[t]] = newid[lab[t]]
+    return comp, cnt
+
+
 # =========================================================================== topological OVI kernels
 def _prefetch_name():
     """The mangled name of LLVM's prefetch intrinsic for this llvmlite (typed or opaque pointers)."""
@@ -1730,14 +1862,21 @@ def _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, pre
         # interval iteration on the whole model (floor rows: their global order needs Jacobi sweeps)
         it = 0
         gap = float(np.max(up - lo)) if up.size else 0.0
+        members = np.flatnonzero(active2.reshape(-1)) if ncomp else None
         while gap > precision and it < max_iterations:
             it += 1
             lo, _, _ = sw.sweep(lo, -1, inplace=True)  # keeps max(old, new): both are lower bounds
-            # deflation is an optional tightening (sound whenever applied): every 4th iteration
+            # deflation is an optional tightening (sound whenever applied): every 4th iteration,
+            # and with the response end components (see _ovi_jacobi) every RESPONSE_EVERY-th
             deflate = ncomp > 0 and (it <= 3 or it % 4 == 0)
-            up, _, rows = sw.sweep(up, +1, want_rows=deflate, inplace=True)  # min(old, new): both upper bounds
+            respond = ncomp > 0 and it % RESPONSE_EVERY == 0
+            up, _, rows = sw.sweep(up, +1, want_rows=deflate or respond, inplace=True)  # min(old, new): both upper bounds
             if deflate:
                 _deflate(imdp, nxt, up, rows, comp, ncomp, comp_cnt, adv_max, ctrl, flat_strat)
+            if respond:
+                rcomp, rn, rcnt = _response_family(imdp, nxt, lo, members, adv_max, ctrl, flat_strat)
+                if rn:
+                    _deflate(imdp, nxt, up, rows, rcomp, rn, rcnt, adv_max, ctrl, flat_strat)
             gap = float(np.max(up - lo))
     converged = gap <= precision
     if not converged:
@@ -1976,17 +2115,51 @@ def _ovi_jacobi(sw, imdp, nxt, lo, up, active, ctrl, adv_max, flat_strat, precis
             try_upper(c + dgap + off * v - shift)
         if unique and try_lower(c - off * v + shift):
             prev, k, next_try = np.inf, 0, 3  # the lower vector jumped: restart the estimate
-    # interval iteration with deflation (also the fallback)
+    # interval iteration with deflation (also the fallback); every RESPONSE_EVERY-th iteration
+    # Lemma D is applied to the end components of the adversary's response to lo as well
+    # (:func:`response_end_components`), and the loop stops early when a whole period changed
+    # no value (a fixed point of the iteration: more sweeps cannot help)
     it = 0
+    members = np.flatnonzero(act.reshape(-1)) if ncomp else None
+    last = None
     while gap() > target and sweeps < max_iterations:
         it += 1
         lo = sw.sweep(lo, -1, inplace=True)[0]
         deflate = ncomp > 0 and (it <= 3 or it % 4 == 0)
-        up, _, rows = sw.sweep(up, +1, want_rows=deflate, inplace=True)
+        respond = ncomp > 0 and it % RESPONSE_EVERY == 0
+        up, _, rows = sw.sweep(up, +1, want_rows=deflate or respond, inplace=True)
         if deflate:
             _deflate(imdp, nxt, up, rows, comp, ncomp, comp_cnt, adv_max, ctrl, flat_strat)
+        if respond:
+            rcomp, rn, rcnt = _response_family(imdp, nxt, lo, members, adv_max, ctrl, flat_strat)
+            if rn:
+                _deflate(imdp, nxt, up, rows, rcomp, rn, rcnt, adv_max, ctrl, flat_strat)
+            now = (lo[act].copy(), up[act].copy())
+            if last is not None and np.array_equal(now[0], last[0]) and np.array_equal(now[1], last[1]):
+                break  # nothing changed in a whole period
+            last = now
         sweeps += 2
     return lo, up, sweeps
+
+
+#: Period (in interval-iteration steps) of the deflation with the response end components.
+RESPONSE_EVERY = 8
+
+
+def _response_family(imdp, nxt, lo, members, adv_max, ctrl, flat_strat):
+    """(comp, count, comp_cnt) of :func:`response_end_components` against ``lo``, in the form
+    :func:`_deflate` takes (comp_cnt as in :func:`_end_components`)."""
+    L, n = nxt.shape
+    nx = np.ascontiguousarray(nxt, dtype=np.int64)
+    comp, nc = response_end_components(members, imdp.state_ptr, imdp.row_ptr, imdp.col, imdp.lower, imdp.upper,
+                                       nx, lo.reshape(-1), adv_max, ctrl, flat_strat)
+    cnt = np.zeros((L, nc), dtype=np.int64)
+    if nc:
+        for l in range(L):
+            lab_succ = comp.reshape(L, n)[nx[l], np.arange(n)]
+            ok = lab_succ >= 0
+            cnt[l] = np.bincount(lab_succ[ok], minlength=nc)
+    return comp, nc, cnt
 
 
 def _topological(imdp, nxt, lo, up, active, ctrl, adv_max, flat_strat, precision, max_iterations, sccs, mec):
