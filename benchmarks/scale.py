@@ -45,39 +45,52 @@ def _stage_seconds(res) -> dict:
     return {k: round(float(v), 3) for k, v in res.timings.items()}
 
 
-def speedup() -> dict:
+def speedup(repeat: int = 3) -> dict:
+    import dask
+    from distributed import Client, LocalCluster
+
     from robust_imdp.io import load_problem, result_to_dict
+    from robust_imdp.parallel import LOCAL_PROFILER_KEY
     from robust_imdp.pipeline import synthesize_from_data
 
     problem = load_problem(HERE.parent / "examples" / "problems" / "four_mode_nonlinear.toml").replace(
         cell_size=np.array([0.0625, 0.0625]))
-    out = {"problem": "four_mode_nonlinear at cell 0.0625 (4,096 cells x 4 modes x 2 outputs)"}
-    docs = {}
+    warm = problem.replace(cell_size=np.array([0.25, 0.25]))
+    out = {"problem": "four_mode_nonlinear at cell 0.0625 (4,096 cells x 4 modes x 2 outputs); both configurations "
+                      "warmed up by the same problem on a 64-cell grid first (imports, numba's cached kernels); "
+                      f"{repeat} alternating runs each, medians"}
+    docs = set()
+    runs = {1: [], 2: []}
+    t0 = time.perf_counter()
+    # the cluster that `--workers 2` starts (robust_imdp.parallel.open_scheduler)
+    with dask.config.set({LOCAL_PROFILER_KEY: False}), \
+            LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                         silence_logs=40) as cluster, Client(cluster) as client:
+        startup = time.perf_counter() - t0
+        synthesize_from_data(warm, progress=False, workers=1)
+        synthesize_from_data(warm, progress=False, client=client)
+        for _ in range(repeat):
+            for workers in (1, 2):
+                kw = {"workers": 1} if workers == 1 else {"client": client}
+                res = synthesize_from_data(problem, progress=False, **kw)
+                t = res.timings
+                runs[workers].append({"bound_s": t.get("bound"), "abstract_s": t.get("abstract"),
+                                      "bound_plus_abstract_s": t.get("bound", 0) + t.get("abstract", 0),
+                                      "stages": _stage_seconds(res)})
+                doc = result_to_dict(res)
+                doc.pop("timings")
+                docs.add(json.dumps(doc, sort_keys=True))
+                print(workers, runs[workers][-1]["bound_plus_abstract_s"], flush=True)
     for workers in (1, 2):
-        t0 = time.perf_counter()
-        if workers == 1:
-            res = synthesize_from_data(problem, progress=False, workers=1)
-            startup = 0.0
-        else:
-            from distributed import Client, LocalCluster
-
-            with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
-                              silence_logs=40) as cluster, Client(cluster) as client:
-                startup = time.perf_counter() - t0
-                # warm the workers (imports, numba's cached compilation) outside the timing
-                client.run(lambda: __import__("robust_imdp.rkhs"))
-                res = synthesize_from_data(problem, progress=False, client=client)
-        t = res.timings
-        out[f"workers_{workers}"] = {"bound_s": t.get("bound"), "abstract_s": t.get("abstract"),
-                                     "bound_plus_abstract_s": t.get("bound", 0) + t.get("abstract", 0),
-                                     "cluster_startup_s": startup, "stages": _stage_seconds(res)}
-        doc = result_to_dict(res)
-        doc.pop("timings")
-        docs[workers] = json.dumps(doc, sort_keys=True)
-        print(workers, out[f"workers_{workers}"], flush=True)
-    out["identical_results"] = docs[1] == docs[2]
+        rs = runs[workers]
+        out[f"workers_{workers}"] = {k: float(np.median([r[k] for r in rs]))
+                                     for k in ("bound_s", "abstract_s", "bound_plus_abstract_s")}
+        out[f"workers_{workers}"]["cluster_startup_s"] = startup if workers == 2 else 0.0
+        out[f"workers_{workers}"]["runs"] = rs
+    out["identical_results"] = len(docs) == 1
     out["speedup_bound_plus_abstract"] = (out["workers_1"]["bound_plus_abstract_s"]
                                           / out["workers_2"]["bound_plus_abstract_s"])
+    out["speedup_per_run"] = [a["bound_plus_abstract_s"] / b["bound_plus_abstract_s"] for a, b in zip(runs[1], runs[2])]
     return out
 
 
@@ -136,10 +149,18 @@ def write_md(data: dict) -> None:
                   f"| 1 (in process) | {w1['bound_s']:.2f} | {w1['abstract_s']:.2f} | {w1['bound_plus_abstract_s']:.2f} | - |",
                   f"| 2 (LocalCluster) | {w2['bound_s']:.2f} | {w2['abstract_s']:.2f} | {w2['bound_plus_abstract_s']:.2f} | "
                   f"{w2['cluster_startup_s']:.1f} |", "",
-                  f"Speed-up {sp['speedup_bound_plus_abstract']:.2f}x; identical results: {sp['identical_results']}.", ""]
+                  f"Speed-up {sp['speedup_bound_plus_abstract']:.2f}x (ratio of the medians; per run: "
+                  f"{', '.join(f'{x:.2f}' for x in sp.get('speedup_per_run', []))}); identical results: "
+                  f"{sp['identical_results']}.", ""]
     td = data.get("three_d")
     if td:
-        lines += ["## 3-D case study (`unicycle_3d`)", "",
+        kept = data.get("kept_from_earlier_run", {}).get("three_d")
+        lines += ["## 3-D case study (`unicycle_3d`)", ""]
+        if kept:
+            lines += [f"(From the earlier run of {kept.get('date')}, load average "
+                      f"{tuple(round(v, 1) for v in kept.get('load_average', ()))}: {kept.get('note', '')}; "
+                      "not re-run with `--skip-3d`.)", ""]
+        lines += [
                   f"{td['cells']:,} cells x {td['modes']} modes x 3 outputs, all local cores in process: "
                   f"**{td['total_s']:.0f} s** end to end, peak memory **{td['peak_rss_bytes'] / 1e9:.2f} GB** "
                   f"(pre-flight estimate {td['estimated_bytes'] / 1e9:.2f} GB); {td['imdp_entries']:,} IMDP entries, "
@@ -166,6 +187,14 @@ def main(argv=None) -> int:
     ap.add_argument("--skip-3d", action="store_true")
     args = ap.parse_args(argv)
     data = {"machine": _machine()}
+    old = OUT / "scale.json"
+    if (args.skip_speedup or args.skip_3d) and old.exists():
+        # keep the part that is not re-run (its own machine record goes with it)
+        prev = json.loads(old.read_text())
+        for k in (["speedup"] if args.skip_speedup else []) + (["three_d", "projection"] if args.skip_3d else []):
+            if k in prev:
+                data[k] = prev[k]
+                data.setdefault("kept_from_earlier_run", {})[k] = prev.get("machine", {})
     if not args.skip_speedup:
         data["speedup"] = speedup()
     if not args.skip_3d:

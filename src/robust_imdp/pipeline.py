@@ -567,8 +567,14 @@ def _build_abstraction(problem: Problem, partition, log: _Log, cache_dir=None, r
             cell_bounds = confidence_cell_bounds(cell_bounds, error_models, problem.confidence)
             error_models = None
         if error_models is None:
+            # at most 4096 cells per task, and at least two tasks per worker on a cluster
+            # (the rows do not depend on the chunk size: tests/test_chunks.py)
+            from robust_imdp.parallel import DaskScheduler
+
+            workers = run.sched.n_workers if isinstance(run.sched, DaskScheduler) else 1
+            per_task = 4096 if workers <= 1 else min(4096, -(-partition.n_cells // (2 * workers)))
             abstraction = _chunked_abstract(problem, partition, cell_bounds, log, run,
-                                            _chunk_cells(run, partition.n_cells, 4096))
+                                            _chunk_cells(run, partition.n_cells, per_task))
         else:
             abstraction = abstract(partition, cell_bounds, problem.noise, error_models,
                                    eta=problem.eta, eps_rule=problem.eps_rule, combine=problem.combine)
