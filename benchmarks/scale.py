@@ -194,7 +194,8 @@ def main(argv=None) -> int:
         for k in (["speedup"] if args.skip_speedup else []) + (["three_d", "projection"] if args.skip_3d else []):
             if k in prev:
                 data[k] = prev[k]
-                data.setdefault("kept_from_earlier_run", {})[k] = prev.get("machine", {})
+                data.setdefault("kept_from_earlier_run", {})[k] = (prev.get("kept_from_earlier_run", {}).get(k)
+                                                                   or prev.get("machine", {}))
     if not args.skip_speedup:
         data["speedup"] = speedup()
     if not args.skip_3d:
