@@ -323,6 +323,15 @@ def bellman_layer(state_ptr, row_ptr, col, lower, upper, floor, w, active, adv_m
         out_arg[q] = barg
 
 
+@njit(cache=True, inline="always")
+def _rows(state_ptr, q, ctrl, strat, k):
+    """Row range of state q: all its rows, or (ctrl 2) the fixed strategy's row ``strat[k]``."""
+    if ctrl == 2:
+        r0 = state_ptr[q] + strat[k]
+        return r0, r0 + 1
+    return state_ptr[q], state_ptr[q + 1]
+
+
 @njit(cache=True)
 def positive_attractor(state_ptr, row_ptr, col, lower, upper, floor, nxt, init, blocked,
                        ctrl, strat, adv_max):
@@ -358,11 +367,7 @@ def positive_attractor(state_ptr, row_ptr, col, lower, upper, floor, nxt, init, 
                 node = l * n + q
                 if W[node] or blocked[node]:
                     continue
-                r0 = state_ptr[q]
-                r1 = state_ptr[q + 1]
-                if ctrl == 2:
-                    r0 = r0 + strat[l * n + q]
-                    r1 = r0 + 1
+                r0, r1 = _rows(state_ptr, q, ctrl, strat, l * n + q)
                 any_hit = False
                 all_hit = True
                 for r in range(r0, r1):
@@ -444,11 +449,7 @@ def almost_sure(state_ptr, row_ptr, col, lower, upper, floor, nxt, target, W, ct
                     node = l * n + q
                     if X[node] or not Y[node]:
                         continue
-                    r0 = state_ptr[q]
-                    r1 = state_ptr[q + 1]
-                    if ctrl == 2:
-                        r0 = r0 + strat[node]
-                        r1 = r0 + 1
+                    r0, r1 = _rows(state_ptr, q, ctrl, strat, node)
                     for r in range(r0, r1):
                         k = row_ptr[r + 1] - row_ptr[r]
                         f = floor[r]
@@ -801,11 +802,7 @@ def stay_exit_bounds(state_ptr, row_ptr, col, lower, upper, floor, nxt, comp, co
             c = comp[node]
             if c < 0:
                 continue
-            r0 = state_ptr[q]
-            r1 = state_ptr[q + 1]
-            if ctrl == 2:
-                r0 = r0 + strat[node]
-                r1 = r0 + 1
+            r0, r1 = _rows(state_ptr, q, ctrl, strat, node)
             agg = -np.inf if ctrl != 1 else np.inf
             for r in range(r0, r1):
                 lowOut = 0.0
@@ -917,13 +914,7 @@ def response_end_components(members, state_ptr, row_ptr, col, lower, upper, nxt,
     n_rows = 0
     n_ent = 0
     for t in range(m):
-        q = members[t] % n
-        if ctrl == 2:
-            r0 = state_ptr[q] + strat[members[t]]
-            r1 = r0 + 1
-        else:
-            r0 = state_ptr[q]
-            r1 = state_ptr[q + 1]
+        r0, r1 = _rows(state_ptr, members[t] % n, ctrl, strat, members[t])
         n_rows += r1 - r0
         n_ent += row_ptr[r1] - row_ptr[r0]
     row_node = np.empty(n_rows, dtype=np.int64)
@@ -936,12 +927,7 @@ def response_end_components(members, state_ptr, row_ptr, col, lower, upper, nxt,
         node = members[t]
         l = node // n
         q = node - l * n
-        if ctrl == 2:
-            r0 = state_ptr[q] + strat[node]
-            r1 = r0 + 1
-        else:
-            r0 = state_ptr[q]
-            r1 = state_ptr[q + 1]
+        r0, r1 = _rows(state_ptr, q, ctrl, strat, node)
         for r in range(r0, r1):
             j0 = row_ptr[r]
             k = row_ptr[r + 1] - j0
@@ -1223,11 +1209,7 @@ def _exit_gap(nodes, c, comp, n, state_ptr, row_ptr, col, upper, nxt, layered, c
         node = nodes[t]
         l = node // n
         q = node - l * n
-        r0 = state_ptr[q]
-        r1 = state_ptr[q + 1]
-        if ctrl == 2:
-            r0 = r0 + strat[node]
-            r1 = r0 + 1
+        r0, r1 = _rows(state_ptr, q, ctrl, strat, node)
         for j in range(row_ptr[r0], row_ptr[r1]):
             if upper[j] <= 0.0:
                 continue
@@ -1445,11 +1427,7 @@ def component_levels(order, comp_ptr, comp, n, state_ptr, row_ptr, col, upper, n
             node = order[t]
             l = node // n
             q = node - l * n
-            r0 = state_ptr[q]
-            r1 = state_ptr[q + 1]
-            if ctrl == 2:
-                r0 = r0 + strat[node]
-                r1 = r0 + 1
+            r0, r1 = _rows(state_ptr, q, ctrl, strat, node)
             for j in range(row_ptr[r0], row_ptr[r1]):
                 if upper[j] <= 0.0:
                     continue
