@@ -388,7 +388,8 @@ def write_doc(results, baseline, command, elapsed, deselected, code) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--jobs", type=int, default=1, help="mutations run in parallel (default 1)")
-    ap.add_argument("--only", nargs="+", metavar="NAME", help="run only these mutations")
+    ap.add_argument("--only", nargs="+", metavar="NAME",
+                    help="run only these mutations (merged into the last run's json and table)")
     ap.add_argument("--list", action="store_true", help="print the mutations and check the list, run nothing")
     ap.add_argument("--no-write", action="store_true", help="do not write docs/mutations.md and the json")
     ap.add_argument("--no-baseline", action="store_true", help="skip the unmutated run")
@@ -441,10 +442,23 @@ def main(argv=None) -> int:
     caught = sum(r["status"] == "caught" for r in results)
     print(f"{caught} of {len(results)} mutations caught ({elapsed / 60:.1f} min)")
     if not args.no_write:
+        if args.only and RAW.exists():
+            # merge into the last full run: the other mutations keep their earlier results
+            prev = json.loads(RAW.read_text())
+            mine = {r["name"] for r in results}
+            order = {m["name"]: i for i, m in enumerate(MUTATIONS)}
+            results = sorted([r for r in prev["results"] if r["name"] not in mine] + results,
+                             key=lambda r: order.get(r["name"], len(order)))
+            command = f"{prev['command']}`, then `{command}"
+            code = f"{prev['code']}, then {code} for {len(mine)} mutations"
+            if args.no_baseline:
+                baseline, deselected = prev["baseline"], prev["deselected"]
+            elapsed += float(prev.get("elapsed", sum(r["seconds"] for r in prev["results"])))
         write_doc(results, baseline, command, elapsed, deselected, code)
         RAW.parent.mkdir(parents=True, exist_ok=True)
         RAW.write_text(json.dumps({"command": command, "code": code, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-                                   "baseline": baseline, "deselected": deselected, "results": results},
+                                   "elapsed": elapsed, "baseline": baseline, "deselected": deselected,
+                                   "results": results},
                                   indent=1))
     return 0 if caught == len(results) else 1
 
