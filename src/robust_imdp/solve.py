@@ -2011,8 +2011,10 @@ def _ovi_jacobi(sw, imdp, nxt, lo, up, active, ctrl, adv_max, flat_strat, precis
     delta, tol, off = dgap + 0.5 * margin, 0.125 * margin, 0.4 * margin / (1.0 + kappa)
     sweeps = 0
 
+    idx = np.flatnonzero(act.reshape(-1))  # per-sweep work stays O(component), not O(model)
+
     def gap():
-        return float(np.max(np.where(act, up - lo, 0.0))) if act.any() else 0.0
+        return float(np.max(up.reshape(-1)[idx] - lo.reshape(-1)[idx])) if idx.size else 0.0
 
     def check_upper(u):
         """(proven, B_up(u)) for the guess u; counts its sweep."""
@@ -2056,12 +2058,12 @@ def _ovi_jacobi(sw, imdp, nxt, lo, up, active, ctrl, adv_max, flat_strat, precis
     next_try = 3
     cen = None
     while sweeps < max_iterations and fails < max_fails and gap() > target:
-        old = lo.copy()  # the sweep may update lo in place (Gauss-Seidel)
+        old = lo.reshape(-1)[idx]  # a copy (the sweep may update lo in place: Gauss-Seidel)
         lo = sw.sweep(lo, -1, inplace=True)[0]
         sweeps += 1
         k += 1
-        d = np.where(act, lo - old, 0.0)
-        r = float(d.max()) if d.size else 0.0
+        dm = lo.reshape(-1)[idx] - old  # >= 0: lower sweeps keep max(old, new)
+        r = float(dm.max()) if dm.size else 0.0
         if gap() <= target:
             break
         lam, est = 1.0, np.inf
@@ -2080,6 +2082,8 @@ def _ovi_jacobi(sw, imdp, nxt, lo, up, active, ctrl, adv_max, flat_strat, precis
         if attempts >= max_extrap or lam >= 1.0 or k < next_try:
             cen = None
             continue
+        d = np.zeros_like(lo)
+        d.reshape(-1)[idx] = dm
         c = lo + d * (lam / (1.0 - lam))
         settled = cen is not None and float(np.max(np.abs(np.where(act, c - cen, 0.0)))) <= 0.1 * margin and r > 0
         cen = c
