@@ -144,7 +144,13 @@ def write_md(data: dict) -> None:
     sp = data.get("speedup")
     if sp:
         w1, w2 = sp["workers_1"], sp["workers_2"]
-        lines += ["## Bound + abstraction stages, 1 worker against 2 (same run)", "", sp["problem"], "",
+        kept = data.get("kept_from_earlier_run", {}).get("speedup")
+        lines += ["## Bound + abstraction stages, 1 worker against 2 (same run)", ""]
+        if kept:
+            lines += [f"(From the earlier run of {kept.get('date')}, load average "
+                      f"{tuple(round(v, 1) for v in kept.get('load_average', ()))}: {kept.get('note', '')}; "
+                      "not re-run with `--skip-speedup`.)", ""]
+        lines += [sp["problem"], "",
                   "| workers | bound s | abstract s | bound + abstract s | cluster start-up s |", "|---|---|---|---|---|",
                   f"| 1 (in process) | {w1['bound_s']:.2f} | {w1['abstract_s']:.2f} | {w1['bound_plus_abstract_s']:.2f} | - |",
                   f"| 2 (LocalCluster) | {w2['bound_s']:.2f} | {w2['abstract_s']:.2f} | {w2['bound_plus_abstract_s']:.2f} | "
