@@ -23,6 +23,7 @@ test: venv
 
 bench: venv
 	$(PY) benchmarks/solver.py
+	$(PY) benchmarks/parallel_sweep.py
 	$(PY) benchmarks/abstraction.py
 	$(PY) benchmarks/bounds.py
 	$(PY) benchmarks/reference.py

@@ -394,3 +394,58 @@ def test_strong_components_match_scipy():
         nc, lab = csgraph.connected_components(g, directed=True, connection="strong")
         lab2, nc2 = strong_components(g.indptr.astype(np.int64), g.indices.astype(np.int32))
         assert nc2 == nc and len(set(zip(lab.tolist(), lab2.tolist()))) == nc  # same partition
+
+
+def test_parallel_jacobi_sweeps_give_the_serial_results_bit_for_bit(monkeypatch):
+    """Jacobi sweeps of large layers run on numba's threads (``bellman_layer_parallel``): with the
+    threshold lowered so that every layer of these small models qualifies, a bounded solve, an
+    interval-iteration solve, a floor model and a product with a DFA give exactly the serial
+    bounds and strategies, and the parallel kernel was really used."""
+    import numba
+
+    from robust_imdp import solve as S
+    from robust_imdp.dfa import ltlf_to_dfa
+    from robust_imdp.product import solve_product
+
+    rng = np.random.default_rng(5)
+    n, A, k = 2600, 2, 5  # more than two of the kernel's blocks of PAR_BLOCK = 1024 states
+    assert n > 2 * S.PAR_BLOCK
+    col = np.sort(rng.choice(n, size=(n * A, k)), axis=1)
+    col = np.where(np.diff(col, axis=1, prepend=-1) == 0, -1, col)  # duplicates dropped below
+    p = rng.dirichlet(np.ones(k), size=n * A)
+    keep = col >= 0
+    row_ptr = np.r_[0, np.cumsum(keep.sum(1))]
+    pk = np.where(keep, p, 0.0)
+    pk /= pk.sum(1, keepdims=True)
+    low, upp = 0.7 * pk[keep], np.minimum(1.0, 1.3 * pk[keep])
+    m = IMDP.from_csr(np.arange(0, n * A + 1, A), row_ptr, col[keep], low, upp)
+    fl = IMDP.from_csr(m.state_ptr, m.row_ptr, m.col, m.lower, m.upper, floor=np.full(m.n_choices, 2e-4))
+    letters = rng.integers(0, 4, size=n)
+    dfa = ltlf_to_dfa("G !b & F a")
+    calls = []
+    parallel = S.bellman_layer_parallel
+    monkeypatch.setattr(S, "bellman_layer_parallel", lambda *a: calls.append(1) or parallel(*a))
+
+    def runs():
+        t, z = np.arange(100), np.arange(100, 200)
+        return [solve_reachability(m, t, avoid=z, horizon=15),
+                solve_reachability(m, t, avoid=z, method="interval", adversary="optimistic"),
+                solve_reachability(fl, t, avoid=z),
+                solve_product(m, letters, dfa, adversary="pessimistic")]
+
+    previous = numba.get_num_threads()
+    numba.set_num_threads(min(2, numba.config.NUMBA_NUM_THREADS))
+    try:
+        monkeypatch.setattr(S, "PAR_MIN_STATES", 10 ** 9)
+        serial = runs()
+        assert not calls
+        monkeypatch.setattr(S, "PAR_MIN_STATES", 1)
+        par = runs()
+    finally:
+        numba.set_num_threads(previous)
+    if numba.config.NUMBA_NUM_THREADS > 1:
+        assert calls  # the parallel kernel did the sweeps
+    assert all(0 < np.mean(r.lower) < 1 for r in serial[:3])  # informative values, not all 0 or 1
+    for a, b in zip(serial, par):
+        for name in ("lower", "upper", "strategy"):
+            assert np.array_equal(np.asarray(getattr(a, name)), np.asarray(getattr(b, name))), name

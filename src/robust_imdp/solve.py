@@ -122,6 +122,7 @@ from enum import Enum
 
 import numpy as np
 from llvmlite import ir
+import numba
 from numba import njit, types
 from numba.core import cgutils
 from numba.extending import intrinsic
@@ -262,6 +263,61 @@ def row_value(j0, j1, col, lower, upper, f, w, use_rank, rank, sv, hi, lo, adv_m
     return val, rem
 
 
+@njit(cache=True, inline="always")
+def _bellman_state(q, state_ptr, row_ptr, col, lower, upper, floor, w, adv_max, use_rank, rank, sv, hi, lo, ctrl,
+                   strat, direction, out_val, out_arg, out_rows, want_rows, keep_better, keys, idx):
+    """The update of one state q by :func:`bellman_layer` (writes only index q of the outputs and
+    the entries of q's rows in ``out_rows``)."""
+    r0 = state_ptr[q]
+    r1 = state_ptr[q + 1]
+    if ctrl == 2:
+        r0 = r0 + strat[q]
+        r1 = r0 + 1
+    best = -1.0
+    barg = 0
+    for r in range(r0, r1):
+        j0 = row_ptr[r]
+        j1 = row_ptr[r + 1]
+        v, left = row_value(j0, j1, col, lower, upper, floor[r], w, use_rank, rank, sv, hi, lo,
+                            adv_max, keys, idx)
+        if direction < 0:
+            v = v - row_err(j1 - j0)
+            if v < 0.0:
+                v = 0.0  # safe: every true value is >= 0
+        elif direction > 0:
+            # mass left unassigned (a row whose upper sum is below 1 within the model
+            # tolerance) is credited with the largest possible value 1: stays an upper bound
+            v = v + row_err(j1 - j0) + left
+            if v > 1.0:
+                v = 1.0  # safe: every true value is <= 1
+        if want_rows:
+            out_rows[r] = v
+        if best < 0.0 or (ctrl == 0 and v > best) or (ctrl == 1 and v < best):
+            best = v
+            barg = r - state_ptr[q]
+    # unbounded iteration (keep_better): keep the better of the old bound (in out_val) and
+    # the new one, both sound for the same value; with out_val aliasing w this is a sound
+    # Gauss-Seidel sweep.  Never for k-step values (the old bound is for k-1 steps).
+    if keep_better and direction < 0:
+        if best > out_val[q]:
+            out_val[q] = best
+    elif keep_better and direction > 0:
+        if best < out_val[q]:
+            out_val[q] = best
+    else:
+        out_val[q] = best
+    out_arg[q] = barg
+
+
+@njit(cache=True)
+def _max_row_len(row_ptr):
+    maxk = 1
+    for r in range(row_ptr.shape[0] - 1):
+        if row_ptr[r + 1] - row_ptr[r] > maxk:
+            maxk = row_ptr[r + 1] - row_ptr[r]
+    return maxk
+
+
 @njit(cache=True)
 def bellman_layer(state_ptr, row_ptr, col, lower, upper, floor, w, active, adv_max, use_rank,
                   rank, sv, hi, lo, ctrl, strat, direction, out_val, out_arg, out_rows, want_rows, keep_better):
@@ -273,54 +329,39 @@ def bellman_layer(state_ptr, row_ptr, col, lower, upper, floor, w, active, adv_m
     with ``want_rows`` also every evaluated row's rounded value into ``out_rows``.
     """
     n = state_ptr.shape[0] - 1
-    maxk = 1
-    for r in range(row_ptr.shape[0] - 1):
-        if row_ptr[r + 1] - row_ptr[r] > maxk:
-            maxk = row_ptr[r + 1] - row_ptr[r]
+    maxk = _max_row_len(row_ptr)
     keys = np.empty(maxk)
     idx = np.empty(maxk, dtype=np.int64)
     for q in range(n):
-        if not active[q]:
-            continue
-        r0 = state_ptr[q]
-        r1 = state_ptr[q + 1]
-        if ctrl == 2:
-            r0 = r0 + strat[q]
-            r1 = r0 + 1
-        best = -1.0
-        barg = 0
-        for r in range(r0, r1):
-            j0 = row_ptr[r]
-            j1 = row_ptr[r + 1]
-            v, left = row_value(j0, j1, col, lower, upper, floor[r], w, use_rank, rank, sv, hi, lo,
-                                adv_max, keys, idx)
-            if direction < 0:
-                v = v - row_err(j1 - j0)
-                if v < 0.0:
-                    v = 0.0  # safe: every true value is >= 0
-            elif direction > 0:
-                # mass left unassigned (a row whose upper sum is below 1 within the model
-                # tolerance) is credited with the largest possible value 1: stays an upper bound
-                v = v + row_err(j1 - j0) + left
-                if v > 1.0:
-                    v = 1.0  # safe: every true value is <= 1
-            if want_rows:
-                out_rows[r] = v
-            if best < 0.0 or (ctrl == 0 and v > best) or (ctrl == 1 and v < best):
-                best = v
-                barg = r - state_ptr[q]
-        # unbounded iteration (keep_better): keep the better of the old bound (in out_val) and
-        # the new one, both sound for the same value; with out_val aliasing w this is a sound
-        # Gauss-Seidel sweep.  Never for k-step values (the old bound is for k-1 steps).
-        if keep_better and direction < 0:
-            if best > out_val[q]:
-                out_val[q] = best
-        elif keep_better and direction > 0:
-            if best < out_val[q]:
-                out_val[q] = best
-        else:
-            out_val[q] = best
-        out_arg[q] = barg
+        if active[q]:
+            _bellman_state(q, state_ptr, row_ptr, col, lower, upper, floor, w, adv_max, use_rank, rank, sv, hi, lo,
+                           ctrl, strat, direction, out_val, out_arg, out_rows, want_rows, keep_better, keys, idx)
+
+
+#: States per parallel task of :func:`bellman_layer_parallel`, and the fewest active states of a
+#: layer for which :class:`_Sweeper` uses it (benchmarks/parallel_sweep.py).
+PAR_BLOCK = 1024
+PAR_MIN_STATES = 16384
+
+
+@njit(cache=True, parallel=True)
+def bellman_layer_parallel(state_ptr, row_ptr, col, lower, upper, floor, w, active, adv_max, use_rank,
+                           rank, sv, hi, lo, ctrl, strat, direction, out_val, out_arg, out_rows, want_rows,
+                           keep_better):
+    """:func:`bellman_layer` on numba's threads (blocks of ``PAR_BLOCK`` states).  Only for Jacobi
+    sweeps (``out_val`` is not ``w``): every state's update reads ``w`` and writes its own outputs,
+    so the result is the serial one, bit for bit, for any number of threads."""
+    n = state_ptr.shape[0] - 1
+    maxk = _max_row_len(row_ptr)
+    n_blocks = (n + PAR_BLOCK - 1) // PAR_BLOCK
+    for b in numba.prange(n_blocks):
+        keys = np.empty(maxk)
+        idx = np.empty(maxk, dtype=np.int64)
+        for q in range(b * PAR_BLOCK, min(n, (b + 1) * PAR_BLOCK)):
+            if active[q]:
+                _bellman_state(q, state_ptr, row_ptr, col, lower, upper, floor, w, adv_max, use_rank, rank, sv, hi,
+                               lo, ctrl, strat, direction, out_val, out_arg, out_rows, want_rows, keep_better, keys,
+                               idx)
 
 
 @njit(cache=True, inline="always")
@@ -1746,9 +1787,14 @@ class _Sweeper:
             strat = self._dummy_i if self.strategy is None else self.strategy[
                 strat_layer if strat_layer is not None else 0][l]
             out_rows = rows[l * m.n_choices:(l + 1) * m.n_choices] if want_rows else rows
-            bellman_layer(m.state_ptr, m.row_ptr, m.col, m.lower, m.upper, m.floor, w, self.active[l],
-                          self.adv_max, self.use_rank, rank, sv, hi, lo, self.ctrl, strat, direction,
-                          newV[l], arg[l], out_rows, want_rows, inplace)
+            # Jacobi sweeps of many states run on numba's threads (bit-identical results);
+            # Gauss-Seidel ones (newV is V) stay serial: their order is part of the method
+            kernel = bellman_layer
+            if not gs and numba.get_num_threads() > 1 and np.count_nonzero(self.active[l]) >= PAR_MIN_STATES:
+                kernel = bellman_layer_parallel
+            kernel(m.state_ptr, m.row_ptr, m.col, m.lower, m.upper, m.floor, w, self.active[l],
+                   self.adv_max, self.use_rank, rank, sv, hi, lo, self.ctrl, strat, direction,
+                   newV[l], arg[l], out_rows, want_rows, inplace)
         return newV, arg, rows
 
 
