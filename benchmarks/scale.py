@@ -136,6 +136,17 @@ def projection(cost: dict) -> list:
     return rows
 
 
+def _kept(data: dict, part: str) -> list:
+    """A line naming the earlier run a section was kept from (``--skip-speedup`` / ``--skip-3d``)."""
+    kept = data.get("kept_from_earlier_run", {}).get(part)
+    if not kept:
+        return []
+    flag = "--skip-speedup" if part == "speedup" else "--skip-3d"
+    return [f"(From the earlier run of {kept.get('date')}, load average "
+            f"{tuple(round(v, 1) for v in kept.get('load_average', ()))}: {kept.get('note', '')}; "
+            f"not re-run with `{flag}`.)", ""]
+
+
 def write_md(data: dict) -> None:
     m = data["machine"]
     lines = ["# Scale (`benchmarks/scale.py`)", "",
@@ -144,13 +155,8 @@ def write_md(data: dict) -> None:
     sp = data.get("speedup")
     if sp:
         w1, w2 = sp["workers_1"], sp["workers_2"]
-        kept = data.get("kept_from_earlier_run", {}).get("speedup")
-        lines += ["## Bound + abstraction stages, 1 worker against 2 (same run)", ""]
-        if kept:
-            lines += [f"(From the earlier run of {kept.get('date')}, load average "
-                      f"{tuple(round(v, 1) for v in kept.get('load_average', ()))}: {kept.get('note', '')}; "
-                      "not re-run with `--skip-speedup`.)", ""]
-        lines += [sp["problem"], "",
+        lines += ["## Bound + abstraction stages, 1 worker against 2 (same run)", "", *_kept(data, "speedup"),
+                  sp["problem"], "",
                   "| workers | bound s | abstract s | bound + abstract s | cluster start-up s |", "|---|---|---|---|---|",
                   f"| 1 (in process) | {w1['bound_s']:.2f} | {w1['abstract_s']:.2f} | {w1['bound_plus_abstract_s']:.2f} | - |",
                   f"| 2 (LocalCluster) | {w2['bound_s']:.2f} | {w2['abstract_s']:.2f} | {w2['bound_plus_abstract_s']:.2f} | "
@@ -160,13 +166,7 @@ def write_md(data: dict) -> None:
                   f"{sp['identical_results']}.", ""]
     td = data.get("three_d")
     if td:
-        kept = data.get("kept_from_earlier_run", {}).get("three_d")
-        lines += ["## 3-D case study (`unicycle_3d`)", ""]
-        if kept:
-            lines += [f"(From the earlier run of {kept.get('date')}, load average "
-                      f"{tuple(round(v, 1) for v in kept.get('load_average', ()))}: {kept.get('note', '')}; "
-                      "not re-run with `--skip-3d`.)", ""]
-        lines += [
+        lines += ["## 3-D case study (`unicycle_3d`)", "", *_kept(data, "three_d"),
                   f"{td['cells']:,} cells x {td['modes']} modes x 3 outputs, all local cores in process: "
                   f"**{td['total_s']:.0f} s** end to end, peak memory **{td['peak_rss_bytes'] / 1e9:.2f} GB** "
                   f"(pre-flight estimate {td['estimated_bytes'] / 1e9:.2f} GB); {td['imdp_entries']:,} IMDP entries, "

@@ -268,11 +268,7 @@ def _bellman_state(q, state_ptr, row_ptr, col, lower, upper, floor, w, adv_max, 
                    strat, direction, out_val, out_arg, out_rows, want_rows, keep_better, keys, idx):
     """The update of one state q by :func:`bellman_layer` (writes only index q of the outputs and
     the entries of q's rows in ``out_rows``)."""
-    r0 = state_ptr[q]
-    r1 = state_ptr[q + 1]
-    if ctrl == 2:
-        r0 = r0 + strat[q]
-        r1 = r0 + 1
+    r0, r1 = _rows(state_ptr, q, ctrl, strat, q)
     best = -1.0
     barg = 0
     for r in range(r0, r1):
