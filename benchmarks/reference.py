@@ -37,6 +37,7 @@ import platform
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -63,7 +64,12 @@ CASES = {
     "three_mode_linear": "three_mode_linear",
     "four_mode_nonlinear": "four_mode_nonlinear",
     "four_mode_nonlinear_two_goals": "four_mode_nonlinear",
+    "unicycle_3d": "unicycle_3d",
 }
+#: Run by default (the shipped problem files); the 3-D case study (64^3 cells, ~6 min, its
+#: problem written to a temporary directory by ``casestudies.write_problem_files``) only with
+#: ``--only unicycle_3d``, whose row is then merged into the existing results.
+DEFAULT = ("three_mode_linear", "four_mode_nonlinear", "four_mode_nonlinear_two_goals")
 #: Reference Q_yes measured by the session that filed issue 9 (same grid 0.125, same settings).
 EXPECTED_REFERENCE_YES = {"three_mode_linear": 764, "four_mode_nonlinear": 1018,
                           "four_mode_nonlinear_two_goals": 654}
@@ -148,14 +154,23 @@ def image_comparison(ours, exact) -> dict:
             "per_mode_output": per}
 
 
-def run_one(stem: str, repeat: int) -> dict:
+def _load(stem: str):
     path = PROBLEMS / f"{stem}.toml"
+    if path.exists():
+        return load_problem(path), f"examples/problems/{stem}.toml"
+    from robust_imdp.casestudies import write_problem_files
+
+    with tempfile.TemporaryDirectory() as d:  # the data are read into memory by load_problem
+        return load_problem(write_problem_files(CASES[stem], d)), f"casestudies.write_problem_files({CASES[stem]!r})"
+
+
+def run_one(stem: str, repeat: int) -> dict:
     case = CASES[stem]
-    problem = load_problem(path)
+    problem, source = _load(stem)
     ref = reference(problem, case)
     exact = ref.pop("cell_bounds")
     ref_p_low, ref_p_up_star = ref.pop("p_low"), ref.pop("p_up_star")
-    row = {"problem": f"examples/problems/{stem}.toml", "case_study": case, "formula": problem.formula,
+    row = {"problem": source, "stem": stem, "case_study": case, "formula": problem.formula,
            "threshold": float(problem.threshold), "guarantee": getattr(problem, "guarantee", None),
            "reference": ref, "expected_reference_yes": EXPECTED_REFERENCE_YES.get(stem)}
     times, result, recorded = [], None, None
@@ -210,6 +225,13 @@ def _git_commit() -> str | None:
 
 
 # --------------------------------------------------------------------------- report
+def _stem(row: dict) -> str:
+    """The problem's name in the tables (a generated problem is named by its case study)."""
+    if row.get("stem"):
+        return row["stem"]
+    return row["case_study"] if row["problem"].startswith("casestudies.") else Path(row["problem"]).stem
+
+
 def write_md(path: Path, data: dict) -> None:
     meta, rows = data["meta"], data["rows"]
     lines = [
@@ -236,7 +258,7 @@ def write_md(path: Path, data: dict) -> None:
         exc = (f"{im['excess_median']:.4f} / {im['excess_max']:.4f}" if "excess_median" in im else "n/a")
         cont = im.get("containment_violations")
         lines.append(
-            f"| {Path(r['problem']).stem} | `{r['formula']}` | {rc['yes']} / {rc['no']} / {rc['maybe']} | "
+            f"| {_stem(r)} | `{r['formula']}` | {rc['yes']} / {rc['no']} / {rc['maybe']} | "
             f"{oc['yes']} / {oc['no']} / {oc['maybe']} | {'n/a' if frac is None else f'{frac:.3f}'} | "
             f"{r['ours']['pipeline_time_median_s']:.1f} | {exc} | {'n/a' if cont is None else cont} | "
             f"{r['ours'].get('p_low_above_reference', {}).get('cells', 'n/a')} / "
@@ -250,24 +272,28 @@ def write_md(path: Path, data: dict) -> None:
             continue
         for u, outs in enumerate(per):
             for i, e in enumerate(outs):
-                lines.append(f"| {Path(r['problem']).stem} | {u} | {i} | {e['median']:.4f} | {e['max']:.4f} | "
+                lines.append(f"| {_stem(r)} | {u} | {i} | {e['median']:.4f} | {e['max']:.4f} | "
                              f"{e['violations']} |")
     notes = []
     for r in rows:
+        m = r.get("measured_in")
+        if m and m.get("date") != meta.get("date"):
+            notes.append(f"* {_stem(r)}: measured in an earlier run ({m.get('date')}, commit {m.get('commit')}, "
+                         f"{m.get('note')}).")
         exp = r.get("expected_reference_yes")
         if exp is not None and exp != r["reference"]["counts"]["yes"]:
-            notes.append(f"* {Path(r['problem']).stem}: reference Q_yes {r['reference']['counts']['yes']} differs "
+            notes.append(f"* {_stem(r)}: reference Q_yes {r['reference']['counts']['yes']} differs "
                          f"from the {exp} measured when issue 9 was filed (problem settings changed?).")
         if "note" in r["images"]:
-            notes.append(f"* {Path(r['problem']).stem}: {r['images']['note']}.")
+            notes.append(f"* {_stem(r)}: {r['images']['note']}.")
         for key, what in (("p_low_above_reference", "p_low above"), ("p_up_star_below_reference", "p_up_star below")):
             v = r["ours"].get(key)
             if v and v["cells"]:
-                notes.append(f"* {Path(r['problem']).stem}: ours {what} the reference in {v['cells']} cells "
+                notes.append(f"* {_stem(r)}: ours {what} the reference in {v['cells']} cells "
                              f"(max {v['max']:.3g}): expected 0 when our boxes contain the exact ones.")
         cont = r["images"].get("containment_violations")
         if cont:
-            notes.append(f"* {Path(r['problem']).stem}: **{cont} containment violations** (worst "
+            notes.append(f"* {_stem(r)}: **{cont} containment violations** (worst "
                          f"{r['images']['worst_violation']:.3g}): a learned box misses the exact image.")
     if notes:
         lines += ["", "## Notes", "", *notes]
@@ -287,10 +313,10 @@ def main(argv=None) -> int:
         return 0
     assert set(CASES.values()) <= set(CASE_STUDIES)
     t0 = time.perf_counter()
-    stems = args.only or list(CASES)
+    stems = args.only or list(DEFAULT)
     warmup_s = None
     if not args.no_warmup:  # numba compiles on first use: keep that out of the timings
-        synthesize_from_data(load_problem(PROBLEMS / f"{stems[0]}.toml"), progress=False)
+        synthesize_from_data(load_problem(PROBLEMS / f"{DEFAULT[0]}.toml"), progress=False)
         warmup_s = time.perf_counter() - t0
     rows = []
     for stem in stems:
@@ -307,6 +333,16 @@ def main(argv=None) -> int:
             "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
             "warmup_s": warmup_s, "total_s": time.perf_counter() - t0}
     data = {"meta": meta, "rows": rows}
+    if args.only and (OUT / "reference.json").exists():
+        # merge: the other problems keep their rows (and the run that measured them)
+        prev = json.loads((OUT / "reference.json").read_text())
+        mine = {r["problem"] for r in rows}
+        kept = [r for r in prev["rows"] if r["problem"] not in mine]
+        for r in kept:
+            r.setdefault("measured_in", prev["meta"])
+        for r in rows:
+            r["measured_in"] = meta
+        data = {"meta": meta, "rows": kept + rows}
     (OUT / "reference.json").write_text(json.dumps(data, indent=1))
     write_md(OUT / "reference.md", data)
     bad = [r for r in rows if r["images"].get("containment_violations")]
