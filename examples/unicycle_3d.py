@@ -4,7 +4,7 @@
 
 State (p_x, p_y, theta) in [0, 4]^2 x [-pi, pi]; modes turn left / go straight / turn right
 (known: theta + omega_u); unknown: the motion 0.15 (cos theta, sin theta) and a cross current
-0.04 sin p_y (learned from 10,000 samples per mode, local ridge certificates). Reach ``goal``
+0.04 sin p_y (learned from 10,000 samples per mode, local optimal certificates). Reach ``goal``
 and never touch ``obs``. Writes the result files, slices of the classes at a few headings and
 a Monte-Carlo validation summary into OUT.
 """
