@@ -167,16 +167,21 @@ def f_true(x, u):
 
 def _nonlinear_setup():
     P = Partition(Box([-1, -1], [1, 1]), 0.25)
-    L, U = P.cells_lower, P.cells_upper
+    return (P, *nonlinear_cell_bounds(P.cells_lower, P.cells_upper))
+
+
+def nonlinear_cell_bounds(L, U):
+    """(CellBounds, models) of ``f_true`` over the cells [L, U]: image boxes widened by 1e-12, GP
+    std 0.01, tail models."""
     lo, hi = [], []
     for u in range(2):
         shift = np.array([0.2, -0.1]) if u == 1 else 0.0
         # f1 increasing in x1 and x2, f2 increasing in x2 and decreasing in x1 (mu = 0)
         lo.append(np.stack([0.8 * L[:, 0] + 0.1 * L[:, 1] ** 3, 0.9 * L[:, 1] - 0.1 * U[:, 0] ** 3], 1) + shift - 1e-12)
         hi.append(np.stack([0.8 * U[:, 0] + 0.1 * U[:, 1] ** 3, 0.9 * U[:, 1] - 0.1 * L[:, 0] ** 3], 1) + shift + 1e-12)
-    cb = CellBounds(np.array(lo), np.array(hi), std_upper=np.full((2, P.n_cells, 2), 0.01))
+    cb = CellBounds(np.array(lo), np.array(hi), std_upper=np.full((2, L.shape[0], 2), 0.01))
     models = [[TailModel(), TailModel()] for _ in range(2)]
-    return P, cb, models
+    return cb, models
 
 
 def _wilson(k, n, z):

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from scipy import special
 
-from robust_imdp.abstraction import Abstraction, CellBounds, abstract, abstract_rows, select_rows
+from robust_imdp.abstraction import Abstraction, CellBounds, abstract
 from robust_imdp.dfa import ltlf_to_dfa
 from robust_imdp.errors import DimensionError, InvalidInputError
 from robust_imdp.geometry import Box, BoxPartition, Partition, Region, partition_from_dict
@@ -294,19 +294,13 @@ def test_refined_2d_monte_carlo_containment():
 
     8 cells x 4 points x 2 modes x (N + 1) states; Wilson at z = 5 (5.7e-7 per side): we require 0.
     """
-    from test_abstraction import f_true
+    from test_abstraction import f_true, nonlinear_cell_bounds
 
     rng = np.random.default_rng(6)
     P = _random_refined(rng, rounds=4, base=Partition(Box([-1, -1], [1, 1]), 0.25))
-    L, U = P.cells_lower, P.cells_upper
-    lo, hi = [], []
-    for u in range(2):
-        shift = np.array([0.2, -0.1]) if u == 1 else 0.0
-        lo.append(np.stack([0.8 * L[:, 0] + 0.1 * L[:, 1] ** 3, 0.9 * L[:, 1] - 0.1 * U[:, 0] ** 3], 1) + shift - 1e-12)
-        hi.append(np.stack([0.8 * U[:, 0] + 0.1 * U[:, 1] ** 3, 0.9 * U[:, 1] - 0.1 * L[:, 0] ** 3], 1) + shift + 1e-12)
-    cb = CellBounds(np.array(lo), np.array(hi), std_upper=np.full((2, P.n_cells, 2), 0.01))
+    cb, models = nonlinear_cell_bounds(P.cells_lower, P.cells_upper)
     noise = GaussianNoise([0.05, 0.05])
-    ab = abstract(P, cb, noise, [[TailModel(), TailModel()] for _ in range(2)])
+    ab = abstract(P, cb, noise, models)
     low, up = dense_rows(ab)
     n, failures = 4000, 0
     small = np.flatnonzero(P.depth >= 2)
