@@ -1885,18 +1885,8 @@ def _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, pre
         members = np.flatnonzero(active2.reshape(-1)) if ncomp else None
         while gap > precision and it < max_iterations:
             it += 1
-            lo, _, _ = sw.sweep(lo, -1, inplace=True)  # keeps max(old, new): both are lower bounds
-            # deflation is an optional tightening (sound whenever applied): every 4th iteration,
-            # and with the response end components (see _ovi_jacobi) every RESPONSE_EVERY-th
-            deflate = ncomp > 0 and (it <= 3 or it % 4 == 0)
-            respond = ncomp > 0 and it % RESPONSE_EVERY == 0
-            up, _, rows = sw.sweep(up, +1, want_rows=deflate or respond, inplace=True)  # min(old, new): both upper bounds
-            if deflate:
-                _deflate(imdp, nxt, up, rows, comp, ncomp, comp_cnt, adv_max, ctrl, flat_strat)
-            if respond:
-                rcomp, rn, rcnt = _response_family(imdp, nxt, lo, members, adv_max, ctrl, flat_strat)
-                if rn:
-                    _deflate(imdp, nxt, up, rows, rcomp, rn, rcnt, adv_max, ctrl, flat_strat)
+            lo, up, _ = _interval_step(sw, imdp, nxt, lo, up, it, (comp, ncomp, comp_cnt), members, adv_max, ctrl,
+                                       flat_strat)
             gap = float(np.max(up - lo))
     converged = gap <= precision
     if not converged:
@@ -2144,21 +2134,12 @@ def _ovi_jacobi(sw, imdp, nxt, lo, up, active, ctrl, adv_max, flat_strat, precis
     # (:func:`response_end_components`), and the loop stops early when a whole period changed
     # no value (a fixed point of the iteration: more sweeps cannot help)
     it = 0
-    members = np.flatnonzero(act.reshape(-1)) if ncomp else None
     last = None
     while gap() > target and sweeps < max_iterations:
         it += 1
-        lo = sw.sweep(lo, -1, inplace=True)[0]
-        deflate = ncomp > 0 and (it <= 3 or it % 4 == 0)
-        respond = ncomp > 0 and it % RESPONSE_EVERY == 0
-        up, _, rows = sw.sweep(up, +1, want_rows=deflate or respond, inplace=True)
-        if deflate:
-            _deflate(imdp, nxt, up, rows, comp, ncomp, comp_cnt, adv_max, ctrl, flat_strat)
-        if respond:
-            rcomp, rn, rcnt = _response_family(imdp, nxt, lo, members, adv_max, ctrl, flat_strat)
-            if rn:
-                _deflate(imdp, nxt, up, rows, rcomp, rn, rcnt, adv_max, ctrl, flat_strat)
-            now = (lo[act].copy(), up[act].copy())
+        lo, up, responded = _interval_step(sw, imdp, nxt, lo, up, it, mec, idx, adv_max, ctrl, flat_strat)
+        if responded:
+            now = (lo.reshape(-1)[idx], up.reshape(-1)[idx])  # copies
             if last is not None and np.array_equal(now[0], last[0]) and np.array_equal(now[1], last[1]):
                 break  # nothing changed in a whole period
             last = now
@@ -2168,6 +2149,26 @@ def _ovi_jacobi(sw, imdp, nxt, lo, up, active, ctrl, adv_max, flat_strat, precis
 
 #: Period (in interval-iteration steps) of the deflation with the response end components.
 RESPONSE_EVERY = 8
+
+
+def _interval_step(sw, imdp, nxt, lo, up, it, mec, members, adv_max, ctrl, flat_strat):
+    """Step ``it`` (from 1) of interval iteration with deflation: a lower and an upper sweep
+    (each keeps the better of old and new bound), then Lemma D on the end components ``mec``
+    at the first 3 and every 4th step, and on the response end components of ``members``
+    against ``lo`` every RESPONSE_EVERY-th step (deflation is an optional tightening, sound
+    whenever applied).  Returns (lo, up, whether the response family was applied)."""
+    comp, ncomp, comp_cnt = mec
+    lo = sw.sweep(lo, -1, inplace=True)[0]
+    deflate = ncomp > 0 and (it <= 3 or it % 4 == 0)
+    respond = ncomp > 0 and it % RESPONSE_EVERY == 0
+    up, _, rows = sw.sweep(up, +1, want_rows=deflate or respond, inplace=True)
+    if deflate:
+        _deflate(imdp, nxt, up, rows, comp, ncomp, comp_cnt, adv_max, ctrl, flat_strat)
+    if respond:
+        rcomp, rn, rcnt = _response_family(imdp, nxt, lo, members, adv_max, ctrl, flat_strat)
+        if rn:
+            _deflate(imdp, nxt, up, rows, rcomp, rn, rcnt, adv_max, ctrl, flat_strat)
+    return lo, up, respond
 
 
 def _response_family(imdp, nxt, lo, members, adv_max, ctrl, flat_strat):
