@@ -37,6 +37,7 @@ from robust_imdp import solve  # noqa: E402
 from robust_imdp.solve import solve_reachability  # noqa: E402
 
 OUT = HERE / "results"
+PAR_DEFAULT = solve.PAR_MIN_STATES  # restored after the serial runs of bounded_solve
 
 
 def one_sweep(m, w, kernel, threads):
@@ -101,9 +102,6 @@ def bounded_solve(n, repeat, rng, cores):
     out["speedup"] = out["serial_s"] / out["parallel_s"]
     print(json.dumps(out), flush=True)
     return out
-
-
-PAR_DEFAULT = solve.PAR_MIN_STATES
 
 
 def write_md(data):
