@@ -143,7 +143,7 @@ def _result(res, initial_state) -> ProductResult:
 
 
 def solve_product(imdp: IMDP, letters, dfa, *, avoid=None, adversary="pessimistic", horizon=None,
-                  precision=1e-8, max_iterations=100_000, method="vi") -> ProductResult:
+                  precision=1e-8, max_iterations=100_000, method="vi", tie_break=None) -> ProductResult:
     """Maximal probability of reaching an accepting DFA state, on the lazy product.
 
     Parameters
@@ -162,6 +162,12 @@ def solve_product(imdp: IMDP, letters, dfa, *, avoid=None, adversary="pessimisti
     method : {"vi", "interval"}
         As in :func:`robust_imdp.solve.solve_reachability` (the product's components across
         DFA layers are solved in reverse topological order by default).
+    tie_break : ProductResult, optional
+        The ``adversary="optimistic"`` solve of the same product (same horizon).  Rows tied in
+        the lower value are then chosen by their optimistic value, and nodes where every row
+        has lower value 0 take the optimistic strategy's row (lexicographic choice, see
+        "Strategy extraction" in :mod:`robust_imdp.solve`).  Without it ties go to the first
+        row.
 
     Returns
     -------
@@ -171,7 +177,7 @@ def solve_product(imdp: IMDP, letters, dfa, *, avoid=None, adversary="pessimisti
     nxt, target, zero, init = _dfa_arrays(imdp, letters, dfa, avoid)
     adv_max = _enum(Adversary, adversary, "adversary") is Adversary.OPTIMISTIC
     res = solve_layered(imdp, nxt, target, zero, ctrl=0, adv_max=adv_max, horizon=horizon,
-                        precision=precision, max_iterations=max_iterations, method=method)
+                        precision=precision, max_iterations=max_iterations, method=method, tie_break=tie_break)
     return _result(res, init)
 
 

@@ -92,7 +92,19 @@ value V* is its *least* fixed point (for every combination max/min x max/min).
 
 Strategy extraction: rows within ``_TIE_TOL`` of the best (w.r.t. the final lower values) are
 optimal; among them a backward attractor picks rows that make progress toward the target, so a
-maximising strategy is never trapped in an end component by a tie.
+maximising strategy is never trapped in an end component by a tie.  Ties are broken
+lexicographically when the optimistic (max, max) solve is given (``tie_break``): among the
+optimal rows through which a node joins the attractor, the one with the largest optimistic row
+value ``max_p p.U`` (U the proven upper bound of the max-max value, the p_up_star vector of
+synthesis) wins; a node the attractor never reaches -- its lower value is 0 for every row, e.g.
+the nodes the graph pre-computation proved 0 -- takes the optimistic solve's own
+(progress-making) row.  Choosing there by ``max_p p.U`` alone would not do: a row that stays in
+a set of equal U values (a self-loop) ties with the best row, and the strategy could circle
+forever.  Changing the rows of nodes whose value under the strategy is 0 cannot lower the
+value of any other node: with ``y_k = B_pi^k(0)`` and ``x_k = B_pi'^k(0)``, pi' = pi off those
+nodes Z, induction gives ``x_k >= y_k`` (``y_k = 0`` on Z, B monotone elsewhere), and the least
+fixed points are the limits.  The strategy's bounds are always re-evaluated by the caller
+(:func:`robust_imdp.synthesis.synthesize` checks they keep the optimal lower value).
 
 Hot loop: numba (``@njit(cache=True)``), serial.  A numpy formulation needs a per-row sort
 (``np.lexsort`` over all nnz entries each iteration) and several nnz-sized temporaries.  The
@@ -662,15 +674,22 @@ def strong_components(indptr, indices):
 
 @njit(cache=True)
 def progress_strategy(state_ptr, row_ptr, col, lower, upper, floor, nxt, target, optimal, adv_max,
-                      fallback):
+                      fallback, score, tie_strat):
     """Among optimal rows pick, per node, one that makes progress toward the target.
 
     ``optimal`` (R*L,) bool: row r in layer l is optimal (index ``l*R + r``).  Backward
     attractor over optimal rows (Haddad & Monmege 2014 / Baier et al. 2017 strategy
     extraction): a node joins at round i+1 through an optimal row that puts positive mass on
     the nodes of rounds <= i for every (minimising adversary) / some (maximising) admissible
-    distribution; the row is remembered.  Nodes never reached keep ``fallback``.
-    Here the tests are strict (no slack): a wrongly chosen row would break the strategy.
+    distribution; the row is remembered.  Here the tests are strict (no slack): a wrongly
+    chosen row would break the strategy.
+
+    Lexicographic ties: among the rows through which a node joins in the same round, the one
+    with the largest ``score`` (R*L,) is remembered (the first on equal scores).  A node the
+    attractor never reaches (its lower value is 0, or within the tie tolerance of 0) keeps the
+    choice ``tie_strat[node]`` if that row is optimal (``tie_strat`` (L*n,) holds -1 where there
+    is none), else its optimal row of largest finite score, else ``fallback``.  With all scores
+    -inf and ``tie_strat`` all -1 this is the first hitting row / ``fallback``.
     """
     L = nxt.shape[0]
     n = state_ptr.shape[0] - 1
@@ -693,6 +712,7 @@ def progress_strategy(state_ptr, row_ptr, col, lower, upper, floor, nxt, target,
                 node = l * n + q
                 if W[node]:
                     continue
+                best = -np.inf
                 for r in range(state_ptr[q], state_ptr[q + 1]):
                     if not optimal[l * R + r]:
                         continue
@@ -715,12 +735,26 @@ def progress_strategy(state_ptr, row_ptr, col, lower, upper, floor, nxt, target,
                         hit = upW > 0.0 or (f > 0.0 and unlW > 0)
                     else:
                         hit = lowW > 0.0 or (upOut + f * unlOut) * (1.0 + 1e-12) < 1.0
-                    if hit:
+                    if hit and (not newW[node] or score[l * R + r] > best):
                         newW[node] = True
                         strat[node] = r - state_ptr[q]
+                        best = score[l * R + r]
                         changed = True
-                        break
         W = newW
+    for l in range(L):
+        for q in range(n):
+            node = l * n + q
+            if W[node]:
+                continue
+            t = tie_strat[node]
+            if t >= 0 and optimal[l * R + state_ptr[q] + t]:
+                strat[node] = t
+                continue
+            best = -np.inf
+            for r in range(state_ptr[q], state_ptr[q + 1]):
+                if optimal[l * R + r] and score[l * R + r] > best:
+                    best = score[l * R + r]
+                    strat[node] = r - state_ptr[q]
     return strat
 
 
@@ -1638,7 +1672,7 @@ def check_strategy(imdp: IMDP, strategy, name="strategy") -> np.ndarray:
 
 
 def solve_reachability(imdp: IMDP, target, *, avoid=None, adversary="pessimistic", objective="maximize",
-                       horizon=None, precision=1e-8, max_iterations=100_000, method="vi"):
+                       horizon=None, precision=1e-8, max_iterations=100_000, method="vi", tie_break=None):
     """Sound bounds of the optimal probability to reach ``target`` while avoiding ``avoid``.
 
     Parameters
@@ -1658,6 +1692,11 @@ def solve_reachability(imdp: IMDP, target, *, avoid=None, adversary="pessimistic
         interval iteration; models with floor rows use "interval").  "interval": interval
         iteration (a lower and an upper sequence) on the whole model.  Both return proven
         brackets.  "lp" dispatches to :func:`robust_imdp.lp.solve_reachability_lp` (small models).
+    tie_break : ReachabilityResult, optional
+        ``objective="maximize"`` only, not with "lp": the ``adversary="optimistic"`` solve of the
+        same problem.  Rows tied in the lower value are then chosen by their optimistic value
+        (lexicographic choice, see "Strategy extraction" above); without it ties go to the
+        first choice.
 
     Returns
     -------
@@ -1670,6 +1709,8 @@ def solve_reachability(imdp: IMDP, target, *, avoid=None, adversary="pessimistic
         When ``max_iterations`` is hit; the returned bracket is still sound.
     """
     if method == "lp":
+        if tie_break is not None:
+            raise InvalidInputError("tie_break is not available with method='lp'; use 'vi' or 'interval'")
         from robust_imdp import lp  # lazy: cvxpy is imported only there (lp is below solve)
 
         r = lp.solve_reachability_lp(imdp, target, avoid=avoid, adversary=adversary, objective=objective)
@@ -1680,7 +1721,7 @@ def solve_reachability(imdp: IMDP, target, *, avoid=None, adversary="pessimistic
     t, z = _target_avoid(imdp, target, avoid)
     nxt = np.zeros((1, imdp.n_states), dtype=np.int64)
     res = solve_layered(imdp, nxt, t[None, :], z[None, :], ctrl=ctrl, adv_max=adv_max, horizon=horizon,
-                        precision=precision, max_iterations=max_iterations, method=method)
+                        precision=precision, max_iterations=max_iterations, method=method, tie_break=tie_break)
     return _single_layer(res)
 
 
@@ -1795,7 +1836,7 @@ class _Sweeper:
 
 
 def solve_layered(imdp, nxt, target, zero, *, ctrl, adv_max, horizon=None, precision=1e-8,
-                  max_iterations=100_000, strategy=None, method="vi") -> ReachabilityResult:
+                  max_iterations=100_000, strategy=None, method="vi", tie_break=None) -> ReachabilityResult:
     """Engine shared by :func:`solve_reachability`, :func:`evaluate_strategy` and the lazy product.
 
     Parameters
@@ -1807,6 +1848,12 @@ def solve_layered(imdp, nxt, target, zero, *, ctrl, adv_max, horizon=None, preci
     ctrl : 0 maximise, 1 minimise, 2 fixed ``strategy`` ((1 or k, L, n) choice indices).
     adv_max : bool
         The adversary maximises the value (else minimises).
+    tie_break : result of the optimistic solve, optional
+        Only for ``ctrl=0``: an object with ``upper`` (L, n) and ``strategy`` (L, n), the
+        (max, max) solve of the same model (``ctrl=0, adv_max=True``).  Rows tied in the lower
+        value are then chosen by their optimistic value (see "Strategy extraction" in the module
+        docstring).  k-step: only its presence matters; the optimistic values of every step are
+        recomputed alongside the lower ones (one more sweep per step).
 
     Returns a ReachabilityResult with (L, n) arrays and a (L, n) or (k, L, n) strategy.
     """
@@ -1822,23 +1869,91 @@ def solve_layered(imdp, nxt, target, zero, *, ctrl, adv_max, horizon=None, preci
     V0 = target.astype(np.float64)
     if strategy is not None:
         strategy = np.ascontiguousarray(strategy, dtype=np.int64)
+    if tie_break is not None:
+        tie_break = _check_tie_break(tie_break, imdp, L, n, ctrl, horizon)
     sw = _Sweeper(imdp, nxt, active, ctrl, adv_max, strategy)
     if horizon is not None:
-        return _bounded(sw, V0, horizon, ctrl, strategy)
+        return _bounded(sw, V0, horizon, ctrl, strategy, tie_break)
     return _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, precision, max_iterations,
-                      method)
+                      method, tie_break)
 
 
-def _bounded(sw, V0, k, ctrl, strategy):
-    """k-step values by k exact Bellman steps, rounded down (lower) and up (upper)."""
+def _check_tie_break(tie_break, imdp, L, n, ctrl, horizon):
+    """``(upper (L, n) float, strategy (L, n) int)`` of an optimistic result, checked; k-step: ``()``."""
+    if ctrl != 0:
+        raise InvalidInputError(f"tie_break applies to a maximising controller only (ctrl=0); got ctrl={ctrl}")
+    if not (hasattr(tie_break, "upper") and hasattr(tie_break, "strategy")):
+        raise InvalidInputError("tie_break must be the result of the optimistic solve of the same model (with "
+                                f"'upper' and 'strategy'); got {type(tie_break).__name__}")
+    if horizon is not None:
+        return ()
+    up = np.asarray(tie_break.upper, dtype=np.float64)
+    st = np.asarray(tie_break.strategy)
+    if L == 1 and up.shape == (n,):  # a single-layer ReachabilityResult
+        up = up[None, :]
+    if up.shape != (L, n) or st.shape not in ((L, n), (n,) if L == 1 else (L, n)):
+        raise DimensionError(f"tie_break must come from a solve of the same model: upper ({L}, {n}) and an "
+                             f"({L}, {n}) stationary strategy; got upper {np.shape(tie_break.upper)}, "
+                             f"strategy {st.shape}")
+    return np.ascontiguousarray(up), np.ascontiguousarray(st.reshape(L, n), dtype=np.int64)
+
+
+def _optimistic_rows(imdp, nxt, mask, U):
+    """Per row (index ``l*R + r``) its value under the maximising adversary against ``U`` (L, n),
+    rounded up; -inf for the rows of nodes outside ``mask``.  Only used to order tied rows."""
+    sw = _Sweeper(imdp, nxt, mask, 0, True, None)
+    _, _, rows = sw.sweep(U, +1, want_rows=True)
+    return rows
+
+
+def _lex_choice(rows_lo, rows_up, state_ptr, arg):
+    """Per node, among the rows within ``_TIE_TOL`` of its best lower row value ``rows_lo``
+    (L, R), the first one with the largest ``rows_up``; ``arg`` where no row was evaluated."""
+    L = rows_lo.shape[0]
+    nch = np.diff(state_ptr)
+    has = nch > 0
+    starts = state_ptr[:-1][has]
+    out = arg.copy()
+    lo = np.where(np.isfinite(rows_lo), rows_lo, -1.0)
+    best_lo = np.maximum.reduceat(lo, starts, axis=1)
+    optimal = (lo >= np.repeat(best_lo, nch[has], axis=1) - _TIE_TOL) & np.isfinite(rows_lo)
+    sc = np.where(optimal, rows_up, -np.inf)
+    best = np.maximum.reduceat(sc, starts, axis=1)
+    is_best = optimal & (sc >= np.repeat(best, nch[has], axis=1))
+    pos = np.where(is_best, np.arange(rows_lo.shape[1])[None, :], rows_lo.shape[1])
+    first = np.minimum.reduceat(pos, starts, axis=1)  # (L, number of states with rows)
+    ok = np.isfinite(best)
+    q_idx = np.flatnonzero(has)
+    for l in range(L):
+        sel = ok[l]
+        out[l, q_idx[sel]] = first[l, sel] - starts[sel]
+    return out
+
+
+def _bounded(sw, V0, k, ctrl, strategy, tie_break=None):
+    """k-step values by k exact Bellman steps, rounded down (lower) and up (upper).
+
+    With ``tie_break`` the optimistic (max, max) k-step values ``U_t`` are iterated alongside and
+    the decision with t steps to go is, among the rows within ``_TIE_TOL`` of the best lower row
+    value, the one of largest optimistic value ``B_row(U_{t-1})`` (no cycles to fear: the
+    strategy is time-varying and every chosen row is optimal for the lower recursion).
+    """
     lo = V0.copy()
     up = V0.copy()
+    opt = V0.copy()
+    opt_sw = None if tie_break is None else _Sweeper(sw.m, sw.nxt, sw.active, 0, True, None)
+    R = sw.m.n_choices
     strat = np.zeros((k,) + V0.shape, dtype=np.int64)
     for t in range(1, k + 1):
         # with t steps to go the decision is the one taken at time k - t
         sl = None if strategy is None else (k - t if strategy.shape[0] == k else 0)
-        lo, arg, _ = sw.sweep(lo, -1, strat_layer=sl)
+        lo_rows = opt_sw is not None
+        new_lo, arg, rows_lo = sw.sweep(lo, -1, strat_layer=sl, want_rows=lo_rows)
         up, _, _ = sw.sweep(up, +1, strat_layer=sl)
+        if opt_sw is not None:
+            opt, _, rows_up = opt_sw.sweep(opt, +1, want_rows=True)
+            arg = _lex_choice(rows_lo.reshape(-1, R), rows_up.reshape(-1, R), sw.m.state_ptr, arg)
+        lo = new_lo
         strat[k - t] = arg
     if ctrl == 2:
         strat = np.broadcast_to(strategy, strat.shape).copy() if strategy.shape[0] == k else np.repeat(strategy, k, 0)
@@ -1846,7 +1961,8 @@ def _bounded(sw, V0, k, ctrl, strategy):
     return ReachabilityResult(lower=lo, upper=up, strategy=strat, iterations=k, precision=prec, converged=True)
 
 
-def _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, precision, max_iterations, method):
+def _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, precision, max_iterations, method,
+               tie_break=None):
     L, n = nxt.shape
     flat_strat = strategy[0].reshape(-1) if strategy is not None else np.zeros(1, dtype=np.int64)
     # (a) graph pre-computation: nodes that reach the target with positive probability
@@ -1904,8 +2020,18 @@ def _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, pre
         # best-row value of each node (computed with the same rounding) and a tie tolerance
         rowbest = np.maximum.reduceat(np.where(np.isfinite(rv), rv, -1.0), imdp.state_ptr[:-1], axis=1)
         optimal = rv >= np.repeat(rowbest, np.diff(imdp.state_ptr), axis=1) - _TIE_TOL
+        # nodes the graph pre-computation proved 0 (not swept above): every row is optimal
+        proven0 = active & ~sw.active
+        optimal |= np.repeat(proven0, np.diff(imdp.state_ptr), axis=1)
+        if tie_break is None:
+            score = np.full(L * R, -np.inf)
+            tie_strat = np.full(L * n, -1, dtype=np.int64)
+        else:
+            score = _optimistic_rows(imdp, nxt, active, tie_break[0])
+            tie_strat = tie_break[1].reshape(-1)
         strat = progress_strategy(imdp.state_ptr, imdp.row_ptr, imdp.col, imdp.lower, imdp.upper, imdp.floor,
-                                  nxt, target.reshape(-1), optimal.reshape(-1), adv_max, arg.reshape(-1))
+                                  nxt, target.reshape(-1), optimal.reshape(-1), adv_max, arg.reshape(-1),
+                                  score, tie_strat)
         strat = strat.reshape(L, n)
     elif ctrl == 2:
         strat = strategy[0].copy()
@@ -1914,8 +2040,12 @@ def _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, pre
     return ReachabilityResult(lower=lo, upper=up, strategy=strat, iterations=it, precision=gap, converged=converged)
 
 
-#: Rows whose (rounded) value is within this of the best row count as optimal for strategy
-#: extraction; far below any precision a user asks for, far above the rounding error.
+#: Rows whose (rounded) value is within this of the best row count as optimal (tied) for strategy
+#: extraction.  Far below any precision a user asks for (>= 1e-10 in practice, 1e-8 by default),
+#: so a tied row loses nothing the reported bracket could show; far above the rounding error of
+#: one row (``ROW_ERR`` ~ 1e-14 for rows of a few dozen entries), so rows of equal value that
+#: were rounded differently still tie.  Exact ties (the rows of a node whose lower value is 0)
+#: need no tolerance at all.
 _TIE_TOL = 1e-12
 
 

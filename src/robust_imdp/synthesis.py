@@ -24,6 +24,19 @@ Hence ``p_low <= p_up <= p_up_star`` holds exactly: ``p_up <= p_up_star`` by the
 violation raises :class:`~robust_imdp.errors.SoundnessError`). The classes can therefore never
 be both "yes" and "no". ``p_low`` is computed by *evaluating* the returned strategy (not read off
 the max-min iteration, whose lower bracket belongs to the optimal value, not to ``pi``).
+
+Which action among equals. Where several actions reach the best lower value (all of them where
+the lower value is 0) the choice is lexicographic: best lower value, then best optimistic value
+``max_p p.U`` with U the upper bound of the max-max value (the vector whose initial states give
+``p_up_star``): it is the best any controller can still hope for after the step, and it is what
+separates "into the obstacle" from "round it" when no action has a guaranteed positive value.
+Where the lower value is 0 for every action the optimistic solve's own action is used (it makes
+progress towards acceptance; a choice by U alone can circle, see :mod:`robust_imdp.solve`).
+The tie tolerance is ``solve._TIE_TOL`` (1e-12, absolute). The strategy is then evaluated as
+any other, and it is checked that its ``p_low`` keeps the optimal robust lower value at every
+cell (``_keeps_optimal_lower``); if it did not, the first-choice strategy would be used.
+``no_strategy_can`` (``p_up_star < threshold``) marks the Q_no cells where no controller can meet
+the threshold; the other Q_no cells are "no" under the returned controller only.
 """
 
 from __future__ import annotations
@@ -102,6 +115,11 @@ class SynthesisResult:
     n_modes : int
     runs : tuple of SolverRun
     precision : float
+    strategy_choice : str
+        ``"lexicographic"``: among actions of (tied) best lower value, the best optimistic value
+        (module docstring); ``"first"``: the first such action, used only when the
+        lexicographic strategy would have a smaller ``p_low`` somewhere (never seen; kept as a
+        safeguard).
     """
 
     strategy: np.ndarray
@@ -118,11 +136,19 @@ class SynthesisResult:
     n_modes: int
     runs: tuple
     precision: float
+    strategy_choice: str = "lexicographic"
 
     @property
     def n_cells(self) -> int:
         """Number of cells."""
         return int(self.p_low.shape[0])
+
+    @property
+    def no_strategy_can(self) -> np.ndarray:
+        """(n_cells,) bool: ``p_up_star < threshold``, no strategy at all can meet the threshold
+        (p_up_star bounds every strategy's value from above, eq. prob-upper-bound); a refinement
+        of Q_no, whose other cells are "no" only under the returned controller."""
+        return np.asarray(self.p_up_star) < self.threshold
 
     def class_counts(self) -> dict:
         """``{"yes": n, "no": n, "maybe": n}``."""
@@ -170,6 +196,19 @@ def _check_horizon(horizon: Any) -> int | None:
     if isinstance(horizon, bool) or not isinstance(horizon, Integral) or horizon < 1:
         raise InvalidInputError(f"horizon must be None (unbounded) or an int >= 1; got {horizon!r}")
     return int(horizon)
+
+
+def _keeps_optimal_lower(ev_low: Any, robust: Any, n_cells: int, precision: float) -> bool:
+    """Whether the evaluated strategy keeps the optimal robust lower value at every cell.
+
+    Its lower bracket end ``ev_low.initial_lower`` must reach the optimum's ``robust.initial_lower``
+    within the width of its own bracket plus ``precision``: if the strategy is optimal, both
+    brackets contain the same value, so ``ev_low.lower >= V - gap >= robust.lower - gap``; the
+    extra ``precision`` absorbs the tie tolerance of the strategy extraction (1e-12 per step).
+    """
+    got = np.asarray(ev_low.initial_lower, dtype=np.float64)[:n_cells]
+    best = np.asarray(robust.initial_lower, dtype=np.float64)[:n_cells]
+    return bool(np.all(got >= best - (float(ev_low.precision) + float(precision))))
 
 
 def _run(name: str, res: Any, n_cells: int) -> SolverRun:
@@ -254,10 +293,24 @@ def synthesize(
     letters = np.concatenate([cell_letters, np.zeros(imdp.n_states - n_cells, dtype=np.int64)])
 
     kw = dict(avoid=avoid, horizon=horizon, precision=precision)
-    robust = _product.solve_product(imdp, letters, dfa, adversary="pessimistic", **kw)
     optimistic = _product.solve_product(imdp, letters, dfa, adversary="optimistic", **kw)
+    # Lexicographic choice: best lower value, then best optimistic value (module docstring).
+    robust = _product.solve_product(imdp, letters, dfa, adversary="pessimistic", tie_break=optimistic, **kw)
     pi = np.asarray(robust.strategy)
     ev_low = _product.evaluate_product_strategy(imdp, letters, dfa, pi, adversary="pessimistic", **kw)
+    choice = "lexicographic"
+    extra_runs = ()
+    if not _keeps_optimal_lower(ev_low, robust, n_cells, precision):
+        # the tie-broken strategy lost lower value somewhere (it must not): use the first-choice
+        # extraction instead if that one does better anywhere
+        first = _product.solve_product(imdp, letters, dfa, adversary="pessimistic", **kw)
+        ev_first = _product.evaluate_product_strategy(imdp, letters, dfa, first.strategy, adversary="pessimistic",
+                                                      **kw)
+        extra_runs = (_run("robust_first_choice", first, n_cells),
+                      _run("evaluate_first_choice", ev_first, n_cells))
+        tol = ev_low.precision + ev_first.precision + precision
+        if np.any(np.asarray(ev_first.initial_lower)[:n_cells] > np.asarray(ev_low.initial_lower)[:n_cells] + tol):
+            robust, ev_low, pi, choice = first, ev_first, np.asarray(first.strategy), "first"
     ev_up = _product.evaluate_product_strategy(imdp, letters, dfa, pi, adversary="optimistic", **kw)
 
     p_low = np.array(ev_low.initial_lower, dtype=np.float64)[:n_cells]
@@ -290,10 +343,10 @@ def synthesize(
         _run("optimistic", optimistic, n_cells),
         _run("evaluate_pessimistic", ev_low, n_cells),
         _run("evaluate_optimistic", ev_up, n_cells),
-    )
+    ) + extra_runs
     return SynthesisResult(
         strategy=strategy, p_low=p_low, p_up=p_up, p_up_star=p_up_star, error=error,
         classes=classes, initial_dfa_state=init, labels=cell_letters, dfa=dfa,
         threshold=threshold, horizon=horizon, n_modes=int(imdp.n_choices_of().max()),
-        runs=runs, precision=float(precision),
+        runs=runs, precision=float(precision), strategy_choice=choice,
     )
