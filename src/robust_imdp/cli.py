@@ -23,7 +23,7 @@ import warnings
 from pathlib import Path
 
 from robust_imdp import __version__
-from robust_imdp.errors import InvalidInputError, RobustImdpError
+from robust_imdp.errors import InvalidInputError, RobustImdpError, interrupt_in
 
 __all__ = ["main"]
 
@@ -411,24 +411,37 @@ def main(argv=None) -> int:
             raise
         print(f"robust-imdp: {getattr(args, 'interrupt_note', 'interrupted')}", file=sys.stderr)
         return 130
-    except (RobustImdpError, ValueError, OSError, KeyError) as exc:
-        if type(exc).__name__ == "KilledWorker":  # distributed: a worker was lost for good
-            print(f"robust-imdp: a Dask worker was lost ({exc}); "
-                  f"{getattr(args, 'interrupt_note', 'interrupted')}", file=sys.stderr)
-            return 130
+    except Exception as exc:
+        return _failure(exc, args)
+
+
+def _failure(exc: Exception, args) -> int:
+    """Print one line for ``exc`` and return the exit status (or re-raise it with ``--debug``)."""
+    if interrupt_in(exc) is not None:
+        # Ctrl-C inside compiled code arrives as a SystemError (or a wrapper) caused by the
+        # KeyboardInterrupt: it is the interrupt, whatever stage it stopped
         if args.debug:
-            raise
+            raise exc
+        print(f"robust-imdp: {getattr(args, 'interrupt_note', 'interrupted')}", file=sys.stderr)
+        return 130
+    if type(exc).__name__ == "KilledWorker":  # distributed: a worker was lost for good
+        print(f"robust-imdp: a Dask worker was lost ({exc}); "
+              f"{getattr(args, 'interrupt_note', 'interrupted')}", file=sys.stderr)
+        return 130
+    if isinstance(exc, (RobustImdpError, ValueError, OSError, KeyError)):
+        if args.debug:
+            raise exc
         msg = str(exc) if not isinstance(exc, KeyError) else f"missing entry {exc}"
         if isinstance(exc, OSError) and getattr(exc, "filename", None):
             msg = f"{exc.strerror}: {exc.filename}"
         print(f"robust-imdp: error: {msg}", file=sys.stderr)
         return 1
-    except Exception as exc:  # a bug, not bad input: still no traceback unless --debug
-        if args.debug:
-            raise
-        print(f"robust-imdp: internal error ({type(exc).__name__}: {exc}); please report it, "
-              "and rerun with --debug for the traceback", file=sys.stderr)
-        return 3
+    # a bug, not bad input: still no traceback unless --debug
+    if args.debug:
+        raise exc
+    print(f"robust-imdp: internal error ({type(exc).__name__}: {exc}); please report it, "
+          "and rerun with --debug for the traceback", file=sys.stderr)
+    return 3
 
 
 if __name__ == "__main__":  # pragma: no cover

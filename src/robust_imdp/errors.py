@@ -71,6 +71,25 @@ class SoundnessError(RobustImdpError, RuntimeError):
     """
 
 
+# --------------------------------------------------------------------------- interrupts
+def interrupt_in(exc: BaseException | None) -> KeyboardInterrupt | None:
+    """The ``KeyboardInterrupt`` behind ``exc`` (itself, or in its ``__cause__``/``__context__`` chain).
+
+    Ctrl-C arrives as a flag that the interpreter turns into ``KeyboardInterrupt`` at the next
+    Python bytecode it runs. When that is a callback inside compiled code (a numba kernel boxing
+    its result, a C extension), the caller sees ``SystemError: ... returned a result with an
+    exception set`` caused by the interrupt, or a wrapper exception raised from it: those are the
+    interrupt too. Returns None when no interrupt is in the chain.
+    """
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return exc
+        seen.add(id(exc))
+        exc = exc.__cause__ if exc.__cause__ is not None else exc.__context__
+    return None
+
+
 # --------------------------------------------------------------------------- warnings
 class RobustImdpWarning(UserWarning):
     """Base class of warnings issued by robust_imdp."""

@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from robust_imdp.errors import InvalidInputError, UnknownAtomError
+from robust_imdp.errors import InvalidInputError, UnknownAtomError, interrupt_in
 
 __all__ = ["Problem", "Result", "synthesize_from_data", "resynthesize", "abstraction_key",
            "bounds_key", "estimate_resources"]
@@ -312,9 +312,13 @@ class _Log:
                     print(f"[robust-imdp] {name} ...", file=sys.stderr, flush=True)
                 return self
 
-            def __exit__(self, *exc):
+            def __exit__(self, kind, exc, tb):
                 dt = time.perf_counter() - self.t
                 log.timings[name] = log.timings.get(name, 0.0) + dt
+                if exc is not None and not isinstance(exc, KeyboardInterrupt) and interrupt_in(exc) is not None:
+                    # Ctrl-C seen inside compiled code surfaces as a SystemError caused by it
+                    # (errors.interrupt_in): the caller gets the interrupt, as from Python code
+                    raise KeyboardInterrupt(f"interrupted during the {name} stage") from exc
                 return False
 
         return _Stage()
