@@ -61,6 +61,13 @@ _VI_K_RETURN = ("    return ReachabilityResult(lower=lo, upper=up, strategy=stra
                 "precision=prec, converged=True)")
 _SYN_CHECK = "    bad = np.flatnonzero(~(p_low <= p_up))"
 _FLOOR = "        floors[u] = _complement_up(_combine_down(md.floor_p, md.floor_pv, combine))"
+_LOCAL_OPT = ("                            val[q, jv, o, sd] = _certify(bidx, bw, nb, ys, b, eb, Kp, K_err, s0, "
+              "a1[o], 0.0, G, sgn)[0]")
+_LOCAL_RIDGE_UP = ("                        val[q, jv, o, 0] = _certified_value(idx, w, k, ys, l1, l2, rr, a1[o], "
+                   "a2[o], G, 1.0)[0]")
+_LOCAL_RIDGE_LO = ("                        val[q, jv, o, 1] = _certified_value(idx, w, k, ys, l1, l2, rr, a1[o], "
+                   "a2[o], G, -1.0)[0]")
+_LOCAL_COMBINE = "        lo_i, up_i, taylor = _combine_vertices(lin_v, lin_err, su, sl, t_max, G_eff, tau)"
 
 #: The mutations, in the order they are run. Keep each ``original`` unique in its file.
 MUTATIONS = [
@@ -170,6 +177,43 @@ MUTATIONS = [
          original="            joint = float(_down(joint / infl))",
          replacement="            joint = float(joint / infl) * (1 + 1e-3)",
          description="data-implied minimum RKHS norm over-claimed by 0.1 % (refuses assumptions the data allow)"),
+    # ------------------------------------------------------------------ RKHS local weights (rkhs._local_cells / _local_chunk)
+    dict(name="rkhs-kernel-error-nb-off", file=_RKHS,
+         original="    return (math.expm1(x) + 2 * 1.1102230246251565e-16) * (1 + 1e-6) + 4 * 1.1102230246251565e-16",
+         replacement="    return 0.0",
+         description="numba twin of the kernel-value error bound (vertex functionals, local pools) set to 0"),
+    dict(name="rkhs-local-optimal-noise-x0.99", file=_RKHS, original=_LOCAL_OPT,
+         replacement=_LOCAL_OPT.replace("a1[o], 0.0, G, sgn)", "a1[o] * 0.99, 0.0, G, sgn)"),
+         description="local optimal weights: noise term dbar' ||w||_1 of the certificate (eq. W) x 0.99"),
+    dict(name="rkhs-local-optimal-noise-shrink-1e-3", file=_RKHS, original=_LOCAL_OPT,
+         replacement=_LOCAL_OPT.replace("a1[o], 0.0, G, sgn)", "a1[o] * (1 - 1e-3), 0.0, G, sgn)"),
+         description="local optimal weights: noise term of the certificate (eq. W) x (1 - 1e-3)"),
+    dict(name="rkhs-local-optimal-rkhs-shrink-1e-3", file=_RKHS, original=_LOCAL_OPT,
+         replacement=_LOCAL_OPT.replace("a1[o], 0.0, G, sgn)", "a1[o], 0.0, G * (1 - 1e-3), sgn)"),
+         description="local optimal weights: RKHS term B ||phi_v - Phi* w|| of the certificate (eq. W) x (1 - 1e-3)"),
+    dict(name="rkhs-local-ridge-noise-shrink-1e-3", file=_RKHS, original=_LOCAL_RIDGE_UP,
+         replacement=_LOCAL_RIDGE_UP.replace("a1[o], a2[o], G, 1.0)", "a1[o] * (1 - 1e-3), a2[o], G, 1.0)"),
+         description="local ridge weights, upper side: noise term of the certificate (eq. W) x (1 - 1e-3)"),
+    dict(name="rkhs-local-ridge-rkhs-shrink-1e-3", file=_RKHS, original=_LOCAL_RIDGE_UP,
+         replacement=_LOCAL_RIDGE_UP.replace("a1[o], a2[o], G, 1.0)", "a1[o], a2[o], G * (1 - 1e-3), 1.0)"),
+         description="local ridge weights, upper side: RKHS term of the certificate (eq. W) x (1 - 1e-3)"),
+    dict(name="rkhs-local-ridge-lower-shrink-1e-3", file=_RKHS, original=_LOCAL_RIDGE_LO,
+         replacement=_LOCAL_RIDGE_LO.replace("a1[o], a2[o], G, -1.0)", "a1[o] * (1 - 1e-3), a2[o], G * (1 - 1e-3), -1.0)"),
+         description="local ridge weights, lower side: noise and RKHS terms of the certificate (eq. W) x (1 - 1e-3)"),
+    dict(name="rkhs-local-vertex-norm-shrink-1e-3", file=_RKHS,
+         original="                s0 = s0 * (1.0 + (d + 8) * 2.220446049250313e-16)",
+         replacement="                s0 = s0 * (1.0 - 1e-3)",
+         description="local weights: <phi_v, phi_v> of the vertex functionals x (1 - 1e-3)"),
+    dict(name="rkhs-local-taylor-shrink-1e-3", file=_RKHS, original=_LOCAL_COMBINE,
+         replacement=_LOCAL_COMBINE.replace("t_max, G_eff, tau)", "t_max, G_eff * (1 - 1e-3), tau)"),
+         description="local weights: Taylor remainder term B sqrt(R(t_max)) of the cell range (eq. C) x (1 - 1e-3)"),
+    dict(name="rkhs-local-tau-not-added", file=_RKHS, original=_LOCAL_COMBINE,
+         replacement=_LOCAL_COMBINE.replace("t_max, G_eff, tau)", "t_max, G_eff, 0.0)"),
+         description="local weights: misspecification tau not added to the cell range (eq. C)"),
+    dict(name="rkhs-local-tau-not-in-noise", file=_RKHS,
+         original="    dbar = _up(np.broadcast_to(np.asarray(noise_bound, float), (n,)) + tau)",
+         replacement="    dbar = _up(np.broadcast_to(np.asarray(noise_bound, float), (n,)))",
+         description="local weights: misspecification tau left out of the data-noise bound dbar' = dbar + tau"),
     # ------------------------------------------------------------------ value iteration (solve.py)
     dict(name="vi-upper-x0.99", file=_SOLVE, original=_VI_RETURN,
          replacement=_VI_RETURN.replace("upper=up,", "upper=up * 0.99,"),
