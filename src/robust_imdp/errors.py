@@ -35,6 +35,14 @@ class FormulaSyntaxError(InvalidInputError):
     """An LTLf formula cannot be parsed; the message shows the position with a caret."""
 
 
+class ExpressionError(InvalidInputError):
+    """An expression of known dynamics cannot be parsed (syntax, unknown symbol, unsupported operation)."""
+
+
+class ExpressionDomainError(ExpressionError):
+    """A known-dynamics expression is undefined (or overflows) on part of a box or at a point."""
+
+
 class UnknownAtomError(InvalidInputError):
     """A formula or DFA names an atomic proposition that no region defines."""
 
@@ -111,6 +119,8 @@ __all__ = [
     "InvalidModelError",
     "FormulaSyntaxError",
     "UnknownAtomError",
+    "ExpressionError",
+    "ExpressionDomainError",
     "OutsideDomainError",
     "AssumptionError",
     "ProblemFileError",
