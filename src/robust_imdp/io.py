@@ -824,6 +824,9 @@ def result_to_dict(result) -> dict[str, Any]:
         Per cell, bounds for the cell's initial product state (q, delta(initial, L(q))).
     classes : list of str
         Per cell ``"yes"`` (p_low >= threshold), ``"no"`` (p_up < threshold) or ``"maybe"``.
+    no_strategy_can : list of bool
+        Per cell ``p_up_star < threshold``: no controller at all can meet the threshold (a
+        refinement of ``"no"``; the other "no" cells are "no" under this controller only).
     formula, threshold, horizon, parameters, timings
         What was solved, with which settings, and stage times in seconds.
     diagnostics : dict
@@ -877,6 +880,7 @@ def result_to_dict(result) -> dict[str, Any]:
         "p_up_star": np.asarray(syn.p_up_star, dtype=float),
         "error": np.asarray(syn.error, dtype=float),
         "classes": list(result.class_names),
+        "no_strategy_can": np.asarray(syn.p_up_star, dtype=float) < result.threshold,
         "formula": result.formula,
         "threshold": result.threshold,
         "horizon": result.horizon,
@@ -910,6 +914,7 @@ def save_result(result, out_dir) -> Path:
         "p_up_star": np.asarray(doc["p_up_star"], dtype=float),
         "error": np.asarray(doc["error"], dtype=float),
         "classes": np.asarray(doc["classes"], dtype=str),
+        "no_strategy_can": np.asarray(doc["no_strategy_can"], dtype=bool),
         "modes": np.asarray(doc["modes"], dtype=str),
     }
 
@@ -997,6 +1002,12 @@ class ResultFile:
     @property
     def n_cells(self) -> int:
         return self.cells_lower.shape[0]
+
+    @property
+    def no_strategy_can(self) -> np.ndarray:
+        """(n_cells,) bool: ``p_up_star < threshold`` (result.json's ``no_strategy_can``): no
+        controller at all can meet the threshold."""
+        return self.p_up_star < self.threshold
 
     @classmethod
     def from_dict(cls, doc: dict[str, Any]) -> "ResultFile":

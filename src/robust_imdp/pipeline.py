@@ -275,8 +275,22 @@ class Result:
         """The refined switching controller (``controller.Controller``)."""
         return self.synthesis.controller(self.partition, self.mode_names)
 
+    @property
+    def no_strategy_can(self) -> np.ndarray:
+        """(n_cells,) bool: ``p_up_star < threshold``: no controller at all meets the threshold."""
+        return np.asarray(self.synthesis.p_up_star) < self.threshold
+
+    def _no_line(self) -> str:
+        """Q_no split into cells where no controller can meet the threshold (``p_up_star <
+        threshold``) and cells that are "no" under this controller only."""
+        no = self.class_names == "no"
+        cannot = int(np.count_nonzero(no & self.no_strategy_can))
+        return (f"Q_no: {cannot} where no controller can meet the threshold (p_up_star < "
+                f"{self.threshold:g}), {int(np.count_nonzero(no)) - cannot} under this controller only")
+
     def summary(self) -> str:
-        """Class counts, mean error and stage times as text."""
+        """Class counts (Q_no split by whether any controller could do better), mean error and
+        stage times as text."""
         c = self.counts()
         n = len(self.class_names)
         times = ", ".join(f"{k} {v:.2f} s" for k, v in self.timings.items())
@@ -284,6 +298,7 @@ class Result:
             f"formula {self.formula!r}, threshold {self.threshold:g}"
             + (f", horizon {self.horizon}" if self.horizon is not None else ""),
             f"cells: {n}  Q_yes {c['yes']}  Q_no {c['no']}  Q_? {c['maybe']}",
+            self._no_line(),
             f"mean p_low {np.mean(self.synthesis.p_low):.4f}  mean error "
             f"{np.mean(self.synthesis.error):.4f}  (abstraction "
             f"{'reused from cache' if self.from_cache else 'built'})",
