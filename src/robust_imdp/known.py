@@ -212,7 +212,13 @@ class _Parser:
         if kind == "op" and value in ("-", "+"):
             self.take()
             reg = self.unary()
-            return self.b.emit("neg", reg) if value == "-" else reg
+            if value == "+":
+                return reg
+            op, a, _ = self.b.instrs[reg]
+            if op == "const":  # -c is the constant [-hi, -lo] (exact), so x^-2 has an integer exponent
+                v, lo, hi = self.b.consts[a]
+                return self.b.const(-v, -hi, -lo)
+            return self.b.emit("neg", reg)
         return self.power()
 
     def power(self):
@@ -544,7 +550,8 @@ _BINARY_I = {"add": _i_add, "sub": _i_sub, "mul": _i_mul, "div": _i_div, "min": 
 _WHY = {"div": "division by an interval that holds 0", "inv": "division by an interval that holds 0",
         "sqrt": "sqrt of an interval reaching below 0", "log": "log of an interval reaching 0 or below",
         "tan": "tan of an interval that may hold a pole (pi/2 + k pi)",
-        "pow": "a non-integer power of a base interval reaching 0 or below (or x^-n of an interval holding 0)",
+        "pow": "a power x^y undefined on the interval (non-integer y: the base reaches 0 or below; "
+               "y = -n: the base holds 0)",
         "overflow": "the enclosure overflows the double range"}
 
 
@@ -697,19 +704,19 @@ class KnownDynamics:
             self._tapes = []
             for i, e in enumerate(exprs):
                 b = _Builder(self._consts)
-                reg = _Parser(e, self.n_dims, b, self._label(i).rstrip(": ")).parse()
+                reg = _Parser(e, self.n_dims, b, self._label(i, colon=False).rstrip()).parse()
                 self._tapes.append(_Tape(b.instrs, [(0, reg)]))
         self._jac = None  # built on first use (casadi)
         self._multi_use = np.array([_multi_use(t, self.n_dims) for t in self._tapes])  # (n_out, n) bool
         self._solvers = {}
 
     # ------------------------------------------------------------------ construction helpers
-    def _label(self, i):
+    def _label(self, i, colon=True):
         head = f"{self.name}: " if self.name else ""
         if i is None:
             return head
         expr = self.expressions[i] if hasattr(self, "expressions") else "?"
-        return f'{head}f[{i + 1}] = "{expr}": '
+        return f'{head}f[{i + 1}] = "{expr}"' + (": " if colon else " ")
 
     def _init_casadi(self, f, x):
         import casadi as ca
@@ -788,7 +795,7 @@ class KnownDynamics:
         bad = ~np.isfinite(out)
         if bad.any():
             r, i = np.argwhere(bad)[0]
-            raise ExpressionDomainError(f"{self._label(int(i))}is undefined or overflows at the point "
+            raise ExpressionDomainError(f"{self._label(int(i), colon=False)}is undefined or overflows at the point "
                                         f"x = {_point_text(x[r])} (row {r}): value {out[r, i]}")
         return out
 
@@ -884,7 +891,7 @@ class KnownDynamics:
             l, h, bad, why = _interval_eval(t, self._consts, lo, hi)
             if why is not None:
                 op, r = why
-                raise ExpressionDomainError(f"{self._label(i)}is undefined on the box {_box_text(lo[r], hi[r])}: "
+                raise ExpressionDomainError(f"{self._label(i, colon=False)}is undefined on the box {_box_text(lo[r], hi[r])}: "
                                             f"{_WHY.get(op, op)}")
             out_l[:, i], out_h[:, i] = l[:, 0], h[:, 0]
         return out_l, out_h
@@ -918,13 +925,9 @@ class KnownDynamics:
             contrib[unusable, i, :] = np.inf
         return cl, ch, contrib
 
-    def _both(self, lo, hi):
-        nl, nh = self._natural(lo, hi)
-        cl, ch, contrib = self._centred(lo, hi)
-        return np.maximum(nl, cl), np.minimum(nh, ch), contrib  # both enclose f: so does the intersection
-
     def _best(self, lo, hi, max_leaves, tol):
-        """Intersection of both forms; loose boxes bisected up to ``max_leaves`` leaves per cell.
+        """Natural extension, intersected with the centred form where it is loose; loose boxes
+        bisected up to ``max_leaves`` leaves per cell.
 
         A leaf is loose when its enclosure exceeds the range sampled at its centre and vertices by
         more than ``tol`` times the cell's largest edge in some component.  It is split at the
@@ -934,17 +937,16 @@ class KnownDynamics:
         cover the cell, so the union of their enclosures encloses f over it.
         """
         k, n = lo.shape
-        res_l, res_h, contrib = self._both(lo, hi)
         leaves = np.ones(k, dtype=np.int64)
-        if max_leaves < 2:
-            return res_l, res_h, leaves
         scale = np.max(hi - lo, axis=1)  # the cell's largest edge
-        L, U, owner, el, eh, cb = lo, hi, np.arange(k), res_l, res_h, contrib
+        L, U, owner = lo, hi, np.arange(k)
+        res_l = res_h = None
         done_l = np.full((k, self.n_dims), np.inf)
         done_h = np.full((k, self.n_dims), -np.inf)
         while True:
-            sl, sh = self._sampled(L, U)
-            excess_i = (eh - el) - (sh - sl)
+            el, eh, excess_i, cb = self._tightened(L, U, tol * scale[owner])
+            if res_l is None:
+                res_l, res_h = el, eh  # the cell's own enclosure
             split = ((np.max(excess_i, axis=1) > tol * scale[owner]) & (2 * leaves[owner] <= max_leaves)
                      & (np.max(U - L, axis=1) > 0))
             keep = ~split
@@ -968,9 +970,25 @@ class KnownDynamics:
             U = np.concatenate([left_U, Us])
             owner = np.concatenate([os_, os_])
             np.add.at(leaves, os_, 1)
-            el, eh, cb = self._both(L, U)
         # union of the leaves, intersected with the cell's own enclosure (both are sound)
         return np.maximum(res_l, done_l), np.minimum(res_h, done_h), leaves
+
+    def _tightened(self, L, U, tol):
+        """Natural extension, intersected with the centred form on boxes whose natural enclosure
+        exceeds the sampled range by more than ``tol`` ((k,)); returns the enclosure, its excess
+        over the sampled range (k, n) and the split scores (k, n, n; 0 where not computed)."""
+        el, eh = self._natural(L, U)
+        sl, sh = self._sampled(L, U)
+        excess = (eh - el) - (sh - sl)
+        cb = np.zeros((L.shape[0], self.n_dims, self.n_dims))
+        loose = np.max(excess, axis=1) > tol
+        if loose.any():
+            cl, ch, cb_l = self._centred(L[loose], U[loose])
+            el[loose] = np.maximum(el[loose], cl)  # both enclose f: so does the intersection
+            eh[loose] = np.minimum(eh[loose], ch)
+            cb[loose] = cb_l
+            excess[loose] = (eh[loose] - el[loose]) - (sh[loose] - sl[loose])
+        return el, eh, excess, cb
 
     def _sampled(self, lo, hi):
         """Min and max of the computed values at the centre and the vertices (face centres if n > 8)."""
