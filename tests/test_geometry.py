@@ -15,8 +15,8 @@ from robust_imdp.geometry import Box, Partition, Region
 def test_box_validation_messages():
     with pytest.raises(InvalidInputError, match="lower < upper"):
         Box([0.0, 1.0], [1.0, 1.0])  # empty in dim 1
-    with pytest.raises(InvalidInputError, match="lower\\[0\\]=2.0"):
-        Box([2.0], [1.0])  # inverted
+    with pytest.raises(InvalidInputError, match="lower = 2.0 >= upper = 1.0 in dimension 1 "):
+        Box([2.0], [1.0])  # inverted (dimensions are numbered from 1 in messages)
     with pytest.raises(DimensionError, match="same length"):
         Box([0.0, 0.0], [1.0])
     with pytest.raises(InvalidInputError, match="finite"):
@@ -51,7 +51,7 @@ def test_uniform_grid_and_c_order():
 
 
 def test_cell_size_not_dividing_says_how_to_fix():
-    with pytest.raises(InvalidInputError, match=r"cell_size\[0\]=0.3 does not divide .* 0.333333 \(3 cells\)"):
+    with pytest.raises(InvalidInputError, match=r"cell_size in dimension 1 is 0.3, which does not divide .* 0.333333 \(3 cells\)"):
         Partition(Box([0.0], [1.0]), 0.3)
     with pytest.raises(DimensionError, match="cell_size"):
         Partition(Box([0, 0], [1, 1]), [0.5, 0.5, 0.5])

@@ -62,6 +62,26 @@ def _at_least(low: int):
     return check
 
 
+def _slice_spec(text: str) -> dict:
+    """``x3=0.5,x4=0`` (or dimension names) -> ``{"x3": 0.5, "x4": 0.0}``; the names are checked
+    against the problem once it is read (``plotting.resolve_slice``)."""
+    import math
+
+    out = {}
+    for part in text.split(","):
+        key, sep, value = part.partition("=")
+        try:
+            v = float(value) if sep and key.strip() else None
+        except ValueError:
+            v = None
+        if v is None or not math.isfinite(v):
+            raise argparse.ArgumentTypeError(
+                f"must be NAME=VALUE[,NAME=VALUE...] with NAME x1 .. xn or a [space].names entry and VALUE a "
+                f"number, e.g. x3=0.5,x4=0; got {text!r}")
+        out[key.strip()] = v
+    return out
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="robust-imdp",
@@ -95,6 +115,9 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--scheduler", default=None, metavar="ADDRESS",
                      help="run the bound and abstraction stages on a running Dask cluster "
                           "(e.g. tcp://host:8786)")
+    run.add_argument("--slice", type=_slice_spec, default=None, metavar="NAME=VALUE[,...]",
+                     help="figures of 3 or more dimensions: fix these coordinates (x3=0.5,x4=0, or by "
+                          "[space].names); default: slices through the cells with the most Q_yes")
     run.add_argument("--yes", action="store_true",
                      help="run even when the pre-flight estimate says the run does not fit the machine")
 
@@ -110,7 +133,8 @@ def _parser() -> argparse.ArgumentParser:
                           "arguments, or an object, with mode_names (the result's mode names) and "
                           "step(x (k, n), modes (k,) int indices into mode_names, rng) -> (k, n)")
     sim.add_argument("--n-per-cell", type=_at_least(1), default=50, help="runs per cell (default 50)")
-    sim.add_argument("--max-steps", type=_at_least(1), default=100, help="step cap per run (default 100)")
+    sim.add_argument("--max-steps", type=_at_least(1), default=None,
+                     help="step cap per run (default: robust_imdp.validate.MAX_STEPS, 200)")
     sim.add_argument("--confidence", type=_open_unit, default=0.999, help="Wilson confidence (0.999)")
     sim.add_argument("--seed", type=_at_least(0), default=0, help="random seed (default 0)")
     sim.add_argument("--paths", type=_at_least(0), default=20, help="trajectories to draw (default 20)")
@@ -183,6 +207,10 @@ def _cmd_run(args) -> int:
         changes["threshold"] = args.threshold
     if changes:
         problem = problem.replace(**changes)
+    if args.slice:  # checked against the problem's dimensions before the long stages
+        from robust_imdp.plotting import resolve_slice
+
+        resolve_slice(args.slice, problem.space_lower, problem.space_upper, getattr(problem, "dim_names", None))
     args.interrupt_note = (f"interrupted; the finished chunks are saved in {cache}: run the same command again "
                            "to resume")
     result = synthesize_from_data(problem, progress=not args.quiet, abstraction_cache=cache,
@@ -191,7 +219,7 @@ def _cmd_run(args) -> int:
     if not args.no_figures:
         from robust_imdp.plotting import save_figures
 
-        figures = save_figures(result, out)
+        figures = save_figures(result, out, **({"slice": args.slice} if args.slice else {}))
     path = save_result(result, out)
     print(result.summary())
     print(f"wrote {path}" + (f" and {len(figures)} figures in {out}" if figures else " (no figures)"))
@@ -283,6 +311,10 @@ def _cmd_simulate(args) -> int:
 
     system = _load_true_system(args.true_system)  # before the result: a bad NAME fails first
     res = load_result(args.result)
+    if args.max_steps is None:  # one default step cap for the library and the command
+        from robust_imdp.validate import MAX_STEPS
+
+        args.max_steps = MAX_STEPS
     report = validate(res, system, n_per_cell=args.n_per_cell, max_steps=args.max_steps,
                       rng=args.seed, confidence=args.confidence)
     print(report.summary())

@@ -11,6 +11,11 @@ semantics: the first label is read at :meth:`Controller.reset`) and looks the mo
         x = system.step(x, u)
     ctrl.status                                # "satisfied" or "violated"
 
+Names or indices. :meth:`Controller.act` returns the mode's *name* when the controller knows the
+names (``mode_names``: the pipeline's ``Result.controller()`` and saved controllers with names
+do), else its index; :meth:`Controller.act_index` always returns the integer index into
+``mode_names``, for deployment code that indexes arrays of modes.
+
 Deployment. This module needs only numpy (and the exception classes of
 :mod:`robust_imdp.errors`). :meth:`Controller.save` writes two files, and a re-implementation
 in any language needs nothing else:
@@ -121,7 +126,8 @@ class Controller:
     space_lower, space_upper : (d,) float arrays
         The compact set X.
     modes : sequence of str, optional
-        Mode names returned by :meth:`act` (indices when omitted).
+        Mode names returned by :meth:`act` (indices when omitted; :meth:`act_index` always
+        returns indices).
     threshold : float, optional
     p_low, p_up, p_up_star : (n_cells,) float arrays, optional
         Bounds of the synthesis, kept for inspection and saving.
@@ -133,6 +139,8 @@ class Controller:
 
     Attributes
     ----------
+    mode_names : tuple of str or None
+        The names given as ``modes`` (None when omitted).
     status : {"running", "satisfied", "violated"}
     cell : int (-1 after leaving X)
     dfa_state : int
@@ -342,6 +350,11 @@ class Controller:
         self._update_status()
         return self
 
+    @property
+    def mode_names(self) -> tuple | None:
+        """The mode names (``modes``), or None when the controller was built without them."""
+        return self.modes
+
     def act(self, x: Any):
         """Observe the current state ``x`` and return the mode to apply, or ``None`` when done.
 
@@ -351,10 +364,16 @@ class Controller:
 
         Returns
         -------
-        int, str or None
-            Mode index (or name when ``modes`` were given); ``None`` once :attr:`status` is
-            "satisfied" or "violated".
+        str, int or None
+            The mode's name when the controller knows the names (:attr:`mode_names`), else its
+            index; ``None`` once :attr:`status` is "satisfied" or "violated". :meth:`act_index`
+            is the same step and always returns the index.
         """
+        mode = self.act_index(x)
+        return mode if mode is None or self.modes is None else self.modes[mode]
+
+    def act_index(self, x: Any) -> int | None:
+        """As :meth:`act`, but the mode as an integer index into :attr:`mode_names` (or ``None`` when done)."""
         if not self._started:
             raise InvalidInputError("act(x) called before reset(x0)")
         q = self._locate_one(x)
@@ -378,7 +397,7 @@ class Controller:
         table = self.strategy if self.horizon is None else self.strategy[self.time]
         mode = int(table[self.cell, self.dfa_state])
         self._pending = True
-        return mode if self.modes is None else self.modes[mode]
+        return mode
 
     # ------------------------------------------------------------------ files
     def save(self, path_prefix: str | Path) -> tuple[Path, Path]:

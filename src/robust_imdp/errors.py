@@ -111,6 +111,10 @@ class AssumptionWarning(RobustImdpWarning):
     """A user assumption looks doubtful (e.g. the RKHS bound B is below the norm of the posterior mean)."""
 
 
+class RegionOverlapWarning(RobustImdpWarning):
+    """Two regions of the formula overlap (e.g. goal and obstacle): cells there carry both labels."""
+
+
 __all__ = [
     "RobustImdpError",
     "InvalidInputError",
@@ -130,4 +134,5 @@ __all__ = [
     "RobustImdpWarning",
     "ConvergenceWarning",
     "AssumptionWarning",
+    "RegionOverlapWarning",
 ]

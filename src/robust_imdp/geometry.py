@@ -33,12 +33,25 @@ import numpy as np
 
 from robust_imdp.errors import DimensionError, InvalidInputError, OutsideDomainError
 
-__all__ = ["Box", "Region", "Partition", "BoxPartition", "partition_from_dict"]
+__all__ = ["Box", "Region", "Partition", "BoxPartition", "partition_from_dict", "dimension_text",
+           "region_overlaps"]
 
 # Relative tolerance (w.r.t. the cell size) under which a region boundary is
 # considered to coincide with a uniform tick; the region's exact value is then
 # used as the breakpoint (the tick moves by < 1e-9 cell sizes, the region is kept exact).
 _SNAP_RTOL = 1e-9
+
+
+def dimension_text(j: int, names=None) -> str:
+    """How user-facing messages name dimension ``j`` (0-based index): ``"dimension 3 (theta)"``.
+
+    Dimensions are numbered from 1 in every message, like the data file's columns
+    ``x_1 .. x_n``; the name (``[space].names``) follows in parentheses when there is one.
+    """
+    text = f"dimension {int(j) + 1}"
+    if names is not None and 0 <= j < len(names):
+        text += f" ({names[j]})"
+    return text
 
 
 def _as_vector(value, name: str) -> np.ndarray:
@@ -75,8 +88,8 @@ class Box:
         if np.any(lo >= hi):
             bad = int(np.flatnonzero(lo >= hi)[0])
             raise InvalidInputError(
-                f"Box must have lower < upper in every dimension (empty or inverted box); "
-                f"got lower[{bad}]={lo[bad]} >= upper[{bad}]={hi[bad]}"
+                f"Box must have lower < upper in every dimension; got lower = {lo[bad]} >= upper = "
+                f"{hi[bad]} in {dimension_text(bad)} (an empty or inverted box)"
             )
         lo.setflags(write=False)
         hi.setflags(write=False)
@@ -198,6 +211,34 @@ def _normalise_regions(regions) -> tuple:
     return regions
 
 
+def region_overlaps(regions) -> list:
+    """Where two different regions overlap: every pair of their boxes sharing interior points.
+
+    Closed boxes that only share a face, an edge or a corner (a set of volume zero) do not
+    overlap: no cell gets both labels there.
+
+    Parameters
+    ----------
+    regions : dict[str, Region] or sequence of Region
+
+    Returns
+    -------
+    list of (str, str, Box)
+        ``(name_a, name_b, box)`` with ``name_a`` before ``name_b`` in the given order and ``box``
+        the intersection ``[max(lower), min(upper)]`` of one box of each, which has positive volume.
+    """
+    regions = _normalise_regions(regions)
+    out = []
+    for i, a in enumerate(regions):
+        for b in regions[i + 1:]:
+            for ba in a.boxes:
+                for bb in b.boxes:
+                    lo, hi = np.maximum(ba.lower, bb.lower), np.minimum(ba.upper, bb.upper)
+                    if lo.shape == hi.shape and np.all(lo < hi):
+                        out.append((a.name, b.name, Box(lo, hi)))
+    return out
+
+
 class Partition:
     """Rectilinear grid over the box X that respects the regions of interest.
 
@@ -210,10 +251,13 @@ class Partition:
         relative 1e-9), otherwise :class:`InvalidInputError` says which sizes do.
     regions : dict[str, Region] or sequence of Region, optional
         Regions of interest (closed unions of boxes), each inside X.
+    names : sequence of d str, optional
+        Names of the dimensions (``[space].names``), used in messages only.
 
     Attributes
     ----------
     dim : int
+    names : tuple of str or None
     shape : tuple of int, the number of intervals per dimension
     n_cells : int
     breakpoints : list of (n_j + 1,) float arrays
@@ -223,15 +267,20 @@ class Partition:
     outside_state : int, ``n_cells`` (the absorbing outside-X state)
     """
 
-    def __init__(self, space: Box, cell_size, regions=None):
+    def __init__(self, space: Box, cell_size, regions=None, *, names=None):
         if not isinstance(space, Box):
             raise InvalidInputError(f"space must be a Box; got {type(space).__name__}")
         d = space.dim
+        if names is not None:
+            names = tuple(names)
+            if len(names) != d or not all(isinstance(n, str) and n for n in names):
+                raise DimensionError(f"names must be {d} non-empty strings, one per dimension; got {names!r}")
+        self.names = names
         h = np.asarray(cell_size, dtype=float)
         if h.ndim == 0:
             h = np.full(d, float(h))
         if h.shape != (d,):
-            raise DimensionError(f"cell_size must be a float or an array of shape ({d},); got shape {h.shape}")
+            raise DimensionError(f"cell_size must be a float or one value per dimension ({d}); got shape {h.shape}")
         if not np.all(np.isfinite(h)) or np.any(h <= 0):
             raise InvalidInputError(f"cell_size must be finite and > 0; got {h.tolist()}")
         self.space = space
@@ -282,9 +331,9 @@ class Partition:
         if n < 1 or abs(ratio - n) > 1e-9 * max(ratio, 1.0):
             n_lo, n_hi = max(int(np.floor(ratio)), 1), int(np.ceil(ratio))
             raise InvalidInputError(
-                f"cell_size[{j}]={h} does not divide the width {width} of X in dimension {j} "
-                f"(width/cell_size = {ratio:.6g}); use width/k, e.g. {width / n_lo:.6g} ({n_lo} cells) "
-                f"or {width / n_hi:.6g} ({n_hi} cells)"
+                f"cell_size in {dimension_text(j, self.names)} is {h:g}, which does not divide the width "
+                f"{width:g} of X there (width/cell_size = {ratio:.6g}); use width/k, e.g. {width / n_lo:.6g} "
+                f"({n_lo} cells) or {width / n_hi:.6g} ({n_hi} cells)"
             )
         ticks = lo + np.arange(n + 1) * (width / n)
         ticks[-1] = hi  # the last tick is the upper end of X exactly
@@ -299,7 +348,8 @@ class Partition:
                 ticks = np.sort(np.append(ticks, v))  # off-grid boundary: split the cells
         if np.any(np.diff(ticks) <= 0):
             raise InvalidInputError(
-                f"region boundaries in dimension {j} produced a degenerate breakpoint list {ticks.tolist()}"
+                f"region boundaries in {dimension_text(j, self.names)} produced a degenerate breakpoint list "
+                f"{ticks.tolist()}"
             )
         return ticks
 
@@ -518,7 +568,7 @@ class BoxPartition:
         bad = np.flatnonzero(~((lo < mid) & (mid < hi)))
         if bad.size:
             i = int(bad[0])
-            raise InvalidInputError(f"cell {int(cells[i])} is too small to bisect along axis {int(axes[i])} "
+            raise InvalidInputError(f"cell {int(cells[i])} is too small to bisect in {dimension_text(int(axes[i]))} "
                                     f"([{lo[i]!r}, {hi[i]!r}])")
         k, N, n_nodes = cells.size, self.n_cells, self._axis.size
         axis = np.concatenate([self._axis, np.full(2 * k, -1, dtype=np.int64)])

@@ -2,7 +2,7 @@
 
 Problem file contract (keys in ``[brackets]`` are tables; ``?`` marks optional keys)::
 
-    [space]         lower, upper, cell_size          (lists of n floats)
+    [space]         lower, upper, cell_size          (lists of n floats), names? (n dimension names)
     [[regions.NAME]] lower, upper                    (one entry per box; any number of regions)
     [spec]          formula, threshold, horizon?     (horizon: int for k-step, absent = unbounded)
     [data]          path                             (.csv or .npz, relative to the problem file)
@@ -73,7 +73,7 @@ __all__ = [
 # --------------------------------------------------------------------------- schema
 # table -> (required keys, optional keys)
 _SCHEMA: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
-    "space": (("lower", "upper", "cell_size"), ()),
+    "space": (("lower", "upper", "cell_size"), ("names",)),
     "spec": (("formula", "threshold"), ("horizon",)),
     "data": (("path",), ()),
     "noise": (("kind",), ("sigma", "bound")),
@@ -161,7 +161,8 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
     Returns
     -------
     dict
-        Keys ``lower``, ``upper``, ``cell_size`` ((n,) float arrays), ``regions``
+        Keys ``lower``, ``upper``, ``cell_size`` ((n,) float arrays), ``names`` (tuple of n str or
+        None), ``regions``
         (``{name: [(lower, upper), ...]}``), ``formula``, ``threshold``, ``horizon`` (int or
         None), ``data_path`` (str, as written), ``modes`` (``{name: (A (n, n), b (n,))}`` in
         file order), ``noise`` (``{"kind", "sigma", "bound"}``), ``gp`` (dict of the given keys),
@@ -192,6 +193,14 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
             f"upper={upper.tolist()}"
         )
     cell_size = _positive_vector(sp["cell_size"], "[space].cell_size", where, n)
+    dim_names = sp.get("names")
+    if dim_names is not None:
+        if (not isinstance(dim_names, list) or len(dim_names) != n
+                or not all(isinstance(v, str) and v.strip() for v in dim_names) or len(set(dim_names)) != n):
+            raise ProblemFileError(
+                f"{where}: [space].names must be a list of {n} distinct non-empty names, one per dimension; got "
+                f"{dim_names!r}" + (f" ({len(dim_names)} names)" if isinstance(dim_names, list) else ""))
+        dim_names = tuple(dim_names)
 
     regions: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
     if not isinstance(doc["regions"], dict) or not doc["regions"]:
@@ -373,7 +382,7 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
                                    "iid_noise (the bounds of new cells must hold on the same event as the grid's)")
 
     return {
-        "lower": lower, "upper": upper, "cell_size": cell_size, "regions": regions,
+        "lower": lower, "upper": upper, "cell_size": cell_size, "names": dim_names, "regions": regions,
         "formula": formula, "threshold": threshold, "horizon": horizon,
         "data_path": data_path, "modes": modes, "noise": noise, "gp": gp, "abstraction": ab,
         "refine": refine,
@@ -469,7 +478,7 @@ def load_problem(path):
         bound_tol=bound_tol, bound_max_boxes=bound_max_boxes, eta=ab["eta"], eps_rule=ab["eps_rule"], combine=ab["combine"],
         guarantee=ab["guarantee"], confidence=ab["confidence"], error_bound=error_bound,
         misspecification=misspecification, iid_noise=iid_noise, local_points=local_points,
-        refine=spec["refine"],
+        refine=spec["refine"], dim_names=spec["names"],
     )
 
 
@@ -519,10 +528,11 @@ def _check_samples_possible(spec, noise, x, u, x_next, rows) -> None:
         return
     minimum, m, i, row, residual, limit, others = max(bad, key=lambda c: c[0])
     where = f"data file {spec['data_file']}, {_rows_text(rows, [row])}"
+    component = f"component {i + 1}" + (f" ({spec['names'][i]})" if spec.get("names") else "")
     raise AssumptionError(
-        f"[gp].rkhs_bound = {B:g} is refuted by the data: mode {names[m]!r}, component {i + 1} needs an RKHS norm "
+        f"[gp].rkhs_bound = {B:g} is refuted by the data: mode {names[m]!r}, {component} needs an RKHS norm "
         f"of at least {minimum:.4g} (lengthscale {np.asarray(lengthscale).tolist()}); sample {row} ({where}): its "
-        f"residual {residual:.6g} in component {i + 1} is impossible under the assumption, since |g| <= B + noise "
+        f"residual {residual:.6g} in {component} is impossible under the assumption, since |g| <= B + noise "
         f"bound + misspecification = {limit:.6g} everywhere"
         + (f" (the noise bound holds for all {x.shape[0]} samples with probability 1 - {CHECK_DELTA:g})" if fail else "")
         + (f"; {len(others)} more samples of this mode and component are impossible too "
@@ -553,7 +563,7 @@ def _warn_refined_grid(spec, where: str) -> None:
     import warnings
 
     from robust_imdp.errors import RobustImdpWarning
-    from robust_imdp.geometry import Box, Partition, Region
+    from robust_imdp.geometry import Box, Partition, Region, dimension_text
 
     lower, upper, h = spec["lower"], spec["upper"], spec["cell_size"]
     uniform, refined, notes = [], [], []
@@ -570,7 +580,7 @@ def _warn_refined_grid(spec, where: str) -> None:
             new = [v for v in bp.tolist() if np.min(np.abs(ticks - v)) > 1e-9 * h[j]]
             owners = {v: sorted({name for name, boxes in spec["regions"].items() for lo, up in boxes
                                  if v in (lo[j], up[j])}) for v in new}
-            notes.append(f"dimension {j + 1}: {k} -> {bp.size - 1} intervals, at "
+            notes.append(f"{dimension_text(j, spec.get('names'))}: {k} -> {bp.size - 1} intervals, at "
                          + ", ".join(f"{v:g} ({', '.join(owners[v])})" for v in new[:4])
                          + (f" and {len(new) - 4} more" if len(new) > 4 else ""))
     if notes:
@@ -804,8 +814,9 @@ def result_to_dict(result) -> dict[str, Any]:
     ----
     format : str
         ``"robust_imdp.result/1"``.
-    space : {"lower", "upper"}
-        The compact set X; leaving it is a violation.
+    space : {"lower", "upper", "names"?}
+        The compact set X; leaving it is a violation. ``names``: the dimension names
+        (``[space].names``), only when the problem gives them.
     cells : {"lower", "upper"}
         Per cell (index order), lists of n floats.
     labels : list of list of str
@@ -861,9 +872,12 @@ def result_to_dict(result) -> dict[str, Any]:
         by_time, strategy = named(strategy), strategy[0]
     strategy_named = np.asarray(named(strategy), dtype=object)
     accepting = np.flatnonzero(np.asarray(dfa.accepting, dtype=bool)).tolist()
+    space = {"lower": result.space_lower, "upper": result.space_upper}
+    if getattr(result, "dim_names", None) is not None:
+        space["names"] = list(result.dim_names)
     return _jsonable({
         "format": RESULT_FORMAT,
-        "space": {"lower": result.space_lower, "upper": result.space_upper},
+        "space": space,
         "cells": {"lower": part.cells_lower, "upper": part.cells_upper},
         "labels": labels,
         "modes": modes,
@@ -973,6 +987,8 @@ class ResultFile:
     threshold : float
     horizon : int or None
     parameters, timings : dict
+    dim_names : tuple of str or None
+        The dimension names (``space.names``), None when the problem gave none.
     """
 
     space_lower: np.ndarray
@@ -998,6 +1014,7 @@ class ResultFile:
     parameters: dict = field(default_factory=dict)
     timings: dict = field(default_factory=dict)
     strategy_by_time: np.ndarray | None = None
+    dim_names: tuple | None = None
 
     @property
     def n_cells(self) -> int:
@@ -1049,6 +1066,7 @@ class ResultFile:
                 parameters=dict(doc.get("parameters") or {}),
                 timings=dict(doc.get("timings") or {}),
                 strategy_by_time=by_time,
+                dim_names=None if doc["space"].get("names") is None else tuple(doc["space"]["names"]),
             )
         except (KeyError, TypeError, IndexError, ValueError) as exc:
             raise InvalidInputError(

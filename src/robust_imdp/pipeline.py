@@ -120,6 +120,12 @@ class Problem:
         Adaptive refinement of the undecided cells after the first solve (the problem file's
         ``[refine]`` table: ``max_cells``, ``max_rounds``, ``min_cell_size``, ``time_budget``,
         ``split``, ``growth``; see :mod:`robust_imdp.refine`). None: the uniform grid only.
+    dim_names : tuple of n str, or None
+        Names of the dimensions (the problem file's ``[space].names``): figure axes, messages and
+        ``result.json``'s ``space.names``. None: ``x_1 .. x_n``.
+
+    :meth:`from_arrays` builds a Problem from numpy arrays (the Python counterpart of a problem
+    file).
     """
 
     space_lower: np.ndarray
@@ -147,8 +153,17 @@ class Problem:
     iid_noise: bool = False
     local_points: int | None = None
     refine: Any = None
+    dim_names: tuple | None = None
 
     def __post_init__(self):
+        if self.dim_names is not None:
+            n = int(np.size(self.space_lower))
+            names = self.dim_names
+            if (isinstance(names, str) or len(names) != n or not all(isinstance(v, str) and v for v in names)
+                    or len(set(names)) != len(names)):
+                raise InvalidInputError(
+                    f"dim_names must be {n} distinct non-empty names (one per dimension) or None; got {names!r}")
+            object.__setattr__(self, "dim_names", tuple(names))
         if self.guarantee not in GUARANTEES:
             raise InvalidInputError(f"guarantee must be one of {GUARANTEES}; got {self.guarantee!r}")
         c = float(self.confidence)
@@ -202,6 +217,132 @@ class Problem:
             raise InvalidInputError(f"Problem has no attributes {sorted(unknown)}")
         values.update(changes)
         return Problem(**values)
+
+    @classmethod
+    def from_arrays(cls, x, u, x_next, *, lower, upper, cell_size, regions, formula, threshold, modes, noise,
+                    rkhs_bound, horizon=None, lengthscale=None, names=None, **options) -> "Problem":
+        """A Problem from numpy arrays: the Python counterpart of a problem file.
+
+        Parameters
+        ----------
+        x, x_next : (m, n) float arrays
+            The sampled states and their successors (``[data]``).
+        u : (m,) array of mode names (str), or of mode indices into ``modes``
+        lower, upper : (n,) float arrays
+            The compact set X (``[space]``).
+        cell_size : float or (n,) float array
+        regions : dict str -> box or list of boxes
+            A box is a pair ``(lower (n,), upper (n,))`` (``[[regions.NAME]]``).
+        formula : str
+            LTLf over the region names (``[spec]``).
+        threshold : float in [0, 1]
+        modes : dict str -> (A (n, n), b (n,)) or system.AffineMap
+            The known part ``f_u(x) = A x + b`` of each mode, in mode order (``[modes.NAME]``).
+        noise : noise model (``TruncatedGaussianNoise``, ``GaussianNoise``, ``UniformNoise``)
+        rkhs_bound : float
+            The assumption B (``[gp].rkhs_bound``).
+        horizon : int or None
+        lengthscale : float or (n,) float array, optional
+            The kernel lengthscale (``[gp].lengthscale``, kept in ``gp_options``).
+        names : sequence of n str, optional
+            Dimension names (``[space].names``).
+        **options
+            Any other attribute of :class:`Problem` (``error_bound``, ``misspecification``,
+            ``local_points``, ``eta``, ``confidence``, ``refine``, ...).
+
+        Returns
+        -------
+        Problem
+
+        Example
+        -------
+        A robot that moves 0.3 east or north per step, to reach ``goal`` without touching
+        ``obstacle`` (the data here are exact: ``x_next - f_u(x) = 0``):
+
+        >>> import numpy as np
+        >>> from robust_imdp import Problem, TruncatedGaussianNoise, synthesize_from_data
+        >>> rng = np.random.default_rng(0)
+        >>> x = rng.uniform(0, 4, (200, 2))
+        >>> u = np.where(np.arange(200) < 100, "east", "north")
+        >>> x_next = x + np.where(u[:, None] == "east", [0.3, 0.0], [0.0, 0.3])
+        >>> problem = Problem.from_arrays(
+        ...     x, u, x_next, lower=[0, 0], upper=[4, 4], cell_size=0.5,
+        ...     regions={"goal": ([3, 3], [4, 4]), "obstacle": ([1.5, 1], [2.5, 3])},
+        ...     formula="G !obstacle & F goal", threshold=0.9,
+        ...     modes={"east": (np.eye(2), [0.3, 0]), "north": (np.eye(2), [0, 0.3])},
+        ...     noise=TruncatedGaussianNoise([0.01, 0.01], [0.02, 0.02]), rkhs_bound=0.2,
+        ...     lengthscale=1.0, names=("x", "y"))
+        >>> problem.mode_names, problem.dim_names
+        (('east', 'north'), ('x', 'y'))
+        >>> result = synthesize_from_data(problem, progress=False)  # doctest: +SKIP
+        """
+        from robust_imdp.errors import DimensionError
+        from robust_imdp.system import AffineMap, Dataset
+
+        lo = np.asarray(lower, dtype=float).reshape(-1)
+        up = np.asarray(upper, dtype=float).reshape(-1)
+        n = lo.size
+        if up.shape != (n,):
+            raise DimensionError(f"upper must have {n} entries like lower; got {np.shape(upper)}")
+        h = np.asarray(cell_size, dtype=float)
+        h = np.full(n, float(h)) if h.ndim == 0 else h.reshape(-1)
+        if not isinstance(modes, dict) or not modes:
+            raise InvalidInputError(f"modes must be a dict name -> (A, b) or AffineMap, with at least one mode; "
+                                    f"got {modes!r}")
+        maps = []
+        for name, m in modes.items():
+            if not isinstance(m, AffineMap):
+                try:
+                    A, b = m
+                except (TypeError, ValueError):
+                    raise InvalidInputError(
+                        f"modes must give (A, b) or an AffineMap for mode {name!r}; got {m!r}") from None
+                m = AffineMap(A, b)
+            if m.dim != n:
+                raise DimensionError(f"modes[{name!r}] must act on {n} dimensions like lower; got A of shape "
+                                     f"{m.A.shape}")
+            maps.append(m)
+        if not isinstance(regions, dict):
+            raise InvalidInputError(f"regions must be a dict name -> box or list of boxes; got {regions!r}")
+        boxes = {}
+        for name, value in regions.items():
+            try:
+                arr = np.asarray(value, dtype=float)
+            except (TypeError, ValueError):
+                arr = None
+            if arr is not None and arr.shape == (2, n):
+                arr = arr[None]
+            if arr is None or arr.ndim != 3 or arr.shape[1:] != (2, n) or arr.shape[0] == 0:
+                raise InvalidInputError(f"regions[{name!r}] must be a box (lower, upper) or a list of boxes of "
+                                        f"{n} numbers each; got {value!r}")
+            boxes[str(name)] = [(a[0], a[1]) for a in arr]
+        unknown = sorted(set(options) - {f.name for f in fields(cls)})
+        if unknown:
+            raise InvalidInputError(f"Problem.from_arrays got unknown options {unknown}; the other arguments "
+                                    f"are attributes of Problem: {[f.name for f in fields(cls)]}")
+        gp_options = dict(options.pop("gp_options", None) or {})
+        if lengthscale is not None:
+            gp_options["lengthscale"] = lengthscale
+        data = Dataset(x, u, x_next, modes=tuple(modes))
+        if data.dim != n:
+            raise DimensionError(f"x must have {n} columns like lower; got shape {np.shape(x)}")
+        return cls(space_lower=lo, space_upper=up, cell_size=h, regions=boxes, formula=formula,
+                   threshold=threshold, horizon=horizon, data=data, mode_names=tuple(modes), maps=tuple(maps),
+                   noise=noise, rkhs_bound=rkhs_bound, gp_options=gp_options,
+                   dim_names=None if names is None else tuple(names), **options)
+
+    def __repr__(self) -> str:  # a few lines: the dataclass default prints every data array
+        lo, up = np.asarray(self.space_lower, float), np.asarray(self.space_upper, float)
+        h = np.broadcast_to(np.asarray(self.cell_size, float), lo.shape)
+        shape = [int(round(v)) for v in (up - lo) / h]
+        names = self.dim_names or tuple(f"x_{j + 1}" for j in range(lo.size))
+        box = ", ".join(f"{v} in [{a:g}, {b:g}]" for v, a, b in zip(names, lo, up))
+        m = int(np.asarray(getattr(self.data, "u", ())).shape[0])
+        return (f"Problem({lo.size}-D, {int(np.prod(shape))} cells ({' x '.join(map(str, shape))}); {box}\n"
+                f"  formula {self.formula!r}, threshold {float(self.threshold):g}"
+                f"{'' if self.horizon is None else f', horizon {self.horizon}'}; regions {list(self.regions)}\n"
+                f"  modes {list(self.mode_names)}, {m} samples, {type(self.noise).__name__}, "
+                f"rkhs_bound {float(self.rkhs_bound):g}, error_bound {self.error_bound!r})")
 
 
 @dataclass(frozen=True, eq=False)
@@ -266,6 +407,65 @@ class Result:
     @property
     def horizon(self):
         return self.problem.horizon
+
+    # Shortcuts to the synthesis and partition arrays (per cell, in the cells' index order).
+    @property
+    def p_low(self) -> np.ndarray:
+        """(n_cells,) guaranteed lower bound of P(formula) under the strategy (``synthesis.p_low``)."""
+        return self.synthesis.p_low
+
+    @property
+    def p_up(self) -> np.ndarray:
+        """(n_cells,) upper bound of P(formula) under the strategy (``synthesis.p_up``)."""
+        return self.synthesis.p_up
+
+    @property
+    def p_up_star(self) -> np.ndarray:
+        """(n_cells,) upper bound of P(formula) over all strategies (``synthesis.p_up_star``)."""
+        return self.synthesis.p_up_star
+
+    @property
+    def error(self) -> np.ndarray:
+        """(n_cells,) ``p_up_star - p_low`` rounded up (``synthesis.error``)."""
+        return self.synthesis.error
+
+    @property
+    def strategy(self) -> np.ndarray:
+        """(n_cells, S) mode indices into ``mode_names`` ((k, n_cells, S) for a k-step horizon)."""
+        return self.synthesis.strategy
+
+    @property
+    def classes(self) -> np.ndarray:
+        """(n_cells,) ``"yes"`` / ``"no"`` / ``"maybe"`` (the same array as ``class_names``)."""
+        return self.class_names
+
+    @property
+    def n_cells(self) -> int:
+        return int(self.partition.n_cells)
+
+    @property
+    def cells_lower(self) -> np.ndarray:
+        """(n_cells, n) lower corners of the cells (``partition.cells_lower``)."""
+        return self.partition.cells_lower
+
+    @property
+    def cells_upper(self) -> np.ndarray:
+        """(n_cells, n) upper corners of the cells (``partition.cells_upper``)."""
+        return self.partition.cells_upper
+
+    @property
+    def dim_names(self):
+        """The dimension names (``[space].names``), or None."""
+        return getattr(self.problem, "dim_names", None)
+
+    def __repr__(self) -> str:  # a few lines: the dataclass default prints every array (tens of KB)
+        c = self.counts()
+        return (f"Result({len(self.class_names)} cells: Q_yes {c['yes']}, Q_no {c['no']}, Q_? {c['maybe']}; "
+                f"formula {self.formula!r}, threshold {self.threshold:g}\n"
+                f"  mean p_low {float(np.mean(self.synthesis.p_low)):.4f}, mean error "
+                f"{float(np.mean(self.synthesis.error)):.4f}; modes {list(self.mode_names)}; abstraction "
+                f"{'reused from cache' if self.from_cache else 'built'}\n"
+                f"  arrays: p_low, p_up, p_up_star, error, classes, strategy; summary() for the details)")
 
     def counts(self) -> dict:
         """Number of cells per class: ``{"yes": .., "no": .., "maybe": ..}``."""
@@ -510,6 +710,30 @@ def _region_objects(problem: Problem):
     from robust_imdp.geometry import Box, Region
 
     return [Region(name, [Box(lo, up) for lo, up in boxes]) for name, boxes in problem.regions.items()]
+
+
+def _warn_overlaps(problem: Problem, dfa) -> None:
+    """Warn when two regions the formula names overlap: the cells there carry both labels.
+
+    Regions the formula does not name are left alone (the paper's case study defines ``d2``
+    equal to ``des`` on purpose). Boxes that share only a face do not overlap.
+    """
+    import warnings
+
+    from robust_imdp.errors import RegionOverlapWarning
+    from robust_imdp.geometry import region_overlaps
+
+    used = [r for r in _region_objects(problem) if r.name in dfa.atoms]
+    found = region_overlaps(used)
+    pairs = list(dict.fromkeys((a, b) for a, b, _ in found))
+    for a, b in pairs:
+        boxes = [box for x, y, box in found if (x, y) == (a, b)]
+        where = " x ".join(f"[{lo:g}, {hi:g}]" for lo, hi in zip(boxes[0].lower, boxes[0].upper))
+        more = f" (and {len(boxes) - 1} more boxes)" if len(boxes) > 1 else ""
+        warnings.warn(
+            f"regions {a!r} and {b!r} overlap in the box {where}{more}: cells there are labelled with both, "
+            f"and the formula {problem.formula!r} reads both labels there; check the regions' boxes "
+            "([[regions.NAME]] lower / upper)", RegionOverlapWarning, stacklevel=3)
 
 
 def _check_atoms(dfa, problem: Problem) -> None:
@@ -985,6 +1209,7 @@ def synthesize_from_data(problem: Problem, *, progress: bool = True, abstraction
         dfa = ltlf_to_dfa(problem.formula)
         _check_atoms(dfa, problem)
     log.info(f"DFA: {dfa.n_states} states over atoms {list(dfa.atoms)}")
+    _warn_overlaps(problem, dfa)
     _preflight(problem, dfa, log, run)
     try:
         return _synthesize_run(problem, dfa, log, run, abstraction_cache)
@@ -997,7 +1222,7 @@ def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cac
 
     with log.stage("partition"):
         partition = Partition(Box(problem.space_lower, problem.space_upper), problem.cell_size,
-                              _region_objects(problem))
+                              _region_objects(problem), names=problem.dim_names)
     log.info(f"partition: {partition.n_cells} cells")
 
     abstraction, from_cache, diagnostics, cell_bounds = None, False, {}, None

@@ -7,7 +7,12 @@ returns the Axes. :func:`save_figures` writes the standard set of PNGs for any d
 * 1-D: ``bounds.png`` -- p_low and p_up against x over the cells' classes (:func:`plot_bounds_1d`);
 * 2-D: ``partition.png``, ``classes.png``, ``p_low.png``, ``error.png`` (and ``trajectories.png``);
 * 3-D and more: the same four as panels of 2-D slices x_3 = c at a few values c
-  (:func:`plot_slices`; further dimensions are fixed at the centre of X).
+  (:func:`plot_slices`): one of them, and every further coordinate, goes through the grid
+  interval met by the most Q_yes cells (:func:`best_slice_value`); ``slice=`` (the command
+  line's ``--slice x3=0.5,x4=0``) fixes coordinates instead.
+
+Axes are labelled with the dimension names (``[space].names``) when the result has them, else
+``x_1 .. x_n``.
 
 Maps carry the region outlines with their names; heat maps of probabilities also carry the
 threshold contour (the boundary of ``value >= threshold``).
@@ -15,9 +20,10 @@ threshold contour (the boundary of ``value >= threshold``).
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import dataclasses
+import re
+from collections.abc import Mapping
+from pathlib import Path
 
 import matplotlib.pyplot as plt
 import numpy as np
@@ -28,7 +34,7 @@ from matplotlib.patches import Patch
 from matplotlib.patheffects import withStroke
 from scipy import ndimage
 
-from robust_imdp.errors import DimensionError
+from robust_imdp.errors import DimensionError, InvalidInputError
 from robust_imdp.io import ResultFile, as_result_file as _as_result_file
 
 __all__ = [
@@ -40,6 +46,8 @@ __all__ = [
     "plot_bounds_1d",
     "plot_slices",
     "slice_result",
+    "resolve_slice",
+    "best_slice_value",
     "threshold_segments",
     "save_figures",
 ]
@@ -79,7 +87,7 @@ def _frame(ax, res: ResultFile, title: str) -> None:
     ax.set_xlim(res.space_lower[0], res.space_upper[0])
     ax.set_ylim(res.space_lower[1], res.space_upper[1])
     ax.set_aspect("equal")
-    names = res.parameters.get("_axis_names", ("$x_1$", "$x_2$"))  # set by slice_result
+    names = res.parameters.get("_axis_names") or (_axis_text(res, 0, tex=True), _axis_text(res, 1, tex=True))
     ax.set_xlabel(names[0])
     ax.set_ylabel(names[1])
     ax.set_title(title, fontsize=10)
@@ -342,7 +350,7 @@ def plot_bounds_1d(result, ax=None, *, title: str | None = None, legend: bool = 
     ax.set_xlim(res.space_lower[0], res.space_upper[0])
     ax.set_ylim(-0.05 - 0.07 * max(len(atoms), 1) - 0.02, 1.04)
     ax.set_yticks(np.linspace(0.0, 1.0, 6))  # the region bars below 0 are not probabilities
-    ax.set_xlabel("$x_1$")
+    ax.set_xlabel(_axis_text(res, 0, tex=True))
     ax.set_ylabel("P(formula)")
     ax.set_title(title or f"Bounds and classes for {res.formula!r}", fontsize=10)
     if legend:
@@ -356,6 +364,120 @@ def plot_bounds_1d(result, ax=None, *, title: str | None = None, legend: bool = 
 
 
 # --------------------------------------------------------------------------- 3-D and more: slices
+def _axis_text(res: ResultFile, j: int, tex: bool = False) -> str:
+    """The name of coordinate ``j`` (0-based): its ``[space].names`` entry, else ``x_{j+1}``."""
+    if res.dim_names is not None:
+        return res.dim_names[j]
+    k = j + 1
+    return (f"$x_{k}$" if k < 10 else f"$x_{{{k}}}$") if tex else f"x_{k}"
+
+
+def resolve_slice(slice, lower, upper, names=None) -> dict:
+    """Check a slice specification and return ``{coordinate (0-based): value}``.
+
+    Parameters
+    ----------
+    slice : dict or None
+        Coordinates to fix, ``{key: value}``. A key is a dimension name (``[space].names``),
+        ``"x3"`` / ``"x_3"`` (dimensions numbered from 1, as in the data file's columns), or an
+        int: the 0-based coordinate index, like ``axis``.
+    lower, upper : (d,) float arrays
+        The set X; every value must lie in it.
+    names : sequence of d str, optional
+
+    Raises
+    ------
+    InvalidInputError
+        An unknown key, a value outside X, more than ``d - 2`` fixed coordinates (two are
+        drawn), or a state space of dimension < 3.
+    """
+    lower, upper = np.asarray(lower, float), np.asarray(upper, float)
+    d = lower.size
+    if not slice:
+        return {}
+    if not isinstance(slice, Mapping):
+        raise InvalidInputError(f"slice must be a dict {{dimension: value}}, e.g. {{'x3': 0.5}}; got {slice!r}")
+    if d < 3:
+        raise InvalidInputError(f"slice applies to state spaces of dimension >= 3; got dimension {d} "
+                                f"(the figures draw both coordinates)")
+    names = None if names is None else tuple(names)
+    valid = f"x1 .. x{d}" + (f" or {', '.join(names)}" if names else "")
+    out = {}
+    for key, value in slice.items():
+        j = None
+        if isinstance(key, (int, np.integer)) and not isinstance(key, bool):
+            j = int(key) if 0 <= int(key) < d else None
+        elif isinstance(key, str):
+            if names is not None and key in names:
+                j = names.index(key)
+            else:
+                m = re.fullmatch(r"x_?(\d+)", key.strip())
+                j = int(m.group(1)) - 1 if m and 1 <= int(m.group(1)) <= d else None
+        if j is None:
+            raise InvalidInputError(f"slice: {key!r} is not a dimension; use {valid}"
+                                    + (" (or an int: the 0-based coordinate index)" if not isinstance(key, str) else ""))
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            raise InvalidInputError(f"slice: {key} must be a number; got {value!r}") from None
+        where = f"dimension {j + 1}" + (f" ({names[j]})" if names else "")
+        if not (lower[j] <= v <= upper[j]):
+            raise InvalidInputError(f"slice: {key} = {v:g} lies outside X, [{lower[j]:g}, {upper[j]:g}] in {where}")
+        if j in out:
+            raise InvalidInputError(f"slice: {where} is given twice")
+        out[j] = v
+    if len(out) > d - 2:
+        raise InvalidInputError(f"slice fixes {len(out)} of {d} dimensions; at most {d - 2} (two are drawn)")
+    return out
+
+
+def _interval_counts(res: ResultFile, j: int, has: np.ndarray):
+    """Midpoints of coordinate ``j``'s grid intervals and, per interval, how many cells ``has`` meet it."""
+    bps = np.unique(np.r_[res.cells_lower[:, j], res.cells_upper[:, j]])
+    i0 = np.searchsorted(bps, res.cells_lower[has, j])  # cell faces are breakpoints: exact
+    i1 = np.searchsorted(bps, res.cells_upper[has, j])
+    diff = np.zeros(bps.size, dtype=np.int64)
+    np.add.at(diff, i0, 1)
+    np.add.at(diff, i1, -1)  # a cell meets the intervals i0 .. i1 - 1
+    return 0.5 * (bps[:-1] + bps[1:]), np.cumsum(diff)[:-1]
+
+
+def best_slice_value(res, j: int) -> float:
+    """The default value of coordinate ``j`` in figures of dimension >= 3 (the rule of :func:`plot_slices`).
+
+    The midpoint of the grid interval of coordinate ``j`` met by the most Q_yes cells; ties (or no
+    Q_yes cell) go to the most Q_? cells, then the most cells inside the formula's regions, then
+    the interval nearest the centre of X (the lower one first).
+    """
+    res = _result(res, dims=None)
+    mids, yes = _interval_counts(res, j, res.classes == "yes")
+    _, maybe = _interval_counts(res, j, res.classes == "maybe")
+    _, inside = _interval_counts(res, j, res.label_letters != 0)
+    dist = np.abs(mids - 0.5 * (res.space_lower[j] + res.space_upper[j]))
+    order = np.lexsort((np.arange(mids.size), dist, -inside, -maybe, -yes))  # last key sorts first
+    return float(mids[order[0]])
+
+
+def _slice_view(res: ResultFile, point: np.ndarray, drawn: list) -> ResultFile:
+    """The 2-D result on the plane through ``point`` spanned by the coordinates ``drawn``."""
+    d = res.cells_lower.shape[1]
+    fixed = [j for j in range(d) if j not in drawn]
+    lo, up = res.cells_lower, res.cells_upper
+    top = np.isclose(point, res.space_upper)
+    meets = np.all((lo[:, fixed] <= point[fixed]) & ((point[fixed] < up[:, fixed]) | top[fixed]), axis=1)
+    q = np.flatnonzero(meets)
+    fixed_text = ", ".join(f"{_axis_text(res, j)} = {point[j]:.3g}" for j in fixed)
+    return dataclasses.replace(
+        res, space_lower=res.space_lower[drawn], space_upper=res.space_upper[drawn],
+        cells_lower=lo[q][:, drawn], cells_upper=up[q][:, drawn], label_letters=res.label_letters[q],
+        labels=tuple(res.labels[i] for i in q), strategy=res.strategy[q], p_low=res.p_low[q], p_up=res.p_up[q],
+        p_up_star=res.p_up_star[q], error=res.error[q], classes=res.classes[q],
+        strategy_by_time=None if res.strategy_by_time is None else res.strategy_by_time[:, q],
+        dim_names=None if res.dim_names is None else tuple(res.dim_names[j] for j in drawn),
+        parameters={**res.parameters, "_axis_names": tuple(_axis_text(res, j, tex=True) for j in drawn),
+                    "_slice": fixed_text, "_cells": q})
+
+
 def slice_result(result, at: float, *, axis: int = 2, rest=None) -> ResultFile:
     """The 2-D result on the plane ``x_{axis+1} = at``: the cells it meets, drawn in the other two axes.
 
@@ -367,7 +489,7 @@ def slice_result(result, at: float, *, axis: int = 2, rest=None) -> ResultFile:
     axis : int, the sliced coordinate (0-based)
     rest : (d,) float array, optional
         For d > 3, the values of the coordinates other than the two drawn and ``axis``
-        (default: the centre of X).
+        (default: the centre of X; :func:`plot_slices` chooses them by :func:`best_slice_value`).
 
     Returns
     -------
@@ -385,41 +507,42 @@ def slice_result(result, at: float, *, axis: int = 2, rest=None) -> ResultFile:
         raise DimensionError(f"rest must have shape ({d},); got {centre.shape}")
     point = centre.copy()
     point[axis] = at
-    drawn = [j for j in range(d) if j != axis][:2]
-    fixed = [j for j in range(d) if j not in drawn]
-    lo, up = res.cells_lower, res.cells_upper
-    top = np.isclose(point, res.space_upper)
-    meets = np.all((lo[:, fixed] <= point[fixed]) & ((point[fixed] < up[:, fixed]) | top[fixed]), axis=1)
-    q = np.flatnonzero(meets)
-    fixed_text = ", ".join(f"x_{j + 1} = {point[j]:.3g}" for j in fixed)
-    view = dataclasses.replace(
-        res, space_lower=res.space_lower[drawn], space_upper=res.space_upper[drawn],
-        cells_lower=lo[q][:, drawn], cells_upper=up[q][:, drawn], label_letters=res.label_letters[q],
-        labels=tuple(res.labels[i] for i in q), strategy=res.strategy[q], p_low=res.p_low[q], p_up=res.p_up[q],
-        p_up_star=res.p_up_star[q], error=res.error[q], classes=res.classes[q],
-        strategy_by_time=None if res.strategy_by_time is None else res.strategy_by_time[:, q],
-        parameters={**res.parameters, "_axis_names": tuple(f"$x_{j + 1}$" for j in drawn),
-                    "_slice": fixed_text, "_cells": q})
-    return view
+    return _slice_view(res, point, [j for j in range(d) if j != axis][:2])
 
 
-def _slice_values(res: ResultFile, axis: int, n_slices: int) -> np.ndarray:
-    """Midpoints of ``n_slices`` intervals of the grid along ``axis``, evenly spread."""
+def _slice_values(res: ResultFile, axis: int, n_slices: int, best: float | None = None) -> np.ndarray:
+    """Midpoints of ``n_slices`` intervals of the grid along ``axis``, evenly spread; ``best`` (a
+    midpoint) replaces the nearest of them when it is not among them."""
     bps = np.unique(np.r_[res.cells_lower[:, axis], res.cells_upper[:, axis]])
     mids = 0.5 * (bps[:-1] + bps[1:])
     pick = np.unique(np.round(np.linspace(0, len(mids) - 1, min(n_slices, len(mids)))).astype(int))
-    return mids[pick]
+    values = mids[pick]
+    if best is not None and not np.any(values == best):
+        values[int(np.argmin(np.abs(values - best)))] = best
+    return np.sort(values)
 
 
-def plot_slices(result, kind: str = "classes", *, n_slices: int = 4, axis: int = 2, fig=None,
+def plot_slices(result, kind: str = "classes", *, n_slices: int = 4, axis: int = 2, slice=None, fig=None,
                 suptitle: str | None = None):
     """Panels of 2-D slices of a result of dimension >= 3, one per value of coordinate ``axis``.
+
+    Which slices (the default rule): the panels draw the first two coordinates other than
+    ``axis``; ``axis`` takes ``n_slices`` values at the midpoints of evenly spread grid intervals,
+    and the one nearest to :func:`best_slice_value` is moved onto it; every further coordinate
+    (d > 3) is fixed at its :func:`best_slice_value`: through the grid interval met by the most
+    Q_yes cells (ties: most Q_? cells, most cells inside the formula's regions, nearest the centre
+    of X). So the Q_yes cells appear in the figure whenever there are any.
 
     Parameters
     ----------
     kind : "classes", "partition", or a per-cell value ("p_low", "p_up", "p_up_star", "error")
-    n_slices : int, number of panels (slices at the midpoints of evenly spread grid intervals)
+    n_slices : int, number of panels
     axis : int, the sliced coordinate (0-based; default the third)
+    slice : dict, optional
+        Coordinates to fix instead, ``{"x4": 0.0}`` or by ``[space].names`` (see
+        :func:`resolve_slice`). With ``d - 2`` of them fixed, one panel shows the other two; with
+        fewer, the panels run over ``axis`` (or, if ``axis`` is fixed, over the first coordinate
+        after the two drawn) and the rest follow the default rule.
 
     Returns
     -------
@@ -429,13 +552,31 @@ def plot_slices(result, kind: str = "classes", *, n_slices: int = 4, axis: int =
     d = res.cells_lower.shape[1]
     if d < 3:
         raise DimensionError(f"plot_slices needs a state space of dimension >= 3; got {d} (use plot_classes)")
-    values = _slice_values(res, axis, n_slices)
+    if not 0 <= axis < d:
+        raise DimensionError(f"axis must be in [0, {d}); got {axis}")
+    fixed = resolve_slice(slice, res.space_lower, res.space_upper, res.dim_names)
+    free = [j for j in range(d) if j not in fixed]
+    if axis in fixed or len(free) == 2:
+        drawn = free[:2]
+        axis = free[2] if len(free) > 2 else None
+    else:
+        drawn = [j for j in free if j != axis][:2]
+    point = 0.5 * (res.space_lower + res.space_upper)
+    for j in free:
+        if j not in drawn and j != axis:
+            point[j] = best_slice_value(res, j)
+    for j, v in fixed.items():
+        point[j] = v
+    values = [None] if axis is None else _slice_values(res, axis, n_slices, best_slice_value(res, axis))
     ncol = min(4, len(values))
     nrow = -(-len(values) // ncol)
     fig = fig or plt.figure(figsize=(3.4 * ncol + 0.8, 3.6 * nrow + 0.6), constrained_layout=True)
     axes = np.atleast_1d(fig.subplots(nrow, ncol, squeeze=False)).ravel()
     for ax, at in zip(axes, values):
-        view = slice_result(res, at, axis=axis)
+        p = point.copy()
+        if at is not None:
+            p[axis] = at
+        view = _slice_view(res, p, drawn)
         title = view.parameters["_slice"]
         if kind == "classes":
             plot_classes(view, ax, title=title, legend=False)
@@ -462,17 +603,19 @@ def plot_slices(result, kind: str = "classes", *, n_slices: int = 4, axis: int =
                                        label=f"{kind} = threshold {res.threshold:g} (contour)")],
                        loc="outside lower center", fontsize=8, frameon=False)
     what = {"classes": "Classification", "partition": "Partition"}.get(kind, kind)
-    fig.suptitle(suptitle or f"{what} for {res.formula!r}: slices x_{axis + 1} = const"
-                 + (f" (further coordinates at the centre of X)" if d > 3 else ""), fontsize=11)
+    how = "slice" if axis is None else f"slices {_axis_text(res, axis)} = const"
+    rest = [j for j in range(d) if j not in drawn and j != axis and j not in fixed]
+    fig.suptitle(suptitle or f"{what} for {res.formula!r}: {how}"
+                 + (" (further coordinates through the most Q_yes cells)" if rest else ""), fontsize=11)
     return fig
 
 
-def save_figures(result, out_dir, *, trajectories=None, prefix: str = "", dpi: int = 130) -> list:
+def save_figures(result, out_dir, *, trajectories=None, prefix: str = "", dpi: int = 130, slice=None) -> list:
     """Write the standard PNGs for a result of any dimension (see the module docstring).
 
     1-D: ``bounds.png``. 2-D: ``partition``, ``classes``, ``p_low``, ``error`` (and
     ``trajectories`` if given). 3-D and more: the same four as panels of slices
-    (``trajectories`` are not drawn).
+    (``trajectories`` are not drawn), where ``slice`` fixes coordinates (:func:`plot_slices`).
 
     Returns
     -------
@@ -480,6 +623,7 @@ def save_figures(result, out_dir, *, trajectories=None, prefix: str = "", dpi: i
         The files written.
     """
     res = _result(result, dims=None)
+    resolve_slice(slice, res.space_lower, res.space_upper, res.dim_names)  # a bad slice fails before any file
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     d = res.cells_lower.shape[1]
@@ -491,7 +635,7 @@ def save_figures(result, out_dir, *, trajectories=None, prefix: str = "", dpi: i
         return written
     if d >= 3:
         for kind in ("partition", "classes", "p_low", "error"):
-            written.append(_save(plot_slices(res, kind), out / f"{prefix}{kind}.png", dpi))
+            written.append(_save(plot_slices(res, kind, slice=slice), out / f"{prefix}{kind}.png", dpi))
         return written
     jobs = [("partition", lambda ax: plot_partition(res, ax)),
             ("classes", lambda ax: plot_classes(res, ax)),

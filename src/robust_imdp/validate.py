@@ -38,6 +38,9 @@ __all__ = [
 ]
 
 RUNNING, SATISFIED, VIOLATED = 0, 1, 2
+#: Default step cap of a simulated run, the same for :func:`validate`, :func:`simulate` and
+#: ``robust-imdp simulate --max-steps`` (runs still undecided there count as "capped").
+MAX_STEPS = 200
 
 
 # --------------------------------------------------------------------------- statistics
@@ -91,7 +94,7 @@ class Trajectories:
     steps: np.ndarray
 
 
-def simulate(result, true_system, x0, *, max_steps: int = 100, rng=None, record: bool = False):
+def simulate(result, true_system, x0, *, max_steps: int = MAX_STEPS, rng=None, record: bool = False):
     """Run the true system under the result's controller from each row of ``x0``.
 
     Parameters
@@ -236,7 +239,7 @@ class ValidationReport:
         return "\n".join(lines)
 
 
-def validate(result_or_controller, true_system, *, n_per_cell: int = 100, max_steps: int = 200,
+def validate(result_or_controller, true_system, *, n_per_cell: int = 100, max_steps: int = MAX_STEPS,
              rng=None, confidence: float = 0.999, cells=None) -> ValidationReport:
     """Simulate the true system under the controller from random states in each cell.
 
