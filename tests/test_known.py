@@ -229,6 +229,7 @@ TIGHT = [  # (expression, box lower, box upper, exact range (lo, hi) as mpmath v
     ("x1 / x2", [-0.3, 0.7], [1.9, 2.2], lambda: (mpmath.mpf(-0.3) / mpmath.mpf(0.7), mpmath.mpf(1.9) / mpmath.mpf(0.7))),
     ("-x1", [-0.3], [1.9], lambda: (mpmath.mpf(-1.9), mpmath.mpf(0.3))),
     ("x1^2", [-0.3], [1.9], lambda: (0, mpmath.mpf(1.9) ** 2)),
+    ("x1*x1", [-0.3], [1.9], lambda: (0, mpmath.mpf(1.9) ** 2)),  # one register squared: x^2, not a product
     ("x1^3", [-1.3], [0.9], lambda: (mpmath.mpf(-1.3) ** 3, mpmath.mpf(0.9) ** 3)),
     ("x1^4", [-1.3], [0.9], lambda: (0, mpmath.mpf(-1.3) ** 4)),
     ("x1^-2", [0.4], [1.9], lambda: (mpmath.mpf(1.9) ** -2, mpmath.mpf(0.4) ** -2)),
