@@ -356,8 +356,20 @@ def _cmd_export(args) -> int:
             f"export needs the abstraction of this result, abstraction-{key}.npz in the run's cache {cache}; "
             f"it is not there: pass the run's --cache, or run `robust-imdp run PROBLEM --out {args.result}` again")
     from robust_imdp.abstraction import Abstraction
+    from robust_imdp.pipeline import cache_entry_problem
 
-    imdp = Abstraction.load(file).imdp
+    why = cache_entry_problem(file)
+    if why is None:
+        try:
+            imdp = Abstraction.load(file).imdp
+        except Exception as exc:  # a damaged file that still matches its checksum, or a foreign one
+            if interrupt_in(exc) is not None:
+                raise
+            why = f"cannot be read ({type(exc).__name__}: {exc})"
+    if why is not None:
+        raise InvalidInputError(
+            f"export needs the abstraction of this result; the cache entry {file} {why}: run `robust-imdp run "
+            f"PROBLEM --out {args.result}` again to rebuild it")
     n = res.n_cells
     if imdp.n_states != n + 1:
         raise InvalidInputError(f"{file}: the abstraction has {imdp.n_states} states; result.json has {n} cells "

@@ -28,9 +28,11 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import sys
 import time
-from dataclasses import dataclass, field, fields, is_dataclass
+import warnings
+from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any
 
@@ -542,14 +544,20 @@ class _Log:
         if self.enabled:
             print(f"[robust-imdp]   {text}", file=sys.stderr, flush=True)
 
-    def progress(self, what: str, done: int, total: int, t0: float, every: float = 2.0) -> None:
-        """A progress line (count, elapsed time, estimate of the rest), at most every ``every`` s."""
+    def progress(self, what: str, done: int, total: int, t0: float, every: float = 2.0, resumed: int = 0) -> None:
+        """A progress line (count, elapsed time, estimate of the rest), at most every ``every`` s.
+
+        ``resumed`` of the ``done`` units were loaded from the cache, not computed since ``t0``:
+        the estimate divides the units left by the rate of this process, ``(done - resumed) / elapsed``.
+        """
         now = time.perf_counter()
         if not self.enabled or (done < total and now - getattr(self, "_last", 0.0) < every):
             return
         self._last = now
         el = now - t0
-        rest = f", about {el / max(done, 1) * (total - done):.0f} s left" if 0 < done < total else ""
+        rest = ""
+        if 0 < done - resumed and done < total:
+            rest = f", about {el / (done - resumed) * (total - done):.0f} s left"
         print(f"[robust-imdp]   {what}: {done}/{total} ({100 * done / max(total, 1):.0f} %), {el:.1f} s{rest}",
               file=sys.stderr, flush=True)
 
@@ -635,12 +643,123 @@ def abstraction_key(problem: Problem) -> str:
     return h.hexdigest()[:20]
 
 
+# --------------------------------------------------------------------------- cache entries
+# Every file of the cache is an entry ``NAME`` with a checksum file ``NAME.sha256`` (sha256 of
+# the bytes, their count, and NAME). An entry is written under a temporary name, flushed to disk
+# (fsync) and renamed, so a crash leaves either the old entry, no entry, or an entry whose
+# checksum does not match; an entry that does not match its checksum, or cannot be read, gets
+# one warning line and is computed again.
+CHECKSUM_SUFFIX = ".sha256"
+
+
+def _checksum_file(path: Path) -> Path:
+    return path.with_name(path.name + CHECKSUM_SUFFIX)
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _fsync(path: Path, directory: bool = False) -> None:
+    """Flush ``path`` (a file, or a directory's entries) to disk."""
+    try:
+        fd = os.open(path, os.O_RDONLY | (getattr(os, "O_DIRECTORY", 0) if directory else 0))
+    except OSError:  # pragma: no cover - a directory that cannot be opened (non-POSIX)
+        return
+    try:
+        os.fsync(fd)
+    except OSError:  # pragma: no cover - file systems without fsync of directories
+        pass
+    finally:
+        os.close(fd)
+
+
+def write_cache_entry(path, write) -> None:
+    """Write the cache entry ``path`` with ``write(tmp_path)`` and its checksum file.
+
+    ``tmp_path`` is a hidden file in the same directory with the same suffix (``np.savez``
+    appends ``.npz`` to names without it). It is flushed to disk before it is renamed, and
+    the checksum file is written the same way after it.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.part{path.suffix}")
+    side = _checksum_file(path)
+    side_tmp = side.with_name(f".{side.name}.part")
+    try:
+        write(tmp)
+        _fsync(tmp)
+        side_tmp.write_text(f"{_sha256(tmp)} {tmp.stat().st_size} {path.name}\n")
+        _fsync(side_tmp)
+        os.replace(tmp, path)
+        os.replace(side_tmp, side)
+        _fsync(path.parent, directory=True)
+    finally:
+        for t in (tmp, side_tmp):
+            t.unlink(missing_ok=True)
+
+
+def cache_entry_problem(path) -> str | None:
+    """Why the cache entry ``path`` cannot be trusted (no checksum, size or digest mismatch), or None."""
+    path = Path(path)
+    side = _checksum_file(path)
+    try:
+        fields_ = side.read_text(encoding="ascii").split()
+    except (OSError, UnicodeDecodeError):
+        return f"has no readable checksum file {side.name}"
+    if len(fields_) != 3 or fields_[2] != path.name or not fields_[1].isdigit():
+        return f"has a checksum file {side.name} for another entry or in another form"
+    size = path.stat().st_size
+    if size != int(fields_[1]):
+        return f"is {size} bytes, its checksum file says {fields_[1]} (truncated or changed)"
+    if _sha256(path) != fields_[0]:
+        return "does not match its sha256 checksum (changed or damaged)"
+    return None
+
+
+def read_cache_entry(path, read):
+    """``read(path)`` when the cache entry exists and matches its checksum, else None.
+
+    A damaged entry (checksum mismatch, or ``read`` fails on it) gets one warning line and is
+    deleted, so that the caller computes it again.
+    """
+    from robust_imdp.errors import RobustImdpWarning
+
+    path = Path(path)
+    if not path.exists():
+        return None
+    why = cache_entry_problem(path)
+    if why is None:
+        try:
+            return read(path)
+        except Exception as exc:  # a damaged or foreign file: any reader error means "recompute"
+            if interrupt_in(exc) is not None:
+                raise
+            why = f"cannot be read ({type(exc).__name__}: {exc})"
+    warnings.warn(f"cache entry {path} {why}; computing it again", RobustImdpWarning, stacklevel=2)
+    for f in (path, _checksum_file(path)):
+        f.unlink(missing_ok=True)
+    return None
+
+
+def _write_json_entry(path: Path, doc) -> None:
+    from robust_imdp.jsonable import jsonable as _jsonable
+
+    write_cache_entry(path, lambda tmp: tmp.write_text(json.dumps(_jsonable(doc)), encoding="utf-8"))
+
+
+def _read_json(path: Path):
+    return json.loads(path.read_text(encoding="utf-8"))
+
+
 _EB_FIELDS = ("rkhs_bound", "sub_gaussian", "regulariser", "info_gain", "n_samples")
 
 
 def _save_bounds(path: Path, cell_bounds, error_models, diagnostics: dict) -> None:
-    import json
-
     from robust_imdp.jsonable import jsonable as _jsonable
 
     arrays = {k: np.asarray(getattr(cell_bounds, k)) for k in ("image_lower", "image_upper")}
@@ -650,15 +769,20 @@ def _save_bounds(path: Path, cell_bounds, error_models, diagnostics: dict) -> No
         for f in _EB_FIELDS:
             arrays[f"eb_{f}"] = np.array([[getattr(e, f) for e in row] for row in error_models])
     arrays["diagnostics"] = np.array(json.dumps(_jsonable(diagnostics)))
-    tmp = path.with_name(path.name + ".part")
-    with open(tmp, "wb") as fh:
+    write_cache_entry(path, lambda tmp: _savez(tmp, arrays))
+
+
+def _savez(path: Path, arrays: dict) -> None:
+    with open(path, "wb") as fh:
         np.savez(fh, **arrays)
-    tmp.replace(path)
+
+
+def _load_npz(path: Path) -> dict:
+    with np.load(path, allow_pickle=False) as z:
+        return {k: z[k] for k in z.files}
 
 
 def _load_bounds(path: Path):
-    import json
-
     from robust_imdp.abstraction import CellBounds
     from robust_imdp.gp import RKHSErrorBound
 
@@ -794,14 +918,17 @@ def _build_abstraction(problem: Problem, partition, log: _Log, cache_dir=None, r
     bounds_file = None
     if cache_dir is not None:
         bounds_file = Path(cache_dir) / f"bounds-{bounds_key(problem)}.npz"
+    loaded = None
     if bounds_file is not None and bounds_file.exists():
         with log.stage("load_bounds"):
-            cell_bounds, error_models, diagnostics = _load_bounds(bounds_file)
-        log.info(f"reused learned cell bounds {bounds_file.name}")
+            loaded = read_cache_entry(bounds_file, _load_bounds)
+        if loaded is not None:
+            log.info(f"reused learned cell bounds {bounds_file.name}")
+    if loaded is not None:
+        cell_bounds, error_models, diagnostics = loaded
     else:
         cell_bounds, error_models, diagnostics = _learn_and_bound(problem, partition, log, run, cache_dir)
         if bounds_file is not None:
-            bounds_file.parent.mkdir(parents=True, exist_ok=True)
             _save_bounds(bounds_file, cell_bounds, error_models, diagnostics)
     with log.stage("abstract"):
         if problem.guarantee == "confidence" and error_models is not None:
@@ -847,20 +974,60 @@ def _failure_budget(problem: Problem):
     return (fail / 2, fail / 2) if problem.iid_noise else (fail, 0.0)
 
 
-def _check_assumption(problem: Problem, data, log: _Log):
+def check_key(problem: Problem) -> str:
+    """Hash of everything the assumption check depends on: the data and the assumption.
+
+    The data, the modes' known parts (the residuals), the noise model (its bound), the
+    lengthscale, ``rkhs_bound`` and ``misspecification``; not the grid, regions or formula.
+    """
+    import robust_imdp
+
+    h = hashlib.sha256(b"assumption-check")
+    d = problem.data
+    _fingerprint(h, [
+        robust_imdp.__version__, np.asarray(d.x, float), np.asarray(d.u), np.asarray(d.x_next, float),
+        list(problem.mode_names), [(np.asarray(m.A, float), np.asarray(m.b, float)) for m in problem.maps],
+        problem.noise, problem.gp_options.get("lengthscale", 1.0), float(problem.rkhs_bound),
+        float(problem.misspecification), CHECK_DELTA,
+    ])
+    return h.hexdigest()[:20]
+
+
+def _read_checks(path: Path):
+    """The NormChecks and noise bound of a saved assumption check (ValueError/KeyError if malformed)."""
+    from robust_imdp.rkhs import NormCheck
+
+    doc = _read_json(path)
+    checks = tuple(NormCheck(**c) for c in doc["checks"])
+    if not checks:
+        raise ValueError("no checks")
+    return checks, np.asarray(doc["noise_bound"], float)
+
+
+def _check_assumption(problem: Problem, data, log: _Log, cache_dir=None):
     from robust_imdp.rkhs import check_assumption, noise_bound_at_confidence
 
     m_total = sum(x.shape[0] for x, _, _ in data)
     nb, _ = noise_bound_at_confidence(problem.noise, m_total, CHECK_DELTA)
-    with log.stage("check"):
-        checks = check_assumption([(x, y) for x, y, _ in data],
-                                  lengthscale=problem.gp_options.get("lengthscale", 1.0),
-                                  rkhs_bound=problem.rkhs_bound, noise_bound=nb,
-                                  misspecification=problem.misspecification, mode_names=problem.mode_names,
-                                  sample_index=[idx for _, _, idx in data])
+    # The check only passes or raises, and its result depends on the data and the assumption only
+    # (check_key): a passed check is saved and reused by every run on the same data and assumption.
+    check_file = None if cache_dir is None else Path(cache_dir) / f"check-{check_key(problem)}.json"
+    cached = None if check_file is None else read_cache_entry(check_file, _read_checks)
+    if cached is not None:
+        checks, nb = cached
+    else:
+        with log.stage("check"):
+            checks = check_assumption([(x, y) for x, y, _ in data],
+                                      lengthscale=problem.gp_options.get("lengthscale", 1.0),
+                                      rkhs_bound=problem.rkhs_bound, noise_bound=nb,
+                                      misspecification=problem.misspecification, mode_names=problem.mode_names,
+                                      sample_index=[idx for _, _, idx in data])
+        if check_file is not None:
+            _write_json_entry(check_file, {"checks": [asdict(c) for c in checks], "noise_bound": nb})
     worst = max(checks, key=lambda c: c.minimum)
-    log.info(f"assumption check: the data need RKHS norm >= {worst.minimum:.4g} (mode "
-             f"{problem.mode_names[worst.mode]}, component {worst.output + 1}); rkhs_bound = {problem.rkhs_bound:g}")
+    log.info(f"assumption check{' (reused from the cache)' if cached is not None else ''}: the data need RKHS "
+             f"norm >= {worst.minimum:.4g} (mode {problem.mode_names[worst.mode]}, component {worst.output + 1}); "
+             f"rkhs_bound = {problem.rkhs_bound:g}")
     return checks, nb
 
 
@@ -949,12 +1116,23 @@ def _local_settings(problem: Problem, data, partition, noise_bound):
     return out
 
 
+def _check_part(part: dict, k: int, n: int) -> dict:
+    """A saved bound chunk, checked to hold ``k`` cells x ``n`` outputs (else ValueError: computed again)."""
+    for key in ("lower", "upper", "eps", "support"):
+        if key not in part or np.shape(part[key]) != (k, n):
+            raise ValueError(f"{key} must have shape ({k}, {n}); got "
+                             f"{np.shape(part[key]) if key in part else 'no such array'}")
+    if "n_unconverged" not in part:
+        raise ValueError("n_unconverged is missing")
+    return part
+
+
 def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" = None, cache_dir=None):
     from robust_imdp.abstraction import CellBounds
 
     run = run if run is not None else _Run()
     data = _residual_data(problem)
-    checks, check_noise = _check_assumption(problem, data, log)
+    checks, check_noise = _check_assumption(problem, data, log, cache_dir)
     if problem.error_bound == "chowdhury":
         return _learn_and_bound_gp(problem, partition, log, checks, check_noise)
     from robust_imdp.rkhs import CELL_BLOCK, check_ranges, hoeffding_factor, noise_bound_at_confidence
@@ -980,10 +1158,10 @@ def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" 
     results: dict = {}
     if parts_dir is not None and parts_dir.exists():
         for u, s0 in tasks:
-            f = parts_dir / f"m{u}-c{s0}-{chunk}.npz"
-            if f.exists():
-                with np.load(f, allow_pickle=False) as z:
-                    results[(u, s0)] = {k: z[k] for k in z.files}
+            part = read_cache_entry(parts_dir / f"m{u}-c{s0}-{chunk}.npz",
+                                    lambda f, k=min(chunk, N - s0): _check_part(_load_npz(f), k, n))
+            if part is not None:
+                results[(u, s0)] = part
         if results:
             log.info(f"resumed: {len(results)} of {len(tasks)} bound chunks from {parts_dir}")
     missing = [t for t in tasks if t not in results]
@@ -1005,17 +1183,13 @@ def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" 
             args = [(*shared[u], problem.maps[u].A, problem.maps[u].b, lo[s0:s0 + chunk], up[s0:s0 + chunk],
                      local[u]) for u, s0 in missing]
             t0 = time.perf_counter()
-            if parts_dir is not None:
-                parts_dir.mkdir(parents=True, exist_ok=True)
             for i, res in sched.run(_bound_task, args, settings):
                 key = missing[i]
                 results[key] = res
                 if parts_dir is not None:  # saved as it completes: an interrupted run resumes from here
-                    tmp = parts_dir / f".m{key[0]}-c{key[1]}-{chunk}.npz"
-                    with open(tmp, "wb") as fh:
-                        np.savez(fh, **{k: np.asarray(v) for k, v in res.items()})
-                    tmp.replace(parts_dir / f"m{key[0]}-c{key[1]}-{chunk}.npz")
-                log.progress("bound", len(results), len(tasks), t0)
+                    write_cache_entry(parts_dir / f"m{key[0]}-c{key[1]}-{chunk}.npz",
+                                      lambda tmp, r=res: _savez(tmp, {k: np.asarray(v) for k, v in r.items()}))
+                log.progress("bound", len(results), len(tasks), t0, resumed=len(tasks) - len(missing))
     lower = np.empty((M, N, n))
     upper = np.empty((M, N, n))
     eps = np.empty((M, N, n))
@@ -1231,26 +1405,16 @@ def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cac
         cache_file = Path(abstraction_cache) / f"abstraction-{abstraction_key(problem)}.npz"
         diag_file = cache_file.with_suffix(".json")
         if cache_file.exists():
-            from robust_imdp.abstraction import Abstraction
-
             with log.stage("load_abstraction"):
-                abstraction = Abstraction.load(cache_file)
-                if diag_file.exists():
-                    diagnostics = json.loads(diag_file.read_text())
-            from_cache = True
-            log.info(f"reused abstraction {cache_file.name}")
+                entry = _load_abstraction_entry(cache_file)
+            if entry is not None:
+                abstraction, diagnostics = entry
+                from_cache = True
+                log.info(f"reused abstraction {cache_file.name}")
     if abstraction is None:
         abstraction, diagnostics, cell_bounds = _build_abstraction(problem, partition, log, abstraction_cache, run)
-        if cache_file is not None:  # write under a temporary name, then rename (atomic)
-            from robust_imdp.jsonable import jsonable as _jsonable
-
-            cache_file.parent.mkdir(parents=True, exist_ok=True)
-            tmp = diag_file.with_name(diag_file.stem + ".part.json")
-            tmp.write_text(json.dumps(_jsonable(diagnostics)))
-            tmp.replace(diag_file)
-            tmp = cache_file.with_name(cache_file.stem + ".part.npz")
-            abstraction.save(tmp)
-            tmp.replace(cache_file)
+        if cache_file is not None:
+            _save_abstraction_entry(cache_file, abstraction, diagnostics)
     why = diagnostics_line(diagnostics)
     if why:
         log.info(why)
@@ -1265,6 +1429,23 @@ def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cac
                     parameters=parameters, from_cache=from_cache,
                     diagnostics=diagnostics)
     return result
+
+
+def _load_abstraction_entry(cache_file: Path):
+    """(abstraction, the JSON document saved beside it) from the cache, or None (absent or damaged)."""
+    from robust_imdp.abstraction import Abstraction
+
+    doc = read_cache_entry(cache_file.with_suffix(".json"), _read_json)
+    if doc is None:
+        return None
+    abstraction = read_cache_entry(cache_file, Abstraction.load)
+    return None if abstraction is None else (abstraction, doc)
+
+
+def _save_abstraction_entry(cache_file: Path, abstraction, doc: dict) -> None:
+    """The JSON document first, the abstraction last: its presence means the pair is complete."""
+    _write_json_entry(cache_file.with_suffix(".json"), doc)
+    write_cache_entry(cache_file, abstraction.save)
 
 
 def _cell_bounder(problem: Problem, partition, log: _Log, run: _Run):
@@ -1314,7 +1495,6 @@ def refined_key(problem: Problem) -> str:
 def _refine(problem: Problem, partition, abstraction, syn, cell_bounds, dfa, log: _Log, run: _Run, cache_dir,
             diagnostics):
     """Refinement rounds from the grid's result (``refine.refine``); cached under :func:`refined_key`."""
-    from robust_imdp.abstraction import Abstraction
     from robust_imdp.geometry import BoxPartition
     from robust_imdp.jsonable import jsonable as _jsonable
     from robust_imdp.refine import refine
@@ -1322,12 +1502,13 @@ def _refine(problem: Problem, partition, abstraction, syn, cell_bounds, dfa, log
     key = refined_key(problem)
     diagnostics = dict(diagnostics)
     cache_file = None if cache_dir is None else Path(cache_dir) / f"abstraction-{key}.npz"
+    entry = None
     if cache_file is not None and cache_file.exists():
         with log.stage("load_abstraction"):
-            abstraction = Abstraction.load(cache_file)
-            diag_file = cache_file.with_suffix(".json")
-            if diag_file.exists():
-                diagnostics["refinement"] = json.loads(diag_file.read_text()).get("refinement")
+            entry = _load_abstraction_entry(cache_file)
+    if entry is not None:
+        abstraction, doc = entry
+        diagnostics["refinement"] = doc.get("refinement")
         log.info(f"reused refined abstraction {cache_file.name}")
         partition = abstraction.partition
         syn, classes = _synthesize(problem, partition, abstraction, dfa, log)
@@ -1345,12 +1526,7 @@ def _refine(problem: Problem, partition, abstraction, syn, cell_bounds, dfa, log
                                            "rounds": [r.to_dict() for r in out.rounds]})
     log.info(f"refinement stopped ({out.stopped}) at {out.partition.n_cells} cells")
     if cache_file is not None:
-        tmp = cache_file.with_name(cache_file.stem + ".part.json")
-        tmp.write_text(json.dumps({"refinement": diagnostics["refinement"]}))
-        tmp.replace(cache_file.with_suffix(".json"))
-        tmp = cache_file.with_name(cache_file.stem + ".part.npz")
-        out.abstraction.save(tmp)
-        tmp.replace(cache_file)
+        _save_abstraction_entry(cache_file, out.abstraction, {"refinement": diagnostics["refinement"]})
     classes = _class_names(out.synthesis.classes, out.synthesis, problem.threshold)
     return out.partition, out.abstraction, out.synthesis, classes, diagnostics, key
 
