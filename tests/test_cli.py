@@ -360,3 +360,42 @@ def test_run_a_one_d_problem_writes_its_figure(tmp_path, capsys):
     assert code == 0, err
     assert "cells: 16" in out and "1 figures in" in out
     assert (tmp_path / "o" / "bounds.png").stat().st_size > 5000
+
+
+# --------------------------------------------------------------------------- leftovers (issue 19)
+def test_run_removes_the_previous_results_outputs_but_not_other_files(tmp_path, capsys):
+    # The old result's validation and figures must not sit beside the new result (here: beside
+    # nothing, since the run fails on the missing data file).
+    out = tmp_path / "o"
+    out.mkdir()
+    stale = ["result.json", "result.npz", "validation.json", "trajectories.png", "classes.png", "p_low.png",
+             "error.png", "partition.png", "bounds.png"]
+    for name in stale + ["notes.txt"]:
+        (out / name).write_text("old")
+    p = tmp_path / "p.toml"
+    p.write_text(GOOD_HEAD)
+    code, _, err = _run(["run", str(p), "--out", str(out)], capsys)
+    assert code == 1 and "file not found" in err
+    assert [f.name for f in out.iterdir()] == ["notes.txt"]
+
+
+def test_a_failed_run_leaves_no_empty_directories(tmp_path, capsys):
+    p = tmp_path / "p.toml"
+    p.write_text(GOOD_HEAD)  # data.csv is missing: the run fails when the data are read
+    code, _, err = _run(["run", str(p), "--out", str(tmp_path / "new" / "out")], capsys)
+    assert code == 1 and "file not found" in err
+    assert not (tmp_path / "new").exists()  # neither out/, out/cache/ nor their new parent
+    code, _, _ = _run(["run", str(p), "--out", str(tmp_path / "o2"), "--cache", str(tmp_path / "c" / "d")], capsys)
+    assert code == 1 and not (tmp_path / "o2").exists() and not (tmp_path / "c").exists()
+    (tmp_path / "mine").mkdir()  # a directory that existed before the run stays
+    code, _, _ = _run(["run", str(p), "--out", str(tmp_path / "mine")], capsys)
+    assert code == 1 and (tmp_path / "mine").is_dir() and not (tmp_path / "mine" / "cache").exists()
+
+
+def test_out_below_a_file_is_refused_before_any_work(tmp_path, capsys):
+    f = tmp_path / "file"
+    f.write_text("")
+    p = tmp_path / "p.toml"
+    p.write_text(GOOD_HEAD)
+    code, _, err = _run(["run", str(p), "--out", str(f / "sub")], capsys)
+    assert code == 1 and "--out must be a directory you can write to" in err and "data" not in err

@@ -168,37 +168,71 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _writable_dir(directory: Path, option: str) -> None:
-    """Create ``directory`` and check that files can be written there (before any long work)."""
+def _writable_dir(directory: Path, option: str) -> list:
+    """Check, before any long work, that ``directory`` can be created or written to; create nothing.
+
+    Returns the directories that do not exist yet, deepest first (made when the first file is
+    written; :func:`_remove_if_empty` takes them away again when the run fails).
+    """
     import tempfile
 
+    missing, existing = [], directory
+    while not existing.exists() and existing != existing.parent:
+        missing.append(existing)
+        existing = existing.parent
     try:
-        directory.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile(dir=directory):
+        if not existing.is_dir():
+            raise NotADirectoryError(20, "not a directory", str(existing))
+        with tempfile.TemporaryFile(dir=existing):
             pass
     except OSError as exc:
         raise InvalidInputError(f"{option} must be a directory you can write to; {directory}: "
-                                f"{exc.strerror or exc}") from None
+                                f"{exc.strerror or exc}" + (f" ({existing})" if existing != directory else "")) from None
+    return missing
+
+
+def _remove_if_empty(directories) -> None:
+    """Remove those of ``directories`` (deepest first) that are empty: a failed run leaves no empty folders."""
+    for d in sorted(set(directories), key=lambda p: len(p.parts), reverse=True):
+        try:
+            d.rmdir()
+        except OSError:  # not empty, or never made
+            pass
+
+
+#: The files of a result directory: ``run`` writes the result and figures, ``simulate`` the
+#: validation. A new ``run`` removes them all first, so that nothing of the previous result is left
+#: beside the new one (or beside nothing, when the run fails).
+RESULT_OUTPUTS = ("result.json", "result.npz", "validation.json", "trajectories.png", "partition.png",
+                  "classes.png", "p_low.png", "error.png", "bounds.png")
 
 
 def _cmd_run(args) -> int:
-    from robust_imdp.io import load_problem, save_result
-    from robust_imdp.pipeline import synthesize_from_data
-
     out: Path = args.out
     cache = args.cache if args.cache is not None else out / "cache"
     # Everything the command line can get wrong is checked before the data are read:
     # option ranges by argparse, the output directories and the formula's syntax here, the
     # formula's regions by the pipeline's first stage.
-    _writable_dir(out, "--out")
-    _writable_dir(cache, "--cache")
+    created = _writable_dir(out, "--out") + _writable_dir(cache, "--cache")
     if args.formula is not None:
         from robust_imdp.ltlf import parse
 
         parse(args.formula)
-    # A stale complete-looking result must not survive a failed run.
-    for name in ("result.json", "result.npz"):
+    # Neither a stale complete-looking result nor the old result's figures and validation may
+    # survive into the new result (or a failed run).
+    for name in RESULT_OUTPUTS:
         (out / name).unlink(missing_ok=True)
+    try:
+        return _run_into(args, out, cache)
+    except BaseException:
+        _remove_if_empty(created)
+        raise
+
+
+def _run_into(args, out: Path, cache: Path) -> int:
+    from robust_imdp.io import load_problem, save_result
+    from robust_imdp.pipeline import synthesize_from_data
+
     problem = load_problem(args.problem)
     changes = {}
     if args.formula is not None:
