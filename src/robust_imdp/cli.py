@@ -108,6 +108,10 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--formula", default=None, help="override [spec].formula")
     run.add_argument("--threshold", type=_probability, default=None, help="override [spec].threshold")
     run.add_argument("--no-figures", action="store_true", help="do not write PNG figures")
+    run.add_argument("--advice", choices=("auto", "on", "off"), default="auto",
+                     help="estimate which lever (2x finer grid, more data, smaller B) would move most of X "
+                          "into Q_yes, by re-solving with modified image boxes; auto: when the finer grid "
+                          "has at most 65,536 cells")
     run.add_argument("--quiet", action="store_true", help="no progress lines")
     run.add_argument("--workers", type=_at_least(1), default=None,
                      help="local cores: 1 = in this process on one core, N > 1 = a local Dask cluster "
@@ -248,7 +252,8 @@ def _run_into(args, out: Path, cache: Path) -> int:
     args.interrupt_note = (f"interrupted; the finished chunks are saved in {cache}: run the same command again "
                            "to resume")
     result = synthesize_from_data(problem, progress=not args.quiet, abstraction_cache=cache,
-                                  workers=args.workers, scheduler=args.scheduler, check_resources=not args.yes)
+                                  workers=args.workers, scheduler=args.scheduler, check_resources=not args.yes,
+                                  advice={"auto": "auto", "on": True, "off": False}[args.advice])
     figures = []
     if not args.no_figures:
         from robust_imdp.plotting import save_figures

@@ -843,10 +843,12 @@ def result_to_dict(result) -> dict[str, Any]:
     diagnostics : dict
         Why cells are undecided: ``confidence`` (probability over the data with which every
         bound holds; 1 for bounded noise with the deterministic bound) and ``statement``,
-        ``eps`` (per mode and component: median and max error radius, and the median over
-        the cell half-width), ``successors_per_row`` (mean listed successors per IMDP row) and
+        ``eps`` (per mode and component: median and max error radius -- the excess of the
+        learned image box over the range of the data-fitted function, per side -- and the median
+        over the cell half-width), ``successors_per_row`` (mean listed successors per IMDP row),
         ``assumption`` (rkhs_bound, lengthscale, misspecification and the data-implied
-        minimum RKHS norm per mode and component).
+        minimum RKHS norm per mode and component) and, when estimated, ``advice`` (the
+        result's ``advice``: estimated Q_yes share per lever and the winner).
 
     How to run the controller without the library: start in cell q0 with DFA state
     ``s = delta[initial][L(q0)]``; while s is neither accepting nor a sink, apply
@@ -899,7 +901,8 @@ def result_to_dict(result) -> dict[str, Any]:
         "threshold": result.threshold,
         "horizon": result.horizon,
         "parameters": result.parameters,
-        "diagnostics": getattr(result, "diagnostics", {}) or {},
+        "diagnostics": {**(getattr(result, "diagnostics", {}) or {}),
+                        **({"advice": result.advice} if getattr(result, "advice", None) else {})},
         "timings": result.timings,
     })
 

@@ -368,6 +368,10 @@ class Result:
         The settings that produced the result (JSON-able).
     from_cache : bool
         Whether the abstraction was reused.
+    advice : dict
+        Which lever (finer grid, more data, smaller B) would move most of X into Q_yes, estimated
+        after the solve (``advice.Advice.to_dict()``; empty when not estimated, and after
+        :func:`resynthesize`).
     diagnostics : dict
         Why cells are undecided (JSON-able): the stated confidence, the error radius ``eps``
         per mode and output (median, max, against the cell half-width), the mean number of
@@ -384,6 +388,7 @@ class Result:
     parameters: dict
     from_cache: bool = False
     diagnostics: dict = field(default_factory=dict)
+    advice: dict = field(default_factory=dict)
 
     # Convenience views used by io.result_to_dict and plotting.
     @property
@@ -508,6 +513,10 @@ class Result:
         why = diagnostics_line(self.diagnostics)
         if why:
             lines.append(why)
+        if self.advice:
+            from robust_imdp.advice import advice_line
+
+            lines.append(advice_line(self.advice))
         lines.append(f"stage times: {times}")
         return "\n".join(lines)
 
@@ -1031,8 +1040,27 @@ def _check_assumption(problem: Problem, data, log: _Log, cache_dir=None):
     return checks, nb
 
 
-def _diagnostics(problem: Problem, partition, eps, checks, check_noise, confidence: float, statement: str) -> dict:
+def _fitted(problem: Problem, data):
+    """The data-fitted function of every mode (``advice.fit_modes``): known part plus a kernel-ridge fit."""
+    from robust_imdp.advice import fit_modes
+
+    sigma = np.asarray(problem.noise.sub_gaussian_parameter(), float)
+    # ridge parameter sigma^2 / B^2: the GP posterior mean with prior variance B^2 (kept >= 1e-6)
+    lam = np.maximum(sigma / float(problem.rkhs_bound), 1e-3) ** 2
+    return fit_modes([(x, y) for x, y, _ in data], problem.maps, problem.gp_options.get("lengthscale", 1.0), lam)
+
+
+def _diagnostics(problem: Problem, partition, cell_bounds, data, checks, check_noise, confidence: float,
+                 statement: str) -> dict:
+    from robust_imdp.advice import excess_radius
+
     half = 0.5 * np.asarray(problem.cell_size, float)
+    # The error radius is the excess of each learned image box over the range of the data-fitted
+    # function over the cell (advice.excess_radius): the same computation for every mode and
+    # component, from the boxes and the fit alone (the bound stage's internal vertex radius depends
+    # on which vertex problems its pruning solved, so on the component's position).
+    flo, fhi = _fitted(problem, data).grid_ranges(partition.breakpoints)
+    eps = excess_radius(np.asarray(cell_bounds.image_lower), np.asarray(cell_bounds.image_upper), flo, fhi)
     rows = []
     for u, name in enumerate(problem.mode_names):
         for i in range(eps.shape[2]):
@@ -1192,12 +1220,11 @@ def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" 
                 log.progress("bound", len(results), len(tasks), t0, resumed=len(tasks) - len(missing))
     lower = np.empty((M, N, n))
     upper = np.empty((M, N, n))
-    eps = np.empty((M, N, n))
     support = np.empty((M, N, n), dtype=np.int64)
     unconv = 0
     for (u, s0), r in results.items():
         sl = slice(s0, min(N, s0 + chunk))
-        lower[u, sl], upper[u, sl], eps[u, sl], support[u, sl] = r["lower"], r["upper"], r["eps"], r["support"]
+        lower[u, sl], upper[u, sl], support[u, sl] = r["lower"], r["upper"], r["support"]
         unconv += int(r["n_unconverged"])
     for u in range(M):
         check_ranges(lower[u], upper[u], u)
@@ -1215,11 +1242,12 @@ def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" 
             events.append(f"the sub-Gaussian bound of independent noise (probability >= {1 - iid_delta:g})")
         statement = (f"with probability >= {confidence:g} over the data ({'; '.join(events)}), if every "
                      "unknown component is within the misspecification of a function of RKHS norm <= rkhs_bound")
-    diag = _diagnostics(problem, partition, eps, checks, check_noise, confidence, statement)
+    cell_bounds = CellBounds(lower, upper, None)
+    diag = _diagnostics(problem, partition, cell_bounds, data, checks, check_noise, confidence, statement)
     diag["support_median"] = float(np.median(support))
     if unconv:
         diag["unconverged_vertex_problems"] = int(unconv)
-    return CellBounds(lower, upper, None), None, diag
+    return cell_bounds, None, diag
 
 
 def _learn_and_bound_gp(problem: Problem, partition, log: _Log, checks, check_noise):
@@ -1244,9 +1272,11 @@ def _learn_and_bound_gp(problem: Problem, partition, log: _Log, checks, check_no
         image_upper=np.stack([im.upper for im in images]),
         std_upper=np.stack([im.std_upper for im in images]),
     )
-    # Error radius at the paper's level 0.99 per GP (diagnostic only).
-    eps = np.stack([np.stack([learned.error_bounds[u][i].eps_for_prob(0.99, cell_bounds.std_upper[u, :, i])
-                              for i in range(n)], axis=1) for u in range(n_modes)])
+    boxes = cell_bounds  # the error radius is measured on the boxes that are abstracted
+    if problem.guarantee == "confidence":
+        from robust_imdp.abstraction import confidence_cell_bounds
+
+        boxes = confidence_cell_bounds(cell_bounds, learned.error_bounds, problem.confidence)
     if problem.guarantee == "confidence":
         statement = (f"with probability >= {problem.confidence:g} over the data (Chowdhury-Gopalan error bound, "
                      "union bound over the GPs), if every unknown component has RKHS norm <= rkhs_bound")
@@ -1255,8 +1285,8 @@ def _learn_and_bound_gp(problem: Problem, partition, log: _Log, checks, check_no
         statement = ("Thm 1 as printed: mixes a probability over the data into the transition bounds; not a "
                      "guarantee for one fixed system (docs/soundness_audit.md, F2)")
         conf = None
-    diag = _diagnostics(problem, partition, eps, checks, check_noise, conf if conf is not None else float("nan"),
-                        statement)
+    diag = _diagnostics(problem, partition, boxes, _residual_data(problem), checks, check_noise,
+                        conf if conf is not None else float("nan"), statement)
     if conf is None:
         diag["confidence"] = None
     return cell_bounds, learned.error_bounds, diag
@@ -1343,7 +1373,7 @@ def _preflight(problem: Problem, dfa, log: _Log, run: _Run) -> None:
 
 def synthesize_from_data(problem: Problem, *, progress: bool = True, abstraction_cache=None, client=None,
                          workers: int | None = None, scheduler: str | None = None, chunk_cells: int | None = None,
-                         check_resources: bool = True) -> Result:
+                         check_resources: bool = True, advice="auto") -> Result:
     """Learn, bound, abstract and synthesize: data and formula in, guarantees out.
 
     Parameters
@@ -1369,6 +1399,13 @@ def synthesize_from_data(problem: Problem, *, progress: bool = True, abstraction
         on the number of workers.
     check_resources : bool
         Refuse (``ResourceError``) when the pre-flight memory estimate exceeds the memory free.
+    advice : {"auto", True, False}
+        After the solve, estimate which lever (a 2x finer grid, more data, a smaller B) would move
+        most of X into Q_yes (:func:`robust_imdp.advice.advise`; ``diagnostics["advice"]`` and the
+        summary's last line). ``"auto"``: when the finer grid has at most
+        ``advice.MAX_CELLS`` cells (then it costs a few abstract + solve passes and ~16 pilot
+        cells per mode of the bound stage); True: always (estimates above that size are skipped
+        with a note); False: never.
 
     Returns
     -------
@@ -1376,9 +1413,12 @@ def synthesize_from_data(problem: Problem, *, progress: bool = True, abstraction
     """
     from robust_imdp.dfa import ltlf_to_dfa
 
+    if advice not in ("auto", True, False):
+        raise InvalidInputError(f"advice must be 'auto', True or False; got {advice!r}")
     log = _Log(progress)
     run = _Run(client=client, workers=workers, scheduler=scheduler, chunk_cells=chunk_cells,
                check_resources=check_resources)
+    run.advice = advice
     with log.stage("specify"):
         dfa = ltlf_to_dfa(problem.formula)
         _check_atoms(dfa, problem)
@@ -1419,6 +1459,7 @@ def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cac
     if why:
         log.info(why)
     syn, classes = _synthesize(problem, partition, abstraction, dfa, log)
+    advice = _advice(problem, partition, cell_bounds, dfa, classes, log, run, abstraction_cache, diagnostics)
     parameters = _parameters(problem, abstraction)
     if problem.refine is not None:  # issue 13: adaptive refinement of the undecided cells
         partition, abstraction, syn, classes, diagnostics, parameters["abstraction_key"] = _refine(
@@ -1427,7 +1468,7 @@ def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cac
     result = Result(problem=problem, partition=partition, abstraction=abstraction, dfa=dfa,
                     synthesis=syn, class_names=classes, timings=dict(log.timings),
                     parameters=parameters, from_cache=from_cache,
-                    diagnostics=diagnostics)
+                    diagnostics=diagnostics, advice=advice)
     return result
 
 
@@ -1446,6 +1487,53 @@ def _save_abstraction_entry(cache_file: Path, abstraction, doc: dict) -> None:
     """The JSON document first, the abstraction last: its presence means the pair is complete."""
     _write_json_entry(cache_file.with_suffix(".json"), doc)
     write_cache_entry(cache_file, abstraction.save)
+
+
+def _advice(problem: Problem, partition, cell_bounds, dfa, classes, log: _Log, run: _Run, cache_dir,
+            diagnostics: dict) -> dict:
+    """:func:`robust_imdp.advice.advise` as a JSON-able dict when the run asks for it, else ``{}``."""
+    from robust_imdp.advice import MAX_CELLS, advice_line, advise
+
+    want = getattr(run, "advice", "auto")
+    n_fine = partition.n_cells * 2 ** partition.dim
+    if want is False or (want == "auto" and n_fine > MAX_CELLS) or problem.error_bound == "chowdhury":
+        return {}  # the GP route has no pilot bound stage (its boxes come from bounds.bound_image)
+    if cell_bounds is None and cache_dir is not None:  # the abstraction came from the cache: its boxes too
+        bounds_file = Path(cache_dir) / f"bounds-{bounds_key(problem)}.npz"
+        if bounds_file.exists():
+            cell_bounds = _load_bounds(bounds_file)[0]
+    if cell_bounds is None:
+        return {}
+    from robust_imdp.rkhs import noise_bound_at_confidence
+
+    data = _residual_data(problem)
+    data_fail, _ = _failure_budget(problem)
+    noise_bound, _ = noise_bound_at_confidence(problem.noise, sum(x.shape[0] for x, _, _ in data),
+                                               data_fail if data_fail > 0 else 0.5)
+    tau = float(problem.misspecification)
+    # dense data pin g down to within the data-noise bound (a constant offset of the noise looks
+    # like g); with iid noise the sub-Gaussian bound shrinks further, to tau
+    floor = np.full(len(noise_bound), tau) if problem.iid_noise else np.asarray(noise_bound, float) + tau
+    mins = [c["minimum"] for c in diagnostics.get("assumption", {}).get("min_norm", [])]
+    bounders: dict = {}
+
+    def bound_cells(lower, upper, rkhs_bound):
+        if rkhs_bound not in bounders:
+            bounders[rkhs_bound] = _cell_bounder(problem.replace(rkhs_bound=rkhs_bound), partition, _Log(False), run)
+        return bounders[rkhs_bound](lower, upper)
+
+    with log.stage("advice"):
+        adv = advise(partition, cell_bounds, _fitted(problem, data), problem.noise, dfa, threshold=problem.threshold,
+                     horizon=problem.horizon, classes=classes, noise_floor=floor, rkhs_bound=problem.rkhs_bound,
+                     min_norm=max(mins, default=0.0),
+                     abstraction_options={"eta": problem.eta, "eps_rule": problem.eps_rule,
+                                          "combine": problem.combine},
+                     bound_cells=bound_cells, max_cells=MAX_CELLS if want == "auto" else 2 ** 62)
+    from robust_imdp.jsonable import jsonable as _jsonable
+
+    out = _jsonable(adv.to_dict())
+    log.info(advice_line(out))
+    return out
 
 
 def _cell_bounder(problem: Problem, partition, log: _Log, run: _Run):

@@ -1,0 +1,458 @@
+"""Why cells are undecided, measured: the excess radius and the advice on which lever to pull.
+
+A learned image box must contain ``{f_u(x) + g_u(x) : x in cell}``. Two things make it wide:
+
+* the **spread** of the function itself over the cell (it shrinks with the cell), estimated by the
+  range of a data-fitted function ``f_u + g_hat_u`` (:class:`FittedModes`; ``g_hat`` is the
+  kernel-ridge fit of the residuals with the problem's SE kernel);
+* the **excess**: what the box adds on top of that spread because ``g`` is only known through
+  noisy data and ``||g|| <= B`` (it shrinks with more data down to the noise floor, and with B).
+
+:func:`excess_radius` is half the difference of the two widths, computed the same way for every
+mode and component from the boxes and the fit alone, so it moves with a component when the
+components are permuted (the boxes and the fit do; tested).
+
+:func:`advise` estimates, for one solved problem, how much of X each lever would move into Q_yes:
+
+* **finer grid** (cell_size / 2): boxes of the sub-cells = fitted range over the sub-cell plus
+  the parent's excess per side, scaled by the sub-cell / parent excess ratio measured on a few
+  pilot cells bounded for real (``bound_cells``);
+* **more data**: the excess shrunk to its noise floor (``noise_floor``: the data noise bound plus
+  tau, the limit of the deterministic bound when data are dense: a constant offset of the noise
+  cannot be told apart from ``g``);
+* **smaller B** (``max(B/2, the data-implied minimum norm)``): the excess scaled by the ratio
+  measured on pilot cells bounded with that B.
+
+Each estimate re-abstracts (Thm 1, ``abstraction.abstract``) and re-solves
+(``synthesis.synthesize``) with the modified boxes; the bound stage, the expensive one, runs only
+on the pilot cells. The estimates are estimates: they say which lever to try, not what a run
+will certify (the printed bounds of a run come only from its own bound stage).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from robust_imdp.errors import DimensionError, InvalidInputError
+
+__all__ = ["FittedModes", "fit_modes", "excess_radius", "Lever", "Advice", "advise", "advice_line", "LEVERS",
+           "MAX_CELLS", "FIT_POINTS", "PILOT_CELLS", "MIN_GAIN"]
+
+#: Data points per mode used by the fit (an evenly spaced subset of the mode's samples beyond it).
+FIT_POINTS = 500
+#: Undecided cells (at most) bounded for real to calibrate the finer-grid and smaller-B estimates:
+#: each once with the smaller B and one of its sub-cells.
+PILOT_CELLS = 16
+#: Largest number of cells an estimate abstracts and solves (the finer grid has 2^d times the cells).
+MAX_CELLS = 65536
+LEVERS = ("finer grid", "more data", "smaller B")
+#: A lever wins only if it is estimated to move at least this share of X into Q_yes.
+MIN_GAIN = 0.005
+#: Entries of the separable kernel contraction's product tensor held at once (32 MB).
+_BLOCK = 1 << 22
+
+
+# ============================================================================ the fitted function
+@dataclass(frozen=True, eq=False)
+class FittedModes:
+    """Known part plus a kernel-ridge fit of the residuals, per mode (a diagnostic, not a bound).
+
+    Attributes
+    ----------
+    points : tuple (n_modes) of (m_u, d) float arrays
+        Fitted data points of each mode.
+    alpha : tuple (n_modes) of (m_u, n) float arrays
+        Ridge weights: ``g_hat_u(x)_i = sum_j alpha[u][j, i] k(x, points[u][j])``.
+    A : (n_modes, n, d) float array, b : (n_modes, n) float array
+        Known affine parts.
+    inv_l2 : (d,) float array
+        ``1 / lengthscale^2`` of the SE kernel ``k(x, z) = exp(-sum_a (x_a - z_a)^2 inv_l2_a / 2)``.
+    """
+
+    points: tuple
+    alpha: tuple
+    A: np.ndarray
+    b: np.ndarray
+    inv_l2: np.ndarray
+
+    @property
+    def n_modes(self) -> int:
+        return len(self.points)
+
+    def __call__(self, x) -> np.ndarray:
+        """``f_u(x) + g_hat_u(x)`` at points ``x (k, d)``: ``(n_modes, k, n)``."""
+        x = np.asarray(x, float)
+        out = np.empty((self.n_modes, x.shape[0], self.A.shape[1]))
+        for s0 in range(0, x.shape[0], 4096):
+            xs = x[s0:s0 + 4096]
+            for u in range(self.n_modes):
+                z = np.sum((xs[:, None, :] - self.points[u][None, :, :]) ** 2 * self.inv_l2, axis=2)
+                out[u, s0:s0 + 4096] = np.exp(-0.5 * z) @ self.alpha[u] + xs @ self.A[u].T + self.b[u]
+        return out
+
+    def lattice(self, axes) -> np.ndarray:
+        """``f_u + g_hat_u`` on the tensor grid ``axes[0] x ... x axes[d-1]``: ``(n_modes, n, k_0, ..., k_{d-1})``.
+
+        The SE kernel factors over the axes, ``k(z, x) = prod_a k_a(z_a, x_a)``, so the sum over
+        the data is a chain of products of per-axis kernel matrices (the last one a matrix
+        product), computed in blocks of the first axis.
+        """
+        axes = [np.asarray(a, float) for a in axes]
+        d = len(axes)
+        shape = tuple(a.size for a in axes)
+        n = self.A.shape[1]
+        out = np.empty((self.n_modes, n) + shape)
+        inner = int(np.prod(shape[1:-1])) if d > 2 else 1
+        for u in range(self.n_modes):
+            P, al = self.points[u], self.alpha[u]
+            # rows of the first axis per block: the product tensor has n * step * inner * m entries
+            step = max(1, _BLOCK // (n * inner * P.shape[0]))
+            F = [np.exp(-0.5 * (a[:, None] - P[None, :, j]) ** 2 * self.inv_l2[j]) for j, a in enumerate(axes)]
+            for s0 in range(0, shape[0], step):
+                T = al.T[:, None, :] * F[0][None, s0:s0 + step, :]  # (n, b, m)
+                for j in range(1, d - 1):
+                    T = (T[..., None, :] * F[j]).reshape(n, -1, P.shape[0])
+                T = T @ F[-1].T if d > 1 else T.sum(axis=-1)  # (n, b * prod k_1..k_{d-2}, k_{d-1})
+                out[u, :, s0:s0 + step] = T.reshape((n, -1) + shape[1:])
+            lin = np.broadcast_to(self.b[u].reshape((n,) + (1,) * d), (n,) + shape).copy()
+            for j, a in enumerate(axes):
+                lin += self.A[u][:, j].reshape((n,) + (1,) * d) * a.reshape((1,) * (j + 1) + (-1,) + (1,) * (d - 1 - j))
+            out[u] += lin
+        return out
+
+    def grid_ranges(self, breakpoints):
+        """Range of ``f_u + g_hat_u`` over every cell of a rectilinear grid, from its 3^d lattice points.
+
+        The points of a cell are its vertices, edge and face midpoints and centre (the grid of its
+        breakpoints with midpoints inserted), so the range is the same function of the cell for
+        every component and every cell.
+
+        Returns
+        -------
+        lower, upper : (n_modes, n_cells, n) float arrays, cells in C order of the grid.
+        """
+        axes = []
+        for bp in breakpoints:
+            bp = np.asarray(bp, float)
+            ax = np.empty(2 * bp.size - 1)
+            ax[0::2], ax[1::2] = bp, 0.5 * (bp[:-1] + bp[1:])
+            axes.append(ax)
+        V = self.lattice(axes)
+        lo, hi = V, V
+        for j in range(len(axes)):
+            ax = 2 + j
+
+            def take(a, s):  # lattice points s, s + 2, ... along this axis: the cells' 3 points are s = 0, 1, 2
+                return a[(slice(None),) * ax + (slice(s, a.shape[ax] - 2 + s, 2),)]
+
+            lo = np.minimum(np.minimum(take(lo, 0), take(lo, 1)), take(lo, 2))
+            hi = np.maximum(np.maximum(take(hi, 0), take(hi, 1)), take(hi, 2))
+        M, n = lo.shape[:2]
+        return (np.moveaxis(lo.reshape(M, n, -1), 1, 2), np.moveaxis(hi.reshape(M, n, -1), 1, 2))
+
+    def cell_ranges(self, lower, upper):
+        """The same range as :meth:`grid_ranges` for arbitrary cells ``(k, d)``: ``(n_modes, k, n)`` twice."""
+        lower, upper = np.asarray(lower, float), np.asarray(upper, float)
+        k, d = lower.shape
+        offs = np.stack(np.meshgrid(*[np.array([0.0, 0.5, 1.0])] * d, indexing="ij"), axis=-1).reshape(-1, d)
+        pts = (lower[:, None, :] + offs[None] * (upper - lower)[:, None, :]).reshape(-1, d)
+        v = self(pts).reshape(self.n_modes, k, offs.shape[0], -1)
+        return v.min(axis=2), v.max(axis=2)
+
+
+def fit_modes(data, maps, lengthscale, regulariser, *, max_points: int = FIT_POINTS) -> FittedModes:
+    """Kernel-ridge fit of every mode's residuals with the SE kernel of the assumption.
+
+    Parameters
+    ----------
+    data : sequence (n_modes) of (x (m_u, d), residuals (m_u, n)) pairs
+    maps : sequence (n_modes) of objects with ``A (n, d)`` and ``b (n,)`` (the known parts)
+    lengthscale : float or (d,) float array
+    regulariser : float or (n,) float array, > 0
+        Ridge parameter per component: ``alpha = (K + lambda I)^-1 y`` (the GP posterior mean with
+        prior variance B^2 and noise variance sigma^2 has ``lambda = sigma^2 / B^2``).
+    max_points : int
+        Beyond this many samples a mode is fitted on an evenly spaced subset of them.
+    """
+    if len(data) != len(maps) or not data:
+        raise DimensionError(f"data and maps must have one entry per mode; got {len(data)} and {len(maps)}")
+    d = np.asarray(data[0][0]).shape[1]
+    ls = np.broadcast_to(np.asarray(lengthscale, float), (d,))
+    if not np.all(np.isfinite(ls) & (ls > 0)):
+        raise InvalidInputError(f"lengthscale must be positive and finite; got {ls.tolist()}")
+    inv_l2 = 1.0 / (ls * ls)
+    points, alphas = [], []
+    for x, y in data:
+        x = np.asarray(x, float)
+        y = np.asarray(y, float).reshape(x.shape[0], -1)
+        lam = np.broadcast_to(np.asarray(regulariser, float), (y.shape[1],))
+        if not np.all(np.isfinite(lam) & (lam > 0)):
+            raise InvalidInputError(f"regulariser must be positive and finite; got {lam.tolist()}")
+        if x.shape[0] > max_points:
+            keep = np.unique(np.linspace(0, x.shape[0] - 1, int(max_points)).round().astype(int))
+            x, y = x[keep], y[keep]
+        K = np.exp(-0.5 * np.sum((x[:, None, :] - x[None, :, :]) ** 2 * inv_l2, axis=2))
+        al = np.empty_like(y)
+        for i in range(y.shape[1]):
+            al[:, i] = np.linalg.solve(K + lam[i] * np.eye(x.shape[0]), y[:, i])
+        points.append(x)
+        alphas.append(al)
+    A = np.stack([np.asarray(m.A, float) for m in maps])
+    b = np.stack([np.asarray(m.b, float).reshape(-1) for m in maps])
+    return FittedModes(tuple(points), tuple(alphas), A, b, inv_l2)
+
+
+def _excess_sides(lower, upper, fit_lower, fit_upper):
+    """How far the box reaches beyond the fitted range on each side (>= 0)."""
+    return np.maximum(fit_lower - lower, 0.0), np.maximum(upper - fit_upper, 0.0)
+
+
+def excess_radius(lower, upper, fit_lower, fit_upper) -> np.ndarray:
+    """Half of (box width - fitted range), at least 0: ``(n_modes, n_cells, n)``.
+
+    0 means the box is as narrow as the fitted function's own spread over the cell (only a
+    finer grid narrows it); a value near the cell's half-width means the uncertainty about ``g``
+    alone spreads the image over neighbouring cells (more data or a smaller B narrow it).
+    """
+    return np.maximum(0.5 * ((upper - lower) - (fit_upper - fit_lower)), 0.0)
+
+
+# ============================================================================ the advice
+@dataclass(frozen=True)
+class Lever:
+    """One lever's estimate: Q_yes share of X (volume) after pulling it, and the gain."""
+
+    name: str
+    setting: str
+    q_yes_share: float | None
+    gain: float | None
+    n_cells: int
+    excess_ratio: float | None = None
+    seconds: float = 0.0
+    note: str = ""
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "setting": self.setting, "q_yes_share": self.q_yes_share, "gain": self.gain,
+                "n_cells": self.n_cells, "excess_ratio": self.excess_ratio, "seconds": self.seconds,
+                "note": self.note}
+
+
+@dataclass(frozen=True)
+class Advice:
+    """The measured advice: baseline Q_yes share, one :class:`Lever` per lever, the winner."""
+
+    baseline_share: float
+    levers: tuple = field(default_factory=tuple)
+    winner: str | None = None
+    seconds: float = 0.0
+    note: str = ""
+
+    def to_dict(self) -> dict:
+        return {"baseline_share": self.baseline_share, "levers": [lv.to_dict() for lv in self.levers],
+                "winner": self.winner, "seconds": self.seconds, "note": self.note}
+
+
+def advice_line(adv: dict) -> str:
+    """One line naming the lever that decides most (from :meth:`Advice.to_dict`)."""
+    if not adv:
+        return ""
+    if adv.get("winner") is None and not adv.get("levers"):
+        return f"advice: {adv.get('note', '')}".rstrip()
+
+    def pct(v):
+        return f"{100 * v:.1f} %"
+
+    est = [lv for lv in adv["levers"] if lv["gain"] is not None]
+    others = "; ".join(f"{lv['name']} ({lv['setting']}) {100 * lv['gain']:+.1f} points" for lv in est
+                       if lv["name"] != adv.get("winner"))
+    skipped = "; ".join(f"{lv['name']}: {lv['note']}" for lv in adv["levers"] if lv["gain"] is None)
+    if adv.get("winner") is None:
+        text = (f"advice: no lever is estimated to move {pct(MIN_GAIN)} of X into Q_yes (now "
+                f"{pct(adv['baseline_share'])})" + (f": {others}" if others else ""))
+    else:
+        w = next(lv for lv in adv["levers"] if lv["name"] == adv["winner"])
+        text = (f"advice: {w['name']} ({w['setting']}) decides most: Q_yes {pct(adv['baseline_share'])} -> about "
+                f"{pct(w['q_yes_share'])} of X" + (f"; {others}" if others else ""))
+    if skipped:
+        text += f"; not estimated: {skipped}"
+    return text + f" (estimated in {adv.get('seconds', 0.0):.1f} s by re-solving with modified image boxes)"
+
+
+def _share(partition, yes) -> float:
+    vol = np.prod(np.asarray(partition.cells_upper) - np.asarray(partition.cells_lower), axis=1)
+    return float(np.sum(vol[yes]) / np.sum(vol))
+
+
+def _q_yes(partition, lower, upper, noise, dfa, threshold, horizon, options) -> float:
+    """Q_yes share (volume) of the abstraction of these boxes (Thm 1) after the robust solve."""
+    from robust_imdp.abstraction import CellBounds, abstract
+    from robust_imdp.synthesis import synthesize
+
+    ab = abstract(partition, CellBounds(lower, upper, None), noise, None, **options)
+    syn = synthesize(ab.imdp, partition.labels, partition.atoms, dfa, threshold=threshold, horizon=horizon,
+                     outside_state=partition.outside_state)
+    return _share(partition, np.asarray(syn.p_low) >= threshold)  # Q_yes: p_low >= threshold (Sec. 5)
+
+
+def _shrunk(lower, upper, fit_lower, fit_upper, e_lo, e_hi):
+    """Boxes ``[fit_lower - e_lo, fit_upper + e_hi]`` kept inside ``[lower, upper]`` (non-empty)."""
+    lo = np.clip(fit_lower - e_lo, lower, upper)
+    hi = np.clip(fit_upper + e_hi, lower, upper)
+    return lo, np.maximum(hi, lo)
+
+
+def _pilot(candidates, k: int) -> np.ndarray:
+    c = np.asarray(candidates)
+    if c.size <= k:
+        return c
+    return c[np.unique(np.linspace(0, c.size - 1, k).round().astype(int))]
+
+
+def _ratio(num, den) -> np.ndarray:
+    """Per (mode, component): median excess of the pilot boxes over the median of the reference, in [0, 1]."""
+    a = np.median(num, axis=1)
+    b = np.median(den, axis=1)
+    return np.clip(np.where(b > 0, a / np.where(b > 0, b, 1.0), 1.0), 0.0, 1.0)
+
+
+def advise(partition, cell_bounds, fits: FittedModes, noise, dfa, *, threshold: float, horizon=None,
+           classes, noise_floor, rkhs_bound: float, min_norm: float = 0.0, abstraction_options=None,
+           bound_cells=None, max_cells: int = MAX_CELLS, pilot_cells: int = PILOT_CELLS,
+           progress=None) -> Advice:
+    """Estimate the Q_yes share of X that a finer grid, more data or a smaller B would give.
+
+    Parameters
+    ----------
+    partition : geometry.Partition
+        The grid that was solved.
+    cell_bounds : abstraction.CellBounds
+        Its image boxes ``(n_modes, n_cells, n)`` (as abstracted).
+    fits : FittedModes
+    noise : noise model of the abstraction
+    dfa : dfa.DFA
+    threshold, horizon
+        As solved.
+    classes : (n_cells,) str array
+        The solved classes (``"yes"`` / ``"no"`` / ``"maybe"``); the pilot cells are undecided ones.
+    noise_floor : (n,) float array
+        Excess per side left with dense data: the data-noise bound plus tau.
+    rkhs_bound : float
+        B; the smaller-B lever uses ``max(B / 2, min_norm)``.
+    min_norm : float
+        The data-implied minimum RKHS norm (largest over modes and components).
+    abstraction_options : dict
+        ``eta``, ``eps_rule``, ``combine`` of the run.
+    bound_cells : callable ``(lower (k, d), upper (k, d), rkhs_bound) -> (lower, upper)`` of shape
+        ``(n_modes, k, n)``, optional
+        The run's bound stage for a few pilot cells; without it the excess ratios are 1 (finer
+        grid) and ``B' / B`` (smaller B).
+    max_cells : int
+        An estimate that would abstract more cells than this is skipped (its note says so).
+    pilot_cells : int
+        Parent cells bounded for real per estimate.
+    progress : callable str -> None, optional
+
+    Returns
+    -------
+    Advice
+    """
+    from robust_imdp.geometry import Partition
+
+    t_all = time.perf_counter()
+    opts = dict(abstraction_options or {})
+    lo, hi = np.asarray(cell_bounds.image_lower), np.asarray(cell_bounds.image_upper)
+    classes = np.asarray(classes).astype(str)
+    if classes.shape != (partition.n_cells,):
+        raise DimensionError(f"classes must have shape ({partition.n_cells},); got {classes.shape}")
+    base = _share(partition, classes == "yes")
+    open_cells = np.flatnonzero(classes == "maybe")
+    if open_cells.size == 0:
+        open_cells = np.flatnonzero(classes != "yes")
+    if open_cells.size == 0:
+        return Advice(base, (), None, time.perf_counter() - t_all, "every cell is in Q_yes")
+    floor = np.broadcast_to(np.asarray(noise_floor, float), (lo.shape[2],))
+    flo, fhi = fits.grid_ranges(partition.breakpoints)
+    e_lo, e_hi = _excess_sides(lo, hi, flo, fhi)
+    # a few undecided cells (at most 1/16 of the grid, so the pilot costs at most ~1/8 of the bound stage)
+    pilot = _pilot(open_cells, min(int(pilot_cells), max(4, partition.n_cells // 16)))
+    d = partition.dim
+    levers = []
+
+    def say(text):
+        if progress is not None:
+            progress(text)
+
+    # (a) a finer grid: every cell split in 2^d
+    t0 = time.perf_counter()
+    h2 = np.asarray(partition.cell_size, float) / 2
+    n_fine = partition.n_cells * 2 ** d
+    setting = f"cell_size {np.round(h2, 6).tolist()}"
+    if n_fine > max_cells:
+        levers.append(Lever("finer grid", setting, None, None, n_fine,
+                            note=f"{n_fine:,} cells > {max_cells:,}: run it on a sub-box of X"))
+    else:
+        fine = Partition(partition.space, h2, partition.regions)
+        parent = np.asarray(partition.locate(0.5 * (fine.cells_lower + fine.cells_upper)))
+        glo, ghi = fits.grid_ranges(fine.breakpoints)
+        ratio = None
+        if bound_cells is not None:
+            # one sub-cell per pilot cell, its position cycling through the 2^d children
+            sub = np.array([np.flatnonzero(parent == q)[k % 2 ** d] for k, q in enumerate(pilot)])
+            blo, bhi = bound_cells(fine.cells_lower[sub], fine.cells_upper[sub], rkhs_bound)
+            s_lo, s_hi = _excess_sides(blo, bhi, glo[:, sub], ghi[:, sub])
+            ratio = _ratio(np.concatenate([s_lo, s_hi], axis=1),
+                           np.concatenate([e_lo[:, parent[sub]], e_hi[:, parent[sub]]], axis=1))
+        r = np.ones((lo.shape[0], lo.shape[2])) if ratio is None else ratio
+        flo_, fhi_ = _shrunk(lo[:, parent], hi[:, parent], glo, ghi, r[:, None] * e_lo[:, parent],
+                             r[:, None] * e_hi[:, parent])
+        share = _q_yes(fine, flo_, fhi_, noise, dfa, threshold, horizon, opts)
+        levers.append(Lever("finer grid", setting, share, share - base, fine.n_cells,
+                            None if ratio is None else float(np.median(ratio)), time.perf_counter() - t0,
+                            "" if ratio is not None else "excess ratio 1 (no pilot)"))
+        say(f"advice: finer grid ({fine.n_cells} cells) -> Q_yes {100 * share:.0f} % of X")
+
+    # (b) more data: the excess down to its noise floor
+    t0 = time.perf_counter()
+    if partition.n_cells > max_cells:
+        levers.append(Lever("more data", "excess at the noise floor", None, None, partition.n_cells,
+                            note=f"{partition.n_cells:,} cells > {max_cells:,}"))
+    else:
+        f = floor[None, None, :]
+        blo, bhi = _shrunk(lo, hi, flo, fhi, np.minimum(e_lo, f), np.minimum(e_hi, f))
+        share = _q_yes(partition, blo, bhi, noise, dfa, threshold, horizon, opts)
+        levers.append(Lever("more data", f"excess at the noise floor {np.round(floor, 6).tolist()}", share,
+                            share - base, partition.n_cells, None, time.perf_counter() - t0))
+        say(f"advice: more data -> Q_yes {100 * share:.0f} % of X")
+
+    # (c) a smaller B, as small as the data allow
+    t0 = time.perf_counter()
+    B = float(rkhs_bound)
+    Bs = max(0.5 * B, float(min_norm))
+    if Bs >= B * (1 - 1e-9):
+        levers.append(Lever("smaller B", f"B = {B:g}", None, None, partition.n_cells,
+                            note=f"the data need ||g|| >= {min_norm:.3g}, so B = {B:g} cannot be smaller"))
+    elif partition.n_cells > max_cells:
+        levers.append(Lever("smaller B", f"B = {Bs:.3g}", None, None, partition.n_cells,
+                            note=f"{partition.n_cells:,} cells > {max_cells:,}"))
+    else:
+        if bound_cells is not None:
+            plo, phi = bound_cells(partition.cells_lower[pilot], partition.cells_upper[pilot], Bs)
+            s_lo, s_hi = _excess_sides(plo, phi, flo[:, pilot], fhi[:, pilot])
+            r = _ratio(np.concatenate([s_lo, s_hi], axis=1),
+                       np.concatenate([e_lo[:, pilot], e_hi[:, pilot]], axis=1))
+            note = ""
+        else:
+            r = np.full((lo.shape[0], lo.shape[2]), Bs / B)
+            note = "excess ratio B'/B (no pilot)"
+        blo, bhi = _shrunk(lo, hi, flo, fhi, r[:, None] * e_lo, r[:, None] * e_hi)
+        share = _q_yes(partition, blo, bhi, noise, dfa, threshold, horizon, opts)
+        levers.append(Lever("smaller B", f"B = {Bs:.3g}", share, share - base, partition.n_cells,
+                            float(np.median(r)), time.perf_counter() - t0, note))
+        say(f"advice: B = {Bs:.3g} -> Q_yes {100 * share:.0f} % of X")
+
+    est = [lv for lv in levers if lv.gain is not None and lv.gain >= MIN_GAIN]
+    winner = max(est, key=lambda lv: lv.gain).name if est else None
+    return Advice(base, tuple(levers), winner, time.perf_counter() - t_all)
