@@ -94,9 +94,13 @@ def test_example_then_simulate_on_a_saved_result(tmp_path, capsys):
     (tmp_path / "result.json").write_text(json.dumps(grid_doc(h=1.0)))
     code, out, err = _run(["simulate", str(tmp_path), "--true-system", "three_mode_linear",
                            "--n-per-cell", "5", "--max-steps", "20", "--paths", "3"], capsys)
-    assert code == 0, err
-    assert "Monte-Carlo validation: 16 cells x 5 runs" in out
+    # grid_doc's bounds are random, not the case study's: the system contradicts them, so the
+    # command says so and exits 1, after writing its report and figure
+    assert code == 1, err
+    assert "validation failed: 2 of 16 cells are flagged, more than the 1 that chance allows" in err
+    assert "Monte-Carlo validation: 16 cells x 5 runs" in out and "FAILED: 2 cells flagged" in out
     assert (tmp_path / "validation.json").exists() and (tmp_path / "trajectories.png").exists()
+    assert json.loads((tmp_path / "validation.json").read_text())["passed"] is False
     code, _, err = _run(["simulate", str(tmp_path), "--true-system", "pendulum"], capsys)
     assert code == 1 and "case study must be one of" in err
 

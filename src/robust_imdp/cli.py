@@ -7,6 +7,9 @@
     robust-imdp example NAME --out DIR            write a case study's problem file and data
     robust-imdp --version
 
+``simulate`` exits with status 1 when more cells are flagged than chance allows (the result's
+bounds are contradicted by the simulated system), 0 otherwise.
+
 Errors (bad files, unknown regions, ...) print one message and exit with status 1; usage errors
 (including option values out of range, checked before any work) exit with status 2 (argparse);
 unexpected internal errors exit with status 3; Ctrl-C exits with status 130. No traceback is
@@ -129,7 +132,10 @@ def _parser() -> argparse.ArgumentParser:
                          description="Simulate the true system under the result's controller "
                                      "from random states in every cell and compare the "
                                      "empirical satisfaction with [p_low, p_up] (Wilson "
-                                     "intervals). Writes validation.json and trajectories.png.")
+                                     "intervals). Writes validation.json and trajectories.png. "
+                                     "Exit status 0 when no more cells are flagged than chance allows "
+                                     "(a binomial tail over the cells at --confidence), 1 when more are: "
+                                     "the bounds are contradicted by the system.")
     sim.add_argument("result", type=Path, help="directory holding result.json")
     sim.add_argument("--true-system", required=True, metavar="NAME | FILE.py:NAME",
                      help="the true dynamics to simulate: a case study (three_mode_linear, "
@@ -361,7 +367,7 @@ def _cmd_simulate(args) -> int:
     doc = {k: getattr(report, k) for k in (
         "cells", "n_per_cell", "max_steps", "confidence", "satisfied", "capped", "empirical",
         "wilson_low", "wilson_up", "p_low", "p_up", "outside", "containment_rate",
-        "expected_outside")}
+        "expected_outside", "allowed_outside", "passed")}
     (out / "validation.json").write_text(json.dumps(jsonable(doc), indent=1))
     if not args.no_figures and args.paths > 0 and len(res.space_lower) == 2:
         import matplotlib.pyplot as plt
@@ -376,6 +382,11 @@ def _cmd_simulate(args) -> int:
         plot_trajectories(res, tr, ax)
         fig.savefig(out / "trajectories.png", dpi=130)
         plt.close(fig)
+    if not report.passed:
+        print(f"robust-imdp: validation failed: {len(report.outside)} of {len(report.cells)} cells are flagged, more "
+              f"than the {report.allowed_outside} that chance allows at confidence {report.confidence:g}; the "
+              "result's bounds are contradicted by this system (see validation.json)", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -33,6 +33,8 @@ __all__ = [
     "Trajectories",
     "ValidationReport",
     "wilson_interval",
+    "flag_probability",
+    "allowed_outside",
     "simulate",
     "validate",
 ]
@@ -148,11 +150,7 @@ def simulate(result, true_system, x0, *, max_steps: int = MAX_STEPS, rng=None, r
         modes = table[q[run], s[run]]
         if np.any(modes < 0):
             raise InvalidInputError("result strategy is undefined (-1) for a reachable (cell, DFA state)")
-        x_new = np.asarray(true_system.step(x[run], to_sys[modes], rng), dtype=float)
-        if x_new.shape != (run.size, x.shape[1]):
-            raise DimensionError(
-                f"true_system.step(x, modes, rng) must return the next states, shape (k, n) = "
-                f"({run.size}, {x.shape[1]}) like x; got {x_new.shape}")
+        x_new = _checked_step(true_system, x[run], to_sys[modes], rng, t)
         x[run] = x_new
         steps[run] += 1
         q_new = locate(x_new)
@@ -172,6 +170,113 @@ def simulate(result, true_system, x0, *, max_steps: int = MAX_STEPS, rng=None, r
     return Trajectories(paths=paths, outcome=status, steps=steps)
 
 
+def _checked_step(true_system, x, sys_modes, rng, t: int) -> np.ndarray:
+    """``true_system.step(x, sys_modes, rng)`` as a (k, n) finite float array, or an error naming the call.
+
+    A user's ``step`` that returns another shape, states of another dimension, NaN or inf would
+    otherwise be located as "outside X" (a violation) or break the DFA: it is refused, naming the
+    call (``t + 1``-th of this simulation, the runs' step ``t + 1``) and the modes involved.
+    """
+    k, n = x.shape
+    names = list(getattr(true_system, "mode_names", ()))
+
+    def mode_text(m):
+        return repr(names[m]) if 0 <= m < len(names) else str(m)
+
+    call = f"call {t + 1} (step {t + 1} of the runs still undecided)"
+    in_call = sorted({int(m) for m in np.unique(sys_modes)})
+    modes_text = ", ".join(mode_text(m) for m in in_call)
+    raw = true_system.step(x, sys_modes, rng)
+    try:
+        x_new = np.asarray(raw, dtype=float)
+        if x_new.ndim == 0:
+            raise TypeError("a single value")
+    except (TypeError, ValueError) as exc:
+        raise InvalidInputError(
+            f"true_system.step(x, modes, rng) must return the next states as a ({k}, {n}) float array; {call} "
+            f"returned {type(raw).__name__}, not such an array ({exc}); modes in the call: {modes_text}") from None
+    if x_new.shape != (k, n):
+        what = (f" (states of dimension {x_new.shape[1]}, not {n})"
+                if x_new.ndim == 2 and x_new.shape[0] == k else "")
+        raise DimensionError(
+            f"true_system.step(x, modes, rng) must return the next states, shape (k, n) = ({k}, {n}) like x; "
+            f"got {x_new.shape}{what}, in {call}; modes in the call: {modes_text}")
+    bad = ~np.all(np.isfinite(x_new), axis=1)
+    if np.any(bad):
+        rows = np.flatnonzero(bad)
+        r = int(rows[0])
+        modes_bad = sorted({int(m) for m in sys_modes[rows]})
+        raise InvalidInputError(
+            f"true_system.step(x, modes, rng) must return finite next states; {call} returned NaN or inf for "
+            f"{rows.size} of {k} states, in mode{'s' if len(modes_bad) > 1 else ''} "
+            f"{', '.join(mode_text(m) for m in modes_bad)} (first: row {r}, mode {mode_text(int(sys_modes[r]))}, "
+            f"x = {x[r].tolist()} -> {x_new[r].tolist()})")
+    return x_new
+
+
+# --------------------------------------------------------------------------- chance
+def flag_probability(p_low, p_up, n_per_cell: int, confidence: float) -> np.ndarray:
+    """Upper bound on the probability that :func:`validate` flags a cell whose bounds are correct.
+
+    If the true satisfaction probability p of the runs from a cell lies in ``[p_low, p_up]``,
+    the number of satisfied runs S is Binomial(n, p), with ``satisfied <= S <= satisfied +
+    capped``. The ``p_low`` check flags when ``wilson_up(satisfied + capped) < p_low``, which
+    implies ``S <= k1`` for ``k1`` the largest count with ``wilson_up(k1) < p_low``
+    (``wilson_up`` increases with the count); ``P_p(S <= k1)`` decreases in p, so it is largest
+    at ``p = p_low``. Likewise the ``p_up`` check flags when ``wilson_low(satisfied) > p_up``,
+    i.e. ``S >= k2``, most likely at ``p = p_up``. The bound is the sum of the two binomial tails
+    (a union bound), raised by 1e-9 relative for the rounding of the tails.
+
+    Wilson's nominal level is not this probability: near the ends of [0, 1] its one-sided error
+    is far larger (n = 50 at 99.9 %: one failed run in 50 puts the Wilson upper end at 0.9984,
+    so a cell with p_low = 0.999 is flagged with probability 1 - 0.999^50 = 0.049).
+
+    Parameters
+    ----------
+    p_low, p_up : (C,) float arrays
+    n_per_cell : int
+    confidence : float in (0, 1), the Wilson confidence of :func:`validate`
+
+    Returns
+    -------
+    (C,) float array in [0, 1]
+    """
+    from scipy.stats import binom
+
+    n = int(n_per_cell)
+    counts = np.arange(n + 1)
+    wl, wu = wilson_interval(counts, n, confidence)
+    p_low = np.clip(np.asarray(p_low, float), 0.0, 1.0)  # probabilities: clipping cannot exclude the true one
+    p_up = np.clip(np.asarray(p_up, float), 0.0, 1.0)
+    k1 = np.searchsorted(wu, p_low, side="left") - 1  # largest count with wilson_up < p_low (-1: none)
+    k2 = np.searchsorted(wl, p_up, side="right")  # smallest count with wilson_low > p_up (n + 1: none)
+    a_low = np.where(k1 >= 0, binom.cdf(np.maximum(k1, 0), n, p_low), 0.0)
+    a_up = np.where(k2 <= n, binom.sf(np.minimum(k2, n) - 1, n, p_up), 0.0)
+    return np.minimum(1.0, (a_low + a_up) * (1 + 1e-9))
+
+
+def allowed_outside(flag_probabilities, confidence: float) -> int:
+    """How many flagged cells chance allows: the smallest K with P(more than K flagged) <= 1 - confidence.
+
+    Cells are flagged independently (their runs are independent), cell q with probability at most
+    ``a_q`` (:func:`flag_probability`) when the bounds are correct. For K >= sum(a_q), the upper
+    tail of that count is at most the Binomial(C, mean a_q) tail (Hoeffding 1956, Thm 4), which
+    is what is computed here.
+    """
+    from scipy.stats import binom
+
+    a = np.asarray(flag_probabilities, float)
+    c = a.size
+    if c == 0:
+        return 0
+    mean = float(np.clip(np.mean(a), 0.0, 1.0))
+    level = 1.0 - float(confidence)
+    k = max(int(binom.ppf(float(confidence), c, mean)), int(np.ceil(c * mean)))
+    while k < c and binom.sf(k, c, mean) > level:  # ppf's rounding: make sure the tail is small enough
+        k += 1
+    return int(min(k, c))
+
+
 # --------------------------------------------------------------------------- validation
 @dataclass(frozen=True, eq=False)
 class ValidationReport:
@@ -189,9 +294,13 @@ class ValidationReport:
     p_low, p_up : (C,) float
     outside : (K,) int array, cells whose interval misses the Wilson interval
     containment_rate : float, fraction of tested cells not in ``outside``
-    expected_outside : float, ``C * (1 - confidence)``, an upper bound on the expected number
-        of cells flagged by chance when the bounds are correct (each check is one-sided at
-        level (1 - confidence)/2, two checks per cell)
+    expected_outside : float, an upper bound on the expected number of cells flagged by chance
+        when the bounds are correct: the sum of :func:`flag_probability` over the cells (Wilson's
+        nominal ``C * (1 - confidence)`` is not one: its error near 0 and 1 is larger)
+    allowed_outside : int, the most flagged cells chance allows (:func:`allowed_outside`): with
+        correct bounds, more cells are flagged with probability <= 1 - confidence
+    passed : bool (property), ``len(outside) <= allowed_outside``; ``robust-imdp simulate`` exits 1
+        when it is False
     """
 
     cells: np.ndarray
@@ -208,6 +317,22 @@ class ValidationReport:
     outside: np.ndarray
     containment_rate: float
     expected_outside: float
+    allowed_outside: int = -1
+
+    @property
+    def passed(self) -> bool:
+        """No more cells flagged than chance allows (``allowed_outside``) at the report's confidence."""
+        return len(self.outside) <= self.allowed_outside
+
+    def verdict(self) -> str:
+        """One line: whether more cells are flagged than chance allows."""
+        c = len(self.cells)
+        chance = (f"chance allows at most {self.allowed_outside} of {c} (probability >= {self.confidence:g}, "
+                  f"binomial tail over the cells; {self.expected_outside:.2f} expected)")
+        if self.passed:
+            return f"  passed: {len(self.outside)} cells flagged; {chance}"
+        return (f"  FAILED: {len(self.outside)} cells flagged, more than chance allows: {chance}; the result's "
+                "bounds are contradicted by the simulated system")
 
     def summary(self) -> str:
         """A few lines of text for terminals and logs."""
@@ -217,8 +342,8 @@ class ValidationReport:
             f"Wilson {100 * self.confidence:g} %",
             f"  capped runs: {int(self.capped.sum())} of {c * self.n_per_cell} "
             "(counted as satisfied for the p_low check, as not satisfied for the p_up check)",
-            f"  containment: {c - len(self.outside)}/{c} cells = {100 * self.containment_rate:.2f} % "
-            f"(chance alone flags <= {self.expected_outside:.2f} cells on average)",
+            f"  containment: {c - len(self.outside)}/{c} cells = {100 * self.containment_rate:.2f} %",
+            self.verdict(),
         ]
         if c:
             lo_margin = self.wilson_up - self.p_low  # < 0 means p_low is contradicted
@@ -282,10 +407,11 @@ def validate(result_or_controller, true_system, *, n_per_cell: int = 100, max_st
     p_low, p_up = res.p_low[cells], res.p_up[cells]
     bad = (p_low > wu) | (p_up < wl)
     outside = cells[bad]
+    chance = flag_probability(p_low, p_up, n_per_cell, confidence)
     return ValidationReport(
         cells=cells, n_per_cell=int(n_per_cell), max_steps=int(max_steps),
         confidence=float(confidence), satisfied=sat, capped=capped,
         empirical=sat / n_per_cell, wilson_low=wl, wilson_up=wu, p_low=p_low, p_up=p_up,
         outside=outside, containment_rate=1.0 - len(outside) / max(len(cells), 1),
-        expected_outside=len(cells) * (1.0 - confidence),
+        expected_outside=float(np.sum(chance)), allowed_outside=allowed_outside(chance, confidence),
     )
