@@ -389,6 +389,25 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
     }
 
 
+def _read_text(path: Path, where: str, expected: str) -> str:
+    """The UTF-8 text of ``path``; a directory, an unreadable file or non-UTF-8 bytes raise a
+    :class:`ProblemFileError` naming ``where`` (and the line and column of the first bad byte)."""
+    if path.is_dir():
+        raise ProblemFileError(f"{where} is a directory; expected {expected}")
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise ProblemFileError(f"{where}: cannot be read ({exc.strerror or exc})") from None
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        column = exc.start - (data.rfind(b"\n", 0, exc.start) + 1) + 1
+        raise ProblemFileError(
+            f"{where}: line {line}, column {column}: not UTF-8 text (byte 0x{data[exc.start]:02x}); save the file "
+            "as UTF-8") from None
+
+
 def parse_problem_file(path) -> dict[str, Any]:
     """Read a TOML problem file and validate it with :func:`parse_problem_dict`.
 
@@ -396,13 +415,11 @@ def parse_problem_file(path) -> dict[str, Any]:
     problem file's directory.
     """
     path = Path(path)
+    text = _read_text(path, f"problem file {path}", "a TOML problem file")
     try:
-        with open(path, "rb") as fh:
-            doc = tomllib.load(fh)
+        doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ProblemFileError(f"{path}: not valid TOML: {exc}") from None
-    except OSError as exc:
-        raise ProblemFileError(f"problem file {path}: cannot be read ({exc.strerror})") from None
     spec = parse_problem_dict(doc, where=str(path))
     spec["data_file"] = str((path.parent / spec["data_path"]).resolve())
     return spec
@@ -449,7 +466,7 @@ def load_problem(path):
     spec = parse_problem_file(path)
     names = list(spec["modes"])
     n = spec["lower"].shape[0]
-    x, u, x_next, _, rows = _read_data(spec["data_file"], names, n)
+    x, u, x_next, _, rows = _read_data(spec["data_file"], names, n, origin=f"[data].path in {path}")
     missing = [names[i] for i in range(len(names)) if not np.any(u == i)]
     if missing:
         raise ProblemFileError(
@@ -652,12 +669,19 @@ def read_data_file(path, mode_names=None, n_dims: int | None = None):
     return _read_data(path, mode_names, n_dims)[:4]
 
 
-def _read_data(path, mode_names=None, n_dims: int | None = None):
-    """:func:`read_data_file` plus the 1-based line of every sample (None for .npz)."""
+def _read_data(path, mode_names=None, n_dims: int | None = None, origin: str | None = None):
+    """:func:`read_data_file` plus the 1-based line of every sample (None for .npz).
+
+    ``origin``: where the path was given (e.g. ``[data].path in p.toml``), for the message when
+    it names a directory.
+    """
     path = Path(path)
     where = f"data file {path}"
     if not path.exists():
         raise ProblemFileError(f"{where}: file not found")
+    if path.is_dir():
+        raise ProblemFileError(f"{origin or 'the data file'}: {path} is a directory; expected a data file "
+                               "(.csv or .npz)")
     rows = None
     if path.suffix == ".npz":
         try:
@@ -693,7 +717,10 @@ def _header(n: int) -> list:
 
 def _read_csv(path: Path, where: str, n_dims: int | None = None):
     """Arrays of a CSV data file and the 1-based line of every sample."""
-    with open(path, newline="") as fh:
+    from io import StringIO
+
+    text = _read_text(path, where, "a data file (.csv or .npz)")
+    with StringIO(text, newline="") as fh:
         reader = csv.reader(fh)
         try:
             header = [h.strip() for h in next(reader)]
@@ -952,10 +979,10 @@ def load_result(path):
     path = Path(path)
     if path.is_dir():
         path = path / "result.json"
+    if not path.exists():
+        raise ProblemFileError(f"result file {path}: cannot be read (No such file or directory)")
     try:
-        doc = json.loads(path.read_text())
-    except OSError as exc:
-        raise ProblemFileError(f"result file {path}: cannot be read ({exc.strerror})") from None
+        doc = json.loads(_read_text(path, f"result file {path}", "result.json or the directory holding it"))
     except json.JSONDecodeError as exc:
         raise ProblemFileError(f"result file {path}: not valid JSON ({exc})") from None
     if not isinstance(doc, dict) or doc.get("format") != RESULT_FORMAT:
