@@ -1196,16 +1196,32 @@ def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" 
     with log.stage("bound"):
         work = None
         if missing:
-            # Pre-flight: time one block of cells in this process (1 thread) and extrapolate.
+            # Pre-flight: time a few blocks of cells in this process and extrapolate.
+            from robust_imdp import rkhs
+
             x0, y0, _ = data[0]
-            pilot = _bound_task(x0, y0, problem.maps[0].A, problem.maps[0].b, lo[:CELL_BLOCK], up[:CELL_BLOCK],
-                                local[0], threads=1, **settings)
-            per_cell = pilot["seconds"] / min(CELL_BLOCK, N)
-            work = per_cell * N * M * len(missing) / len(tasks)
+            A0, b0 = problem.maps[0].A, problem.maps[0].b
+            # The kernels' first call in a process compiles them (no warm-up at install) or loads
+            # them from numba's cache (about 1 s): a one-cell call takes that time, so that the
+            # timed pilot below measures bounding only.
+            first = dict(settings) if local[0] is None else dict(settings, local_points=local[0][0],
+                                                                 local_lambda=local[0][1])
+            compile_s = rkhs.bound_chunk(x0, y0, A0, b0, lo[:1], up[:1], threads=1, **first)["seconds"]
+            if compile_s > 5.0:
+                log.info(f"pre-flight: numba compiled the bound kernels in {compile_s:.0f} s (once: cached for later "
+                         "runs; `python -m robust_imdp.warmup` does it at install)")
             sched = run.scheduler(log)
+            # One block per thread of a task, on that many threads: in process, the numba threads
+            # share the cores with whatever else runs, and this measures the speed the tasks get.
+            threads = int(getattr(sched, "threads", 1))
+            k = min(N, CELL_BLOCK * threads)
+            pilot = _bound_task(x0, y0, A0, b0, lo[:k], up[:k], local[0], threads=threads, **settings)
+            per_cell = pilot["seconds"] / k  # wall seconds per cell and mode, on ``threads`` threads
+            lanes = max(1, sched.n_workers // threads)  # tasks running at once
+            wall = per_cell * N * M * len(missing) / len(tasks) / lanes
             log.info(f"pre-flight: {N:,} cells x {M} modes x {n} outputs = {N * M * n:,} cell bounds; about "
-                     f"{work:.0f} s of work ({per_cell * 1e3:.2f} ms per cell and mode), "
-                     f"about {work / sched.n_workers:.0f} s on {sched.n_workers} core{'s' if sched.n_workers > 1 else ''}")
+                     f"{wall * sched.n_workers:.0f} s of work ({per_cell * threads * 1e3:.2f} ms per cell and mode "
+                     f"on one core), about {wall:.0f} s on {sched.n_workers} core{'s' if sched.n_workers > 1 else ''}")
             shared = [(sched.share(np.ascontiguousarray(x)), sched.share(np.ascontiguousarray(y)))
                       for x, y, _ in data]  # sent to the workers once
             args = [(*shared[u], problem.maps[u].A, problem.maps[u].b, lo[s0:s0 + chunk], up[s0:s0 + chunk],
@@ -1500,8 +1516,9 @@ def _advice(problem: Problem, partition, cell_bounds, dfa, classes, log: _Log, r
         return {}  # the GP route has no pilot bound stage (its boxes come from bounds.bound_image)
     if cell_bounds is None and cache_dir is not None:  # the abstraction came from the cache: its boxes too
         bounds_file = Path(cache_dir) / f"bounds-{bounds_key(problem)}.npz"
-        if bounds_file.exists():
-            cell_bounds = _load_bounds(bounds_file)[0]
+        loaded = read_cache_entry(bounds_file, _load_bounds)  # None when absent or damaged
+        if loaded is not None:
+            cell_bounds = loaded[0]
     if cell_bounds is None:
         return {}
     from robust_imdp.rkhs import noise_bound_at_confidence

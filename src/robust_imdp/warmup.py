@@ -97,18 +97,23 @@ def _run_case(name: str, base, first):
 
 def _random_imdp(n, rng, *, floor=0.0, wide_row=False):
     """n states, 2 actions, 2-6 successors per row, intervals [0.8 p, 1.2 p] (+ ``floor`` per row);
+    action 0 of states 4 and 5 swaps them for sure (an end component away from the targets 0, 1);
     with ``wide_row`` one row of state 0 lists every state (more than 256 successors when n > 256)."""
     from robust_imdp.imdp import IMDP
 
     R = 2 * n
     k = rng.integers(2, 7, size=R)
+    k[[8, 10]] = 1
     if wide_row:
         k[0] = n
     row_ptr = np.r_[0, np.cumsum(k)].astype(np.int64)
     col = np.concatenate([np.sort(rng.choice(n, size=kk, replace=False)) for kk in k]).astype(np.int64)
+    col[row_ptr[8]], col[row_ptr[10]] = 5, 4
     p = rng.random(row_ptr[-1]) + 0.05
     p /= np.repeat(np.add.reduceat(p, row_ptr[:-1]), k)
-    return IMDP.from_csr(np.arange(0, R + 1, 2), row_ptr, col, 0.8 * p, np.minimum(1.2 * p, 1.0),
+    lower, upper = 0.8 * p, np.minimum(1.2 * p, 1.0)
+    lower[row_ptr[[8, 10]]] = upper[row_ptr[[8, 10]]] = 1.0
+    return IMDP.from_csr(np.arange(0, R + 1, 2), row_ptr, col, lower, upper,
                          floor=np.full(R, floor) if floor else None)
 
 
