@@ -420,8 +420,8 @@ def test_active_set_matches_the_socp_optimum():
         signs = rkhs.vertex_signs(model.d)
         vp = rkhs.vertex_problems(model, c, r, signs)
         val, sup, stat = rkhs._optimal_cells(model.X, model.y, model.K, model.K_err, model.inv_l2, c, r, signs,
-                                             0.02, 2.0, model.m, 2000, 1e-10, 4,
-                                             np.zeros((1, signs.shape[0])), False)
+                                             0.02, 2.0, model.m, 2000, 1e-10, np.array([0, 1]),
+                                             np.zeros((1, signs.shape[0])), False, np.zeros(1, dtype=np.int64))
         for j in range(signs.shape[0]):
             for side, col in ((1, 0), (-1, 1)):
                 ref, _ = rkhs_vertex_socp(model.K, model.y, vp["b"][0, j], vp["s0"][0, j], 0.02, 2.0, side)

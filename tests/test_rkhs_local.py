@@ -61,14 +61,14 @@ def _mp_rho(a, t):
     return mp.sqrt(max((1 - a) ** 2, f_t, 0))
 
 
-def _reference(X, y, ls, lo, up, *, A, b0, B, dbar, tau, method, k):
+def _reference(X, y, ls, lo, up, *, A, b0, B, dbar, tau, method, k, pools=None):
     """Independent value of (eq. C) on the code's pools, per cell: ``up``, ``lo`` and the size of
     every term of each side (the smallest over the vertices and both feature scalings).
 
     Returns dict of (n_cells,) float arrays: ``up``, ``lo`` and ``terms[side][name]`` with side in
     ("up", "lo") and name in ("noise", "rkhs", "taylor", "tau").
     """
-    pools = rkhs.local_pools(X, lo, up, ls, k)
+    pools = rkhs.local_pools(X, lo, up, ls, k) if pools is None else pools
     d = X.shape[1]
     signs = rkhs.vertex_signs(d)
     nb = dbar + tau
@@ -143,7 +143,7 @@ def test_local_cell_range_is_eq_C_and_every_term_has_teeth(d, method, tau):
     B, k = 2.0, 20
     X, y, ls, lo, up, A, b0, dbar = _local_problem(10 * d + len(method), d, 90, 5 if d < 3 else 3, 0.15)
     kw = dict(lengthscale=ls, rkhs_bound=B, noise_bound=[dbar], misspecification=tau, method=method,
-              local_points=k, local_lambda=LAM if method == "ridge" else None)
+              local_points=k, local_lambda=LAM if method == "ridge" else None, split_tol=None)
     ours = rkhs.bound_chunk(X, y[:, None], A[None], np.array([b0]), lo, up, **kw)
     ref = _reference(X, y, ls, lo, up, A=A, b0=b0, B=B, dbar=dbar, tau=tau, method=method, k=k)
     tol = SOCP_TOL if method == "optimal" else RIDGE_TOL
@@ -216,3 +216,93 @@ def test_numba_kernel_error_bound_equals_the_python_one():
         for z in (0.0, 1e-8, 0.5, 3.0, 40.0, 700.0, 1e4):
             assert rkhs._kernel_rel_err_nb(z, d) == rkhs._kernel_rel_err(z, d)
             assert rkhs._kernel_rel_err_nb(z, d) >= 6 * 2.0 ** -53  # exp and the inputs' rounding at least
+
+
+# ----------------------------------------------------------------------------- certification sub-boxes
+def test_sub_boxes_cover_the_cell_exactly():
+    # Union of the sub-boxes = the cell, in exact rational arithmetic, for awkward floats and s = 1..5:
+    # per axis the edges start at lower, end at upper, never decrease, and neighbours share them.
+    from fractions import Fraction
+
+    rng = np.random.default_rng(17)
+    lo = rng.uniform(-1e3, 1e3, (40, 2)) * rng.choice([1e-7, 1.0, 1e5], (40, 2))
+    up = lo + np.abs(rng.standard_normal((40, 2))) * rng.choice([1e-12, 1e-3, 10.0], (40, 2))
+    s = rng.integers(1, 6, 40)
+    blo, bup, parent, starts = rkhs.sub_boxes(lo, up, s)
+    assert np.all(np.diff(parent) >= 0) and np.all(starts == np.searchsorted(parent, np.arange(40)))
+    for q in range(40):
+        sb_lo, sb_up = blo[parent == q], bup[parent == q]
+        assert sb_lo.shape[0] == s[q] ** 2 and np.all(sb_lo <= sb_up)
+        axes = []
+        for a in range(2):
+            iv = sorted(set(zip(sb_lo[:, a], sb_up[:, a])))  # distinct intervals of this axis
+            # a chain from lower to upper: each interval starts where the previous one ends (no gap)
+            assert Fraction(iv[0][0]) == Fraction(lo[q, a]) and Fraction(iv[-1][1]) == Fraction(up[q, a])
+            assert all(Fraction(iv[j][1]) == Fraction(iv[j + 1][0]) for j in range(len(iv) - 1))
+            axes.append(iv)
+        # and every combination of axis intervals is a sub-box (a product grid)
+        boxes = set(zip(zip(sb_lo[:, 0], sb_up[:, 0]), zip(sb_lo[:, 1], sb_up[:, 1])))
+        assert all((i0, i1) in boxes for i0 in axes[0] for i1 in axes[1])
+
+
+@pytest.mark.parametrize("method", ["optimal", "ridge"])
+def test_sub_box_certification_is_the_hull_of_eq_C_on_sub_boxes_with_teeth(method):
+    # With a split of s = 2 per axis (dyadic sub-boxes: exact centres and half-widths), the local
+    # cell range is the hull over the sub-boxes of (eq. C) on each sub-box (the cell's pool, the
+    # sub-box's own Taylor remainder). Same check and teeth as above; the Taylor term named here is
+    # the sub-box remainder (benchmarks/mutations.py: rkhs-split-*).
+    d, B, k, tau = 2, 2.0, 20, 0.0
+    X, y, ls, lo, up, A, b0, dbar = _local_problem(31 + len(method), d, 90, 3, 0.15)
+    c, r = rkhs.cell_centres(lo, up)
+    t = np.sum(r * r / ls ** 2, axis=1)
+    rho = np.array([float(mp.mpf(B) * _mp_rho(1, v)) for v in t])
+    split_tol = float(rho.min()) / 3.0  # s = ceil(sqrt(B rho / split_tol)) = 2 (rho(a) ~ 0.8 rho(1))
+    s = rkhs.split_counts(t, B, d, split_tol)
+    assert np.all(s == 2)
+    kw = dict(lengthscale=ls, rkhs_bound=B, noise_bound=[dbar], misspecification=tau, method=method,
+              local_points=k, local_lambda=LAM if method == "ridge" else None, split_tol=split_tol)
+    ours = rkhs.bound_chunk(X, y[:, None], A[None], np.array([b0]), lo, up, **kw)
+    blo, bup, parent, _ = rkhs.sub_boxes(lo, up, s)
+    pools = rkhs.local_pools(X, lo, up, ls, k)[parent]
+    ref = _reference(X, y, ls, blo, bup, A=A, b0=b0, B=B, dbar=dbar, tau=tau, method=method, k=k, pools=pools)
+    tol = SOCP_TOL if method == "optimal" else RIDGE_TOL
+    o_up, o_lo = ours["upper"][:, 0], ours["lower"][:, 0]
+    r_up = np.array([ref["up"][parent == q].max() for q in range(lo.shape[0])])
+    r_lo = np.array([ref["lo"][parent == q].min() for q in range(lo.shape[0])])
+    assert np.all(o_up >= r_up - tol) and np.all(o_lo <= r_lo + tol)  # sound
+    # the hull is strictly tighter than the unsplit cell range (the point of splitting)
+    whole = rkhs.bound_chunk(X, y[:, None], A[None], np.array([b0]), lo, up, **dict(kw, split_tol=None))
+    assert np.all(o_up < whole["upper"][:, 0]) and np.all(o_lo > whole["lower"][:, 0])
+    for name in ("noise", "rkhs", "taylor"):
+        # the smallest term over the sub-boxes bounds how much a shrink of it moves the hull
+        t_up = np.array([ref["terms"]["up"][name][parent == q].min() for q in range(lo.shape[0])])
+        t_lo = np.array([ref["terms"]["lo"][name][parent == q].min() for q in range(lo.shape[0])])
+        assert np.all(o_up - SHRINK * t_up < r_up - tol), name
+        assert np.all(o_lo + SHRINK * t_lo > r_lo + tol), name
+
+
+@pytest.mark.parametrize("split", [False, True])
+def test_global_optimal_cell_range_is_eq_C_with_teeth(split):
+    # The global path (cell_ranges, all points carry weight) against the same reference with the pool
+    # = all data: unsplit, and split into s = 2 sub-boxes per axis (the hull over sub-boxes).
+    d, B, tau = 2, 2.0, 0.01
+    X, y, ls, lo, up, A, b0, dbar = _local_problem(41 + split, d, 40, 3, 0.15)
+    c, r = rkhs.cell_centres(lo, up)
+    t = np.sum(r * r / ls ** 2, axis=1)
+    split_tol = float(min(float(mp.mpf(B) * _mp_rho(1, v)) for v in t)) / 3.0 if split else None
+    s = rkhs.split_counts(t, B, d, split_tol)
+    assert np.all(s == (2 if split else 1))
+    cr = rkhs.cell_ranges(rkhs.KernelModel(X, y, ls), lo, up, rkhs_bound=B, noise_bound=dbar, misspecification=tau,
+                          known_row=A, known_offset=b0, split_tol=split_tol)
+    blo, bup, parent, _ = rkhs.sub_boxes(lo, up, s)
+    pools = np.tile(np.arange(X.shape[0]), (blo.shape[0], 1))
+    ref = _reference(X, y, ls, blo, bup, A=A, b0=b0, B=B, dbar=dbar, tau=tau, method="optimal", k=X.shape[0],
+                     pools=pools)
+    r_up = np.array([ref["up"][parent == q].max() for q in range(lo.shape[0])])
+    r_lo = np.array([ref["lo"][parent == q].min() for q in range(lo.shape[0])])
+    assert np.all(cr.upper >= r_up - SOCP_TOL) and np.all(cr.lower <= r_lo + SOCP_TOL)
+    for name in ("noise", "rkhs", "taylor", "tau"):
+        t_up = np.array([ref["terms"]["up"][name][parent == q].min() for q in range(lo.shape[0])])
+        t_lo = np.array([ref["terms"]["lo"][name][parent == q].min() for q in range(lo.shape[0])])
+        assert np.all(cr.upper - SHRINK * t_up < r_up - SOCP_TOL), name
+        assert np.all(cr.lower + SHRINK * t_lo > r_lo + SOCP_TOL), name

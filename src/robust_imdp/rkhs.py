@@ -38,6 +38,9 @@ Setting (``docs/rkhs_bounds.md`` has the derivations in full)
 
     with one weight vector per vertex and side, ``phi_v = k_c + sum_a v_a dk_c/dc_a``,
     ``<phi_v, phi_v> = 1 + sum_a v_a^2/l_a^2``, ``b_i = k(x_i, c) (1 + sum_a v_a (x_ia - c_a)/l_a^2)``.
+    Eq. C holds on any box, so with ``split_tol`` a cell is certified on sub-boxes covering it
+    (:func:`sub_boxes`) and its range is the hull of theirs: the Taylor term shrinks like ``1/s^2``
+    with ``s`` pieces per axis (:func:`split_counts`).
 
 3. Optimal weights (Scharnhorst, Maddalena, Jiang & Jones, IEEE TAC 2022)
     ``min_w s w.y + dbar' ||w||_1 + B ||phi_v - Phi* w||`` is the conic dual of
@@ -87,6 +90,7 @@ __all__ = [
     "taylor_remainder_sqrt_up", "cell_centres", "vertex_signs", "unit_kernel",
     "certify_weights", "vertex_problems", "optimal_weights", "cell_ranges", "min_rkhs_norm", "check_assumption",
     "image_ranges", "bound_chunk", "check_ranges", "CELL_BLOCK", "local_pools", "local_lambda", "noise_bound_at_confidence", "hoeffding_factor",
+    "SPLIT_TOL", "MAX_SUB", "split_counts", "sub_boxes",
 ]
 
 log = logging.getLogger(__name__)
@@ -708,8 +712,8 @@ def optimal_weights(model: KernelModel, b, s0: float, *, noise: float, rkhs_boun
 
 
 @numba.njit(cache=True, parallel=True)
-def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, tol, chunk, lin,
-                   prune):  # pragma: no cover - compiled
+def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, tol, ptr, lin,
+                   prune, group):  # pragma: no cover - compiled
     """Certified bounds of ``<h, phi_v>`` (eq. W) with optimal weights, all cells, vertices, sides.
 
     Per cell and side, every vertex first gets the (certified) value of the neighbouring problem's
@@ -717,8 +721,10 @@ def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, 
     whose certified value (plus ``lin``, the float known part) cannot exceed the best vertex found
     so far keeps it (status 6): the cell's bound is a maximum (upper side) or a minimum (lower side)
     over vertices, so optimising it would not change the cell bound, and any certified value is
-    sound. Returns ``val (n, V, 2)`` (side 0: upper bound, side 1: lower bound),
-    ``support (n, V, 2)`` and ``status (n, V, 2)``.
+    sound. Consecutive boxes with the same ``group`` (the sub-boxes of one cell, whose bound is
+    the maximum over all of them) share that best value. Boxes ``ptr[j] .. ptr[j+1]-1`` form one
+    parallel work unit (warm starts run through it). Returns ``val (n, V, 2)`` (side 0: upper
+    bound, side 1: lower bound), ``support (n, V, 2)`` and ``status (n, V, 2)``.
     """
     n, d = c.shape
     V = signs.shape[0]
@@ -726,7 +732,7 @@ def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, 
     val = np.empty((n, V, 2))
     sup = np.zeros((n, V, 2), dtype=np.int64)
     stat = np.zeros((n, V, 2), dtype=np.int64)
-    n_chunks = (n + chunk - 1) // chunk
+    n_chunks = ptr.shape[0] - 1
     for ch in numba.prange(n_chunks):
         S = np.zeros((2, cap), dtype=np.int64)
         sg = np.zeros((2, cap))
@@ -745,7 +751,11 @@ def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, 
         cheap = np.empty(V)
         ys = np.empty(m)
         v = np.empty(d)
-        for q in range(ch * chunk, min(n, (ch + 1) * chunk)):
+        best_side = np.empty(2)
+        for q in range(ptr[ch], ptr[ch + 1]):
+            if q == ptr[ch] or group[q] != group[q - 1]:
+                best_side[0] = -np.inf
+                best_side[1] = -np.inf
             for jv in range(V):
                 for a in range(d):
                     v[a] = signs[jv, a] * r[q, a]
@@ -765,10 +775,10 @@ def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, 
                     cheap[jv] = _certify(lastS[side], lastw[side], lastn[side], y, B[jv], EB[jv], K, K_err, s0[jv],
                                          dbar, 0.0, G, sgn)[0]
                 order = np.argsort(-sgn * (lin[q] + cheap))
-                best = -np.inf
+                best = best_side[side]
                 for k in range(V):
                     jv = order[k]
-                    if prune and k > 0 and sgn * (lin[q, jv] + cheap[jv]) <= best:
+                    if prune and best > -np.inf and sgn * (lin[q, jv] + cheap[jv]) <= best:
                         val[q, jv, side] = cheap[jv]
                         sup[q, jv, side] = lastn[side]
                         stat[q, jv, side] = 6
@@ -799,6 +809,7 @@ def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, 
                     if res[3] == 2 or res[3] == 3:
                         # inconsistent or ill-conditioned support: restart cold next time
                         nS[side] = 0
+                best_side[side] = best
     return val, sup, stat
 
 
@@ -982,10 +993,96 @@ def _combine_vertices(lin_v, lin_err, su, sl, t_max, G: float, tau: float):
     return best_lo, best_up, best_tay
 
 
+#: Suggested ``split_tol`` (off by default): a cell whose Taylor term ``B rho(t_max)`` exceeds it is
+#: certified on ``s^d`` sub-boxes (``docs/rkhs_bounds.md``, "Sub-boxes"), ``s`` chosen so that the
+#: sub-box term is at most it.
+SPLIT_TOL = 1.5e-3
+#: Most sub-boxes per cell (``s <= floor(MAX_SUB^(1/d))``).
+MAX_SUB = 64
+
+
+def _blocks(n_parents: int, starts, n_boxes: int, block: int) -> np.ndarray:
+    """Box index where each block of ``block`` parent cells starts, and ``n_boxes`` (a work-unit pointer)."""
+    return np.ascontiguousarray(np.append(np.asarray(starts, np.int64)[0:n_parents:block], n_boxes), dtype=np.int64)
+
+
+def split_counts(t_max, rkhs_bound: float, d: int, split_tol: float | None = SPLIT_TOL) -> np.ndarray:
+    """Pieces per axis ``s`` of every cell's certification sub-boxes (1: the cell itself).
+
+    A choice only (any split is sound): the Taylor term of eq. C is about ``B rho(t)`` with
+    ``rho(t) ~ t`` for small ``t``, and a sub-box of ``1/s`` the size has ``t / s^2``, so
+    ``s = ceil(sqrt(B rho(t_max) / split_tol))``, capped at ``floor(MAX_SUB^(1/d))``.
+    """
+    t_max = np.asarray(t_max, float)
+    if not split_tol:
+        return np.ones(t_max.shape, dtype=np.int64)
+    a = np.exp(-0.5 * t_max)
+    rho = np.minimum(taylor_remainder_sqrt_up(t_max), _scaled_remainder_sqrt_up(a, t_max))
+    s = np.ceil(np.sqrt(float(rkhs_bound) * rho / float(split_tol)))
+    s_max = max(1, int(math.floor(MAX_SUB ** (1.0 / d) + 1e-9)))
+    return np.clip(np.nan_to_num(s, nan=1.0, posinf=s_max), 1, s_max).astype(np.int64)
+
+
+def sub_boxes(lower, upper, s):
+    """The ``s[q]^d`` sub-boxes of every cell whose union covers the cell exactly.
+
+    Per axis the edges are ``e_0 = lower``, ``e_k = min(fl(lower + fl(w k / s)), upper)``,
+    ``e_s = upper`` (non-decreasing in k), and sub-box ``(k_1, .., k_d)`` is
+    ``prod_a [e_{k_a}, e_{k_a + 1}]``: neighbours share their float edges, so every point of the
+    cell lies in some sub-box (no gap from rounding). Sub-boxes of a cell are consecutive, in
+    ``itertools.product(range(s), repeat=d)`` order.
+
+    Parameters
+    ----------
+    lower, upper : (n, d) float arrays
+    s : (n,) int array >= 1
+
+    Returns
+    -------
+    box_lower, box_upper : (N, d) float arrays
+    parent : (N,) int array
+        The cell of each sub-box (non-decreasing).
+    starts : (n,) int array
+        Index of each cell's first sub-box.
+    """
+    lower = np.asarray(lower, float)
+    upper = np.asarray(upper, float)
+    s = np.asarray(s, np.int64)
+    n, d = lower.shape
+    counts = s ** d
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    N = int(counts.sum())
+    blo = np.empty((N, d))
+    bup = np.empty((N, d))
+    parent = np.repeat(np.arange(n, dtype=np.int64), counts)
+    for sv in np.unique(s):
+        cells = np.flatnonzero(s == sv)
+        k = np.arange(int(sv) + 1, dtype=float)
+        w = upper[cells] - lower[cells]
+        e = np.minimum(lower[cells, :, None] + w[:, :, None] * (k / float(sv)), upper[cells, :, None])
+        e[:, :, 0] = lower[cells]
+        e[:, :, -1] = upper[cells]  # (nc, d, s + 1)
+        idx = np.array(list(itertools.product(range(int(sv)), repeat=d)), dtype=np.int64)  # (s^d, d)
+        rows = starts[cells][:, None] + np.arange(idx.shape[0])[None, :]  # (nc, s^d)
+        blo[rows] = np.stack([e[:, a, idx[:, a]] for a in range(d)], axis=-1)
+        bup[rows] = np.stack([e[:, a, idx[:, a] + 1] for a in range(d)], axis=-1)
+    return blo, bup, parent, starts
+
+
+def _corner_boxes(s, starts, signs) -> np.ndarray:
+    """(n, V) index of the sub-box holding each cell vertex (the corner sub-box on that side)."""
+    d = signs.shape[1]
+    s = np.asarray(s, np.int64)
+    k = (signs[None, :, :] > 0) * (s[:, None, None] - 1)  # (n, V, d): sub-box index per axis
+    place = s[:, None, None] ** np.arange(d - 1, -1, -1)[None, None, :]
+    return starts[:, None] + np.sum(k * place, axis=-1)
+
+
 def cell_ranges(model: KernelModel, cells_lower, cells_upper, *, rkhs_bound: float, noise_bound: float,
                 misspecification: float = 0.0, known_row=None, known_offset: float = 0.0,
                 method: str = "optimal", iid_factor: float | None = None, iid_theta: float = 0.0,
-                chunk: int = 16, max_iter: int = 2000, tol: float = 1e-9, prune: bool = True) -> CellRange:
+                chunk: int = 16, max_iter: int = 2000, tol: float = 1e-9, prune: bool = True,
+                split_tol: float | None = None) -> CellRange:
     """Certified range of ``known_row . x + known_offset + g(x)`` over every cell (eq. C).
 
     Parameters
@@ -1011,10 +1108,15 @@ def cell_ranges(model: KernelModel, cells_lower, cells_upper, *, rkhs_bound: flo
     prune : bool
         Skip optimising vertices whose certified neighbour value cannot change the cell bound
         (their values stay certified; ``vertex_lower``/``vertex_upper`` are then not all optimal).
+    split_tol : float or None
+        Certify a cell on sub-boxes where its Taylor term exceeds this (:func:`split_counts`,
+        :func:`sub_boxes`); the cell's range is the hull of its sub-boxes' ranges. None: never.
 
     Returns
     -------
     CellRange
+        For a split cell, ``vertex_lower``/``vertex_upper`` are those of the corner sub-box at
+        each vertex and ``taylor`` the largest sub-box term.
     """
     if method not in METHODS:
         raise InvalidInputError(f"method must be one of {METHODS}; got {method!r}")
@@ -1032,13 +1134,23 @@ def cell_ranges(model: KernelModel, cells_lower, cells_upper, *, rkhs_bound: flo
     dbar = float(_up(float(noise_bound) + tau))  # |h(x_i) - y_i| <= dbar + tau
     c, r = cell_centres(lower, upper)
     signs = vertex_signs(d)
+    n_cells = lower.shape[0]
+    t_cell = _up(np.sum(r * r * model.inv_l2, axis=1) * (1 + (d + 4) * _U))
+    s_split = split_counts(t_cell, G_eff, d, split_tol)
+    if np.any(s_split > 1):  # certify on sub-boxes (their union covers the cell): the hull is sound
+        box_lo, box_up, parent, starts = sub_boxes(lower, upper, s_split)
+        c, r = cell_centres(box_lo, box_up)
+    else:
+        parent = np.arange(n_cells, dtype=np.int64)
+        starts = parent
     lin_v, lin_err = _known_at_vertices(c, r, signs, a_row, float(known_offset))
     t_max = _up(np.sum(r * r * model.inv_l2, axis=1) * (1 + (d + 4) * _U))
     n_unconv = 0
     if method == "optimal":
         cap = int(min(model.m, MAX_SUPPORT))
+        ptr = _blocks(n_cells, starts, c.shape[0], int(chunk))
         val, sup, stat = _optimal_cells(model.X, model.y, model.K, model.K_err, model.inv_l2, c, r, signs, dbar,
-                                        G_eff, cap, int(max_iter), float(tol), int(chunk), lin_v, bool(prune))
+                                        G_eff, cap, int(max_iter), float(tol), ptr, lin_v, bool(prune), parent)
         su, sl = val[:, :, 0], val[:, :, 1]
         optimised = (stat[:, :, 0] != 6) & (stat[:, :, 1] != 6)
         support = sup.max(axis=(1, 2))
@@ -1046,7 +1158,7 @@ def cell_ranges(model: KernelModel, cells_lower, cells_upper, *, rkhs_bound: flo
     else:
         su, sl = _ridge_vertex_bounds(model, c, r, signs, dbar, 0.0, G_eff)
         optimised = None
-        support = np.full(lower.shape[0], model.m)
+        support = np.full(c.shape[0], model.m)
     if iid_factor is not None:
         a2 = float(_up(float(iid_factor) * float(iid_theta) * (1 + 4 * _U)))
         iu, il = _ridge_vertex_bounds(model, c, r, signs, tau, a2, G_eff)
@@ -1060,6 +1172,15 @@ def cell_ranges(model: KernelModel, cells_lower, cells_upper, *, rkhs_bound: flo
     half = 0.5 * (su - sl)
     solved = np.ones_like(half, dtype=bool) if optimised is None else optimised
     eps = np.where(solved.any(axis=1), np.max(np.where(solved, half, -np.inf), axis=1), half.min(axis=1)) + taylor
+    if c.shape[0] != n_cells:  # hull of each cell's sub-boxes (eq. C holds on every sub-box)
+        lower_c = np.minimum.reduceat(lower_c, starts)
+        upper_c = np.maximum.reduceat(upper_c, starts)
+        eps = np.maximum.reduceat(eps, starts)
+        taylor = np.maximum.reduceat(taylor, starts)
+        support = np.maximum.reduceat(support, starts)
+        corner = _corner_boxes(s_split, starts, signs)
+        jv = np.arange(signs.shape[0])[None, :]
+        vl, vu = vl[corner, jv], vu[corner, jv]
     return CellRange(lower=lower_c, upper=upper_c, eps=eps, support=support, vertex_lower=vl, vertex_upper=vu,
                      taylor=taylor, n_unconverged=n_unconv)
 
@@ -1306,14 +1427,17 @@ def _chol_solve(L, n, rhs, out):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, parallel=True)
-def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_iter, tol, chunk):  # pragma: no cover
+def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_iter, tol, ptr, group):  # pragma: no cover
     """Certified bounds of ``<h, phi_v>`` (eq. W) with weights on each cell's pool of data points.
 
     ``pools[q]`` are the data points allowed to carry weight for cell q (any weights are sound;
     the pool only bounds the cost). Ridge weights ``(K_PP + lam I)^{-1} b`` (one factorisation
     per cell, the same weights for every output: the radius does not involve y), or with
     ``optimal`` the active-set weights per output and side (warm-started across the cell's
-    vertices). Returns ``val (n, V, n_out, 2)`` (side 0 upper, 1 lower) and the support sizes.
+    vertices). Consecutive boxes of the same ``group`` (the sub-boxes of one cell) share its pool:
+    one kernel matrix and factorisation, and the warm starts run on through them. Boxes
+    ``ptr[j] .. ptr[j+1]-1`` form one parallel work unit. Returns ``val (n, V, n_out, 2)``
+    (side 0 upper, 1 lower) and the support sizes.
     """
     n, d = c.shape
     V = signs.shape[0]
@@ -1321,7 +1445,7 @@ def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_
     n_out = Y.shape[1]
     val = np.empty((n, V, n_out, 2))
     sup = np.zeros((n, V, n_out, 2), dtype=np.int64)
-    n_chunks = (n + chunk - 1) // chunk
+    n_chunks = ptr.shape[0] - 1
     for ch in numba.prange(n_chunks):
         Xp = np.empty((k, d))
         Yp = np.empty((k, n_out))
@@ -1340,20 +1464,26 @@ def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_
         bw = np.zeros(k)
         Pw = np.empty((k, k))  # workspaces of _active_set, once per chunk
         Lw = np.empty((k, k))
-        for q in range(ch * chunk, min(n, (ch + 1) * chunk)):
-            for p in range(k):
-                for a in range(d):
-                    Xp[p, a] = X[pools[q, p], a]
+        Kp = np.empty((k, k))
+        K_err = 0.0
+        ok = True
+        for q in range(ptr[ch], ptr[ch + 1]):
+            if not (q == ptr[ch] or group[q] != group[q - 1]):
+                pass  # the same pool as the previous box: keep its kernel matrix, factor and warm starts
+            else:
+                for p in range(k):
+                    for a in range(d):
+                        Xp[p, a] = X[pools[q, p], a]
+                    for o in range(n_out):
+                        Yp[p, o] = Y[pools[q, p], o]
+                Kp, zmax = _kernel_matrix(Xp, Xp, inv_l2)
+                K_err = _kernel_rel_err_nb(zmax, d)
+                ok = True
+                if not optimal:
+                    ok = _chol_factor(Kp, k, L, lam)
                 for o in range(n_out):
-                    Yp[p, o] = Y[pools[q, p], o]
-            Kp, zmax = _kernel_matrix(Xp, Xp, inv_l2)
-            K_err = _kernel_rel_err_nb(zmax, d)
-            ok = True
-            if not optimal:
-                ok = _chol_factor(Kp, k, L, lam)
-            for o in range(n_out):
-                for sd in range(2):
-                    nS[o, sd] = 0  # a new pool: restart the warm starts
+                    for sd in range(2):
+                        nS[o, sd] = 0  # a new pool: restart the warm starts
             for jv in range(V):
                 for a in range(d):
                     v[a] = signs[jv, a] * r[q, a]
@@ -1442,8 +1572,9 @@ def local_lambda(X, cells_lower, cells_upper, *, lengthscale, rkhs_bound: float,
     zeros = np.zeros((X.shape[0], 1))
     best, best_lam = np.inf, LOCAL_LAMBDAS[0]
     for lam in LOCAL_LAMBDAS:
+        one = np.arange(c.shape[0], dtype=np.int64)
         val, _ = _local_cells(X, zeros, inv_l2, c, r, signs, pools, lam, np.array([noise_l1]), np.array([noise_l2]),
-                              float(rkhs_bound), False, 0, 0.0, CELL_BLOCK)
+                              float(rkhs_bound), False, 0, 0.0, _blocks(c.shape[0], one, c.shape[0], CELL_BLOCK), one)
         radius = float(np.median(val[:, :, 0, 0]))  # y = 0: the certified value is the radius
         if radius < best:
             best, best_lam = radius, lam
@@ -1458,7 +1589,7 @@ CELL_BLOCK = 16
 def bound_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_bound: float, noise_bound,
                 misspecification: float = 0.0, method: str = "optimal", iid_factor: float | None = None,
                 iid_theta=None, local_points: int | None = None, local_lambda: float | None = None,
-                threads: int | None = None) -> dict:
+                threads: int | None = None, split_tol: float | None = None) -> dict:
     """Certified image boxes of one mode over a chunk of cells (all outputs): a pure function.
 
     The unit of work of the bound stage (``pipeline`` runs it on a scheduler). Its result
@@ -1482,6 +1613,8 @@ def bound_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_bound
         ``method="ridge"`` there (:func:`local_lambda`, chosen once for all chunks).
     threads : int, optional
         numba threads for this call (1 inside a scheduler's worker process).
+    split_tol : float or None
+        Certification sub-boxes where the Taylor term exceeds this (:func:`cell_ranges`).
 
     Returns
     -------
@@ -1494,7 +1627,8 @@ def bound_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_bound
     if local_points is not None:
         out = _local_chunk(X, Y, A, b, cells_lower, cells_upper, lengthscale=lengthscale, rkhs_bound=rkhs_bound,
                            noise_bound=noise_bound, misspecification=misspecification, method=method,
-                           iid_factor=iid_factor, iid_theta=iid_theta, k=int(local_points), lam=local_lambda)
+                           iid_factor=iid_factor, iid_theta=iid_theta, k=int(local_points), lam=local_lambda,
+                           split_tol=split_tol)
         out["seconds"] = time.perf_counter() - t0
         return out
     Y = np.asarray(Y, float).reshape(np.shape(X)[0], -1)
@@ -1511,7 +1645,8 @@ def bound_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_bound
         model = KernelModel(X, Y[:, i], lengthscale)
         cr = cell_ranges(model, cells_lower, cells_upper, rkhs_bound=rkhs_bound, noise_bound=float(nb[i]),
                          misspecification=misspecification, known_row=A[i], known_offset=float(b[i]), method=method,
-                         iid_factor=iid_factor, iid_theta=0.0 if th is None else float(th[i]), chunk=CELL_BLOCK)
+                         iid_factor=iid_factor, iid_theta=0.0 if th is None else float(th[i]), chunk=CELL_BLOCK,
+                         split_tol=split_tol)
         out["lower"][:, i], out["upper"][:, i], out["eps"][:, i] = cr.lower, cr.upper, cr.eps
         out["support"][:, i] = cr.support
         unconv += cr.n_unconverged
@@ -1521,7 +1656,7 @@ def bound_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_bound
 
 
 def _local_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_bound, noise_bound, misspecification,
-                 method, iid_factor, iid_theta, k, lam):
+                 method, iid_factor, iid_theta, k, lam, split_tol=None):
     """:func:`bound_chunk` with local weights (see its ``local_points``)."""
     if method not in METHODS:
         raise InvalidInputError(f"method must be one of {METHODS}; got {method!r}")
@@ -1540,28 +1675,41 @@ def _local_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_boun
     if lam is None and method == "ridge":
         lam = local_lambda(X, lower, upper, lengthscale=lengthscale, rkhs_bound=rkhs_bound, noise_l1=float(dbar.max()),
                            k=k)
+    n_cells = lower.shape[0]
+    s_split = split_counts(_up(np.sum(r * r * inv_l2, axis=1) * (1 + (d + 4) * _U)), G_eff, d, split_tol)
+    if np.any(s_split > 1):  # certify on sub-boxes (their union covers the cell), each with its cell's pool
+        box_lo, box_up, parent, starts = sub_boxes(lower, upper, s_split)
+        c, r = cell_centres(box_lo, box_up)
+        pools = np.ascontiguousarray(pools[parent])
+    else:
+        parent = np.arange(n_cells, dtype=np.int64)
+        starts = parent
+    ptr = _blocks(n_cells, starts, c.shape[0], CELL_BLOCK)
     val, sup = _local_cells(X, Y, inv_l2, c, r, signs, pools, float(lam or 0.0), np.ascontiguousarray(dbar),
-                            np.zeros(n), G_eff, method == "optimal", 2000, 1e-9, CELL_BLOCK)
+                            np.zeros(n), G_eff, method == "optimal", 2000, 1e-9, ptr, parent)
     if iid_factor is not None:
         th = np.broadcast_to(np.asarray(iid_theta, float), (n,))
         a2 = _up(float(iid_factor) * th * (1 + 4 * _U))
         lam2 = local_lambda(X, lower, upper, lengthscale=lengthscale, rkhs_bound=rkhs_bound, noise_l1=tau,
                             noise_l2=float(a2.max()), k=k)
         iv, _ = _local_cells(X, Y, inv_l2, c, r, signs, pools, lam2, np.full(n, tau), np.ascontiguousarray(a2),
-                             G_eff, False, 0, 0.0, CELL_BLOCK)
+                             G_eff, False, 0, 0.0, ptr, parent)
         val[..., 0] = np.minimum(val[..., 0], iv[..., 0])  # both intervals hold: intersect
         val[..., 1] = np.maximum(val[..., 1], iv[..., 1])
     t_max = _up(np.sum(r * r * inv_l2, axis=1) * (1 + (d + 4) * _U))
     A = np.asarray(A, float)
     b = np.asarray(b, float)
-    out = {key: np.empty((lower.shape[0], n)) for key in ("lower", "upper", "eps")}
+    out = {key: np.empty((n_cells, n)) for key in ("lower", "upper", "eps")}
     for i in range(n):
         lin_v, lin_err = _known_at_vertices(c, r, signs, A[i], float(b[i]))
         su, sl = val[:, :, i, 0], val[:, :, i, 1]
         lo_i, up_i, taylor = _combine_vertices(lin_v, lin_err, su, sl, t_max, G_eff, tau)
-        out["lower"][:, i], out["upper"][:, i] = lo_i, up_i
-        out["eps"][:, i] = np.max(0.5 * (su - sl), axis=1) + taylor
-    out["support"] = sup.max(axis=(1, 3))
+        eps_i = np.max(0.5 * (su - sl), axis=1) + taylor
+        # hull of each cell's sub-boxes (eq. C holds on every sub-box; reduceat is the identity unsplit)
+        out["lower"][:, i] = np.minimum.reduceat(lo_i, starts)
+        out["upper"][:, i] = np.maximum.reduceat(up_i, starts)
+        out["eps"][:, i] = np.maximum.reduceat(eps_i, starts)
+    out["support"] = np.maximum.reduceat(sup.max(axis=(1, 3)), starts, axis=0)
     out["n_unconverged"] = 0
     return out
 
