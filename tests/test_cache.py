@@ -231,3 +231,31 @@ def test_the_eta_after_a_resume_uses_the_rate_of_this_process(problem, tmp_path,
     assert "resumed: 12 of 16 bound chunks" in err
     assert "bound: 13/16 (81 %), 10.0 s, about 30 s left" in err, err
     assert "bound: 15/16 (94 %), 30.0 s, about 10 s left" in err, err
+
+
+def test_a_damaged_bounds_file_does_not_break_the_advice_stage(problem, tmp_path):
+    # The abstraction comes from the cache and the advice stage reads the bounds file: damaged,
+    # it is skipped with the one warning, not a BadZipFile.
+    cache = tmp_path / "cache"
+    _run(problem, cache, advice=True)
+    (target,) = list(cache.glob("bounds-*.npz"))
+    _truncate(target)
+    with pytest.warns(RobustImdpWarning, match="cache entry .*bounds-.*computing it again"):
+        res = _run(problem, cache, advice=True)
+    assert res.from_cache
+
+
+def test_result_files_are_flushed_to_disk_before_they_are_renamed(problem, tmp_path, monkeypatch):
+    from robust_imdp.io import save_result
+
+    res = _run(problem, None)
+    events = []
+    real_fsync, real_replace = os.fsync, os.replace
+    monkeypatch.setattr(os, "fsync", lambda fd: (events.append(("fsync", os.readlink(f"/proc/self/fd/{fd}"))),
+                                                 real_fsync(fd))[1])
+    monkeypatch.setattr(os, "replace", lambda a, b: (events.append(("replace", os.fspath(a))), real_replace(a, b))[1])
+    save_result(res, tmp_path / "o")
+    renamed = [src for kind, src in events if kind == "replace"]
+    assert len(renamed) == 2  # result.npz, then result.json
+    for src in renamed:
+        assert ("fsync", src) in events[:events.index(("replace", src))], src

@@ -823,6 +823,12 @@ def _atomic_write(path: Path, write) -> None:
         # output (PNG figures, validation.json): 0666 less the umask.
         os.chmod(tmp, 0o666 & ~_umask())
         write(Path(tmp))
+        # on disk before the rename: a crash cannot leave an empty file under the final name
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
