@@ -106,7 +106,7 @@ def test_warmup_solver_case_reaches_every_solver_path():
         "from robust_imdp import warmup\n"
         "warmup.warm(['solver'], progress=False)\n"
         "ks = warmup.kernels()\n"
-        "need = ['solve.stay_exit_bounds', 'solve.response_end_components', 'solve._exit_ratio', 'solve.dd_prefix',"
+        "need = ['solve.stay_exit_bounds', 'solve.response_end_components', 'solve.dd_prefix',"
         " 'solve.solve_components', 'solve.bellman_layer', 'solve.fill_local_order']\n"
         "print(json.dumps({'untyped': [k for k in need if not ks[k].signatures],"
         " 'perm_dtypes': sorted({str(s[1].dtype) for s in ks['solve.fill_local_order'].signatures})}))\n"
