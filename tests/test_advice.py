@@ -16,7 +16,7 @@ import pytest
 from robust_imdp.abstraction import CellBounds
 from robust_imdp.advice import FittedModes, advice_line, advise, excess_radius, fit_modes
 from robust_imdp.dfa import ltlf_to_dfa
-from robust_imdp.errors import DimensionError
+from robust_imdp.errors import DimensionError, InvalidInputError
 from robust_imdp.geometry import Box, Partition, Region
 from robust_imdp.noise import TruncatedGaussianNoise
 from robust_imdp.pipeline import Problem, synthesize_from_data
@@ -162,3 +162,45 @@ def test_advice_checks_its_arguments():
     with pytest.raises(DimensionError, match="one entry per mode"):
         fit_modes([], [], 1.0, 1e-2)
     assert isinstance(fits, FittedModes)
+
+
+# =========================================================================== end to end
+@pytest.fixture(scope="module")
+def tiny_runs(tmp_path_factory):
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_pipeline import tiny_problem
+
+    cache = tmp_path_factory.mktemp("cache")
+    first = synthesize_from_data(tiny_problem(), progress=False, abstraction_cache=cache)
+    again = synthesize_from_data(tiny_problem(), progress=False, abstraction_cache=cache)  # from the cache
+    off = synthesize_from_data(tiny_problem(), progress=False, abstraction_cache=cache, advice=False)
+    return first, again, off, tmp_path_factory.mktemp("out")
+
+
+def test_the_run_prints_and_saves_the_advice(tiny_runs):
+    import json
+
+    from robust_imdp.io import save_result
+    from test_result_schema import SCHEMA, validate_schema
+
+    first, again, off, out = tiny_runs
+    adv = first.advice
+    assert [lv["name"] for lv in adv["levers"]] == ["finer grid", "more data", "smaller B"]
+    assert adv["baseline_share"] == pytest.approx(np.mean(first.class_names == "yes"))  # equal cells: share = count
+    for lv in adv["levers"]:
+        assert lv["gain"] is None or lv["gain"] == pytest.approx(lv["q_yes_share"] - adv["baseline_share"])
+    assert "advice" in first.timings and first.summary().splitlines()[-2].startswith("advice: ")
+    # the cached abstraction keeps the data-level diagnostics; the advice is recomputed from the cached boxes
+    assert again.from_cache and again.diagnostics == first.diagnostics
+    for a, b in zip(again.advice["levers"], adv["levers"]):  # the same boxes, pilot cells and solves
+        assert {k: v for k, v in a.items() if k != "seconds"} == {k: v for k, v in b.items() if k != "seconds"}
+    assert off.advice == {} and "advice" not in off.timings and "advice:" not in off.summary()
+    save_result(first, out)
+    doc = json.loads((out / "result.json").read_text())
+    assert doc["diagnostics"]["advice"]["winner"] == adv["winner"]
+    assert validate_schema(doc, SCHEMA) == []
+    with pytest.raises(InvalidInputError, match="advice must be 'auto', True or False; got 'yes'"):
+        synthesize_from_data(first.problem, progress=False, advice="yes")

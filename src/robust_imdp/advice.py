@@ -39,7 +39,7 @@ import numpy as np
 from robust_imdp.errors import DimensionError, InvalidInputError
 
 __all__ = ["FittedModes", "fit_modes", "excess_radius", "Lever", "Advice", "advise", "advice_line", "LEVERS",
-           "MAX_CELLS", "FIT_POINTS", "PILOT_CELLS", "MIN_GAIN"]
+           "MAX_CELLS", "MAX_AUTO_TRANSITIONS", "FIT_POINTS", "PILOT_CELLS", "MIN_GAIN"]
 
 #: Data points per mode used by the fit (an evenly spaced subset of the mode's samples beyond it).
 FIT_POINTS = 500
@@ -48,6 +48,9 @@ FIT_POINTS = 500
 PILOT_CELLS = 16
 #: Largest number of cells an estimate abstracts and solves (the finer grid has 2^d times the cells).
 MAX_CELLS = 65536
+#: ``advice="auto"`` runs when the finer grid's IMDP has at most about this many listed transitions
+#: (cells x modes x 3^d): a few seconds of abstraction and solving at the case studies' speed.
+MAX_AUTO_TRANSITIONS = 3_000_000
 LEVERS = ("finer grid", "more data", "smaller B")
 #: A lever wins only if it is estimated to move at least this share of X into Q_yes.
 MIN_GAIN = 0.005
@@ -70,6 +73,8 @@ class FittedModes:
         Known affine parts.
     inv_l2 : (d,) float array
         ``1 / lengthscale^2`` of the SE kernel ``k(x, z) = exp(-sum_a (x_a - z_a)^2 inv_l2_a / 2)``.
+    known : tuple (n_modes) of None or callables ``(k, d) -> (k, n)``, optional
+        Nonlinear known parts (their mode's ``A``, ``b`` are 0): added to the values.
     """
 
     points: tuple
@@ -77,6 +82,7 @@ class FittedModes:
     A: np.ndarray
     b: np.ndarray
     inv_l2: np.ndarray
+    known: tuple = ()
 
     @property
     def n_modes(self) -> int:
@@ -91,6 +97,8 @@ class FittedModes:
             for u in range(self.n_modes):
                 z = np.sum((xs[:, None, :] - self.points[u][None, :, :]) ** 2 * self.inv_l2, axis=2)
                 out[u, s0:s0 + 4096] = np.exp(-0.5 * z) @ self.alpha[u] + xs @ self.A[u].T + self.b[u]
+                if self.known and self.known[u] is not None:
+                    out[u, s0:s0 + 4096] += self.known[u](xs)
         return out
 
     def lattice(self, axes) -> np.ndarray:
@@ -121,6 +129,9 @@ class FittedModes:
             for j, a in enumerate(axes):
                 lin += self.A[u][:, j].reshape((n,) + (1,) * d) * a.reshape((1,) * (j + 1) + (-1,) + (1,) * (d - 1 - j))
             out[u] += lin
+            if self.known and self.known[u] is not None:  # a nonlinear known part, at every lattice point
+                pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, d)
+                out[u] += np.moveaxis(self.known[u](pts).reshape(shape + (n,)), -1, 0)
         return out
 
     def grid_ranges(self, breakpoints):
@@ -169,7 +180,8 @@ def fit_modes(data, maps, lengthscale, regulariser, *, max_points: int = FIT_POI
     Parameters
     ----------
     data : sequence (n_modes) of (x (m_u, d), residuals (m_u, n)) pairs
-    maps : sequence (n_modes) of objects with ``A (n, d)`` and ``b (n,)`` (the known parts)
+    maps : sequence (n_modes) of objects with ``A (n, d)`` and ``b (n,)`` (the known parts), or
+        callables ``(k, d) -> (k, n)`` (nonlinear known parts, ``known.KnownDynamics``)
     lengthscale : float or (d,) float array
     regulariser : float or (n,) float array, > 0
         Ridge parameter per component: ``alpha = (K + lambda I)^-1 y`` (the GP posterior mean with
@@ -200,9 +212,12 @@ def fit_modes(data, maps, lengthscale, regulariser, *, max_points: int = FIT_POI
             al[:, i] = np.linalg.solve(K + lam[i] * np.eye(x.shape[0]), y[:, i])
         points.append(x)
         alphas.append(al)
-    A = np.stack([np.asarray(m.A, float) for m in maps])
-    b = np.stack([np.asarray(m.b, float).reshape(-1) for m in maps])
-    return FittedModes(tuple(points), tuple(alphas), A, b, inv_l2)
+    affine = [hasattr(m, "A") and hasattr(m, "b") for m in maps]
+    n = alphas[0].shape[1]
+    A = np.stack([np.asarray(m.A, float) if a else np.zeros((n, d)) for m, a in zip(maps, affine)])
+    b = np.stack([np.asarray(m.b, float).reshape(-1) if a else np.zeros(n) for m, a in zip(maps, affine)])
+    known = () if all(affine) else tuple(None if a else m for m, a in zip(maps, affine))
+    return FittedModes(tuple(points), tuple(alphas), A, b, inv_l2, known)
 
 
 def _excess_sides(lower, upper, fit_lower, fit_upper):

@@ -1417,11 +1417,12 @@ def synthesize_from_data(problem: Problem, *, progress: bool = True, abstraction
         Refuse (``ResourceError``) when the pre-flight memory estimate exceeds the memory free.
     advice : {"auto", True, False}
         After the solve, estimate which lever (a 2x finer grid, more data, a smaller B) would move
-        most of X into Q_yes (:func:`robust_imdp.advice.advise`; ``diagnostics["advice"]`` and the
-        summary's last line). ``"auto"``: when the finer grid has at most
-        ``advice.MAX_CELLS`` cells (then it costs a few abstract + solve passes and ~16 pilot
-        cells per mode of the bound stage); True: always (estimates above that size are skipped
-        with a note); False: never.
+        most of X into Q_yes (:func:`robust_imdp.advice.advise`; ``result.advice``, the summary's
+        ``advice:`` line and ``result.json``'s ``diagnostics.advice``). ``"auto"``: when the
+        finer grid has at most ``advice.MAX_CELLS`` cells and about
+        ``advice.MAX_AUTO_TRANSITIONS`` listed transitions (cells x modes x 3^d); it then costs
+        three abstract + solve passes (one on the finer grid) and at most 16 pilot cells per mode
+        of the bound stage, twice; True: always; False: never.
 
     Returns
     -------
@@ -1508,11 +1509,13 @@ def _save_abstraction_entry(cache_file: Path, abstraction, doc: dict) -> None:
 def _advice(problem: Problem, partition, cell_bounds, dfa, classes, log: _Log, run: _Run, cache_dir,
             diagnostics: dict) -> dict:
     """:func:`robust_imdp.advice.advise` as a JSON-able dict when the run asks for it, else ``{}``."""
-    from robust_imdp.advice import MAX_CELLS, advice_line, advise
+    from robust_imdp.advice import MAX_AUTO_TRANSITIONS, MAX_CELLS, advice_line, advise
 
     want = getattr(run, "advice", "auto")
     n_fine = partition.n_cells * 2 ** partition.dim
-    if want is False or (want == "auto" and n_fine > MAX_CELLS) or problem.error_bound == "chowdhury":
+    work = n_fine * len(problem.mode_names) * 3 ** partition.dim  # ~ listed transitions of the finer grid
+    if (want is False or (want == "auto" and (n_fine > MAX_CELLS or work > MAX_AUTO_TRANSITIONS))
+            or problem.error_bound == "chowdhury"):
         return {}  # the GP route has no pilot bound stage (its boxes come from bounds.bound_image)
     if cell_bounds is None and cache_dir is not None:  # the abstraction came from the cache: its boxes too
         bounds_file = Path(cache_dir) / f"bounds-{bounds_key(problem)}.npz"
