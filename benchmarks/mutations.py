@@ -55,6 +55,8 @@ _RKHS = "src/robust_imdp/rkhs.py"
 _SOLVE = "src/robust_imdp/solve.py"
 _SYN = "src/robust_imdp/synthesis.py"
 _KNOWN = "src/robust_imdp/known.py"
+_PIPE = "src/robust_imdp/pipeline.py"
+_ASSUME = "src/robust_imdp/assumptions.py"
 
 _VI_RETURN = ("    return ReachabilityResult(lower=lo, upper=up, strategy=strat, iterations=it, "
               "precision=gap, converged=converged)")
@@ -336,6 +338,23 @@ MUTATIONS = [
          original="        return _up(np.maximum(hi - v, v - lo))",
          replacement="        return 0.0 * _up(np.maximum(hi - v, v - lo))",
          description="known: residual rounding bound |fl(f(x)) - f(x)| set to 0"),
+    # ------------------------------------------------------------------ known parts in the pipeline
+    dict(name="pipeline-f-range-shrink-1e-3", file=_PIPE,
+         original="    lower[...], upper[...] = add_ranges(lower, upper, ranges.lower, ranges.upper)",
+         replacement=("    lower[...], upper[...] = add_ranges(lower, upper, ranges.lower + 1e-3 * (ranges.upper - "
+                      "ranges.lower), ranges.upper - 1e-3 * (ranges.upper - ranges.lower))"),
+         description="pipeline: the known part's certified range shrunk inward by 0.1 % of its width per side "
+                     "before it is added to g's range"),
+    dict(name="pipeline-rounding-allowance-off", file=_PIPE,
+         original="            out[u] = np.nextafter(out[u] + rb, np.inf)",
+         replacement="            out[u] = out[u] + 0.0 * rb",
+         description="pipeline: the residual rounding bound of a nonlinear known part left out of the data-noise "
+                     "allowance of the certificate and the assumption check"),
+    dict(name="assumptions-add-ranges-nearest", file=_ASSUME,
+         original="    return (np.nextafter(np.asarray(lo_a, float) + np.asarray(lo_b, float), -np.inf),",
+         replacement="    return (np.asarray(lo_a, float) + np.asarray(lo_b, float),",
+         description="assumptions.add_ranges: the lower end of f range + g range rounded to nearest (no ulp "
+                     "outward)"),
 ]
 
 

@@ -6,11 +6,15 @@ Problem file contract (keys in ``[brackets]`` are tables; ``?`` marks optional k
     [[regions.NAME]] lower, upper                    (one entry per box; any number of regions)
     [spec]          formula, threshold, horizon?     (horizon: int for k-step, absent = unbounded)
     [data]          path                             (.csv or .npz, relative to the problem file)
-    [modes.NAME]    A (n x n), b (n)                 (known affine part f_u(x) = A x + b)
+    [modes.NAME]    A (n x n), b (n)                 (known affine part f_u(x) = A x + b), or
+                    f (n expressions in x1..xn)       (known nonlinear part, robust_imdp.known)
     [noise]         kind = "truncated_gaussian" (sigma, bound) | "gaussian" (sigma) | "uniform" (bound)
     [gp]            rkhs_bound, lengthscale?, error_bound? ("optimal" | "ridge" | "chowdhury"),
                     misspecification? (0), iid_noise? (false), local_points? (all points up to 1000
-                    per mode, else 100);
+                    per mode, else 100), known? (n true/false: components not learned);
+                    rkhs_bound, lengthscale, misspecification and known each take one value, a list
+                    per component or a table per mode (robust_imdp.assumptions; rkhs_bound = 0
+                    declares a component known);
                     only with error_bound = "chowdhury": signal_variance? (number, default 1.0, or
                     "tune": minutes, it bounds every candidate), optimize?, info_gain? ("data" |
                     "trivial"), bound_tol? (1e-3), bound_max_boxes? (2000)
@@ -77,7 +81,7 @@ _SCHEMA: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "spec": (("formula", "threshold"), ("horizon",)),
     "data": (("path",), ()),
     "noise": (("kind",), ("sigma", "bound")),
-    "gp": (("rkhs_bound",), ("lengthscale", "error_bound", "misspecification", "iid_noise", "local_points",
+    "gp": (("rkhs_bound",), ("lengthscale", "error_bound", "misspecification", "iid_noise", "local_points", "known",
                              "signal_variance",
                              "optimize", "info_gain", "bound_tol", "bound_max_boxes")),
     "abstraction": ((), ("eta", "eps_rule", "combine", "guarantee", "confidence")),
@@ -164,8 +168,8 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
         Keys ``lower``, ``upper``, ``cell_size`` ((n,) float arrays), ``names`` (tuple of n str or
         None), ``regions``
         (``{name: [(lower, upper), ...]}``), ``formula``, ``threshold``, ``horizon`` (int or
-        None), ``data_path`` (str, as written), ``modes`` (``{name: (A (n, n), b (n,))}`` in
-        file order), ``noise`` (``{"kind", "sigma", "bound"}``), ``gp`` (dict of the given keys),
+        None), ``data_path`` (str, as written), ``modes`` (``{name: (A (n, n), b (n,))}`` or
+        ``{name: known.KnownDynamics}`` for ``f = [...]``, in file order), ``noise`` (``{"kind", "sigma", "bound"}``), ``gp`` (dict of the given keys),
         ``abstraction`` (dict with ``eta`` ((n,) array or None), ``eps_rule``, ``combine``).
 
     Raises
@@ -256,7 +260,18 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
         tname = f"modes.{mname}"
         if not isinstance(table, dict):
             raise ProblemFileError(f"{where}: [{tname}] must be a table; got {table!r}")
-        _check_keys(table, tname, ("A", "b"), (), where)
+        _check_keys(table, tname, (), ("A", "b", "f"), where)
+        if "f" in table:
+            if "A" in table or "b" in table:
+                raise ProblemFileError(
+                    f"{where}: [{tname}] must give either f (a nonlinear known part) or A and b (an affine one), not "
+                    f"both; got keys {sorted(table)}")
+            modes[str(mname)] = _known_dynamics(table["f"], tname, where, n)
+            continue
+        for key in ("A", "b"):
+            if key not in table:
+                raise ProblemFileError(f"{where}: table [{tname}] is missing required key '{key}' (or give f = "
+                                       f"[...], {n} expressions in x1..x{n}, instead of A and b)")
         try:
             A = np.asarray(table["A"], dtype=float)
         except (TypeError, ValueError):
@@ -282,13 +297,18 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
         noise[key] = _positive_vector(nz[key], f"[noise].{key}", where, n)
 
     gp_in = doc["gp"]
-    gp: dict[str, Any] = {
-        "rkhs_bound": float(_number(gp_in["rkhs_bound"], "[gp].rkhs_bound", where))
-    }
-    if gp["rkhs_bound"] <= 0:
-        raise ProblemFileError(f"{where}: [gp].rkhs_bound must be > 0; got {gp_in['rkhs_bound']!r}")
-    if "lengthscale" in gp_in:
-        gp["lengthscale"] = _positive_vector(gp_in["lengthscale"], "[gp].lengthscale", where, n)
+    gp: dict[str, Any] = {}
+    per_component = any(not _is_plain_setting(gp_in.get(k, 1.0), k) for k in ("rkhs_bound", "lengthscale",
+                                                                            "misspecification")) or "known" in gp_in
+    if not per_component:  # one value each: checked and typed as before
+        gp["rkhs_bound"] = float(_number(gp_in["rkhs_bound"], "[gp].rkhs_bound", where))
+        if gp["rkhs_bound"] <= 0:
+            raise ProblemFileError(f"{where}: [gp].rkhs_bound must be > 0 (or 0 per component for a known one); got "
+                                   f"{gp_in['rkhs_bound']!r}")
+        if "lengthscale" in gp_in:
+            gp["lengthscale"] = _positive_vector(gp_in["lengthscale"], "[gp].lengthscale", where, n)
+    else:  # per mode and component (robust_imdp.assumptions), with B = 0 where a component is known
+        gp.update(_per_component_gp(gp_in, list(modes), n, where))
     if "signal_variance" in gp_in:
         if gp_in["signal_variance"] == "tune":
             gp["signal_variance"] = "tune"
@@ -323,8 +343,9 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
                 f"{where}: [gp].{gp_only[0]} applies only to error_bound = \"chowdhury\" (a GP posterior); "
                 f"error_bound = \"{gp['error_bound']}\" uses the unit-amplitude kernel with the given lengthscale "
                 "only: remove the key or set error_bound = \"chowdhury\"")
-    gp["misspecification"] = float(_number(gp_in.get("misspecification", 0.0), "[gp].misspecification", where,
-                                           lo=0.0))
+    if not per_component:
+        gp["misspecification"] = float(_number(gp_in.get("misspecification", 0.0), "[gp].misspecification", where,
+                                               lo=0.0))
     gp["local_points"] = None
     if "local_points" in gp_in:
         if gp["error_bound"] == "chowdhury":
@@ -387,6 +408,48 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
         "data_path": data_path, "modes": modes, "noise": noise, "gp": gp, "abstraction": ab,
         "refine": refine,
     }
+
+
+def _known_dynamics(value, tname: str, where: str, n: int):
+    """``[modes.NAME].f``: n expressions in x1..xn as a ``known.KnownDynamics`` (errors name the file,
+    the table and the component)."""
+    from robust_imdp.known import KnownDynamics
+
+    if not isinstance(value, list) or len(value) != n or not all(isinstance(e, str) for e in value):
+        got = f"{len(value)} entries: {value!r}" if isinstance(value, list) else repr(value)
+        raise ProblemFileError(f"{where}: [{tname}].f must be a list of {n} expressions in x1..x{n} (strings, one per "
+                               f"component); got {got}")
+    try:
+        return KnownDynamics(value, name=f"{where}: [{tname}]")
+    except InvalidInputError as exc:
+        raise ProblemFileError(str(exc)) from None
+
+
+def _is_plain_setting(value, key: str) -> bool:
+    """One value for every mode and component (a number; for lengthscale also a list of numbers)."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return True
+    return key == "lengthscale" and isinstance(value, list) and all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+
+
+def _per_component_gp(gp_in: dict, mode_names: list, n: int, where: str) -> dict:
+    """[gp].rkhs_bound / lengthscale / misspecification / known per mode and component, checked by
+    ``assumptions.resolve``; the returned values are what the Problem takes (known folded into rkhs_bound)."""
+    from robust_imdp.assumptions import resolve
+
+    known = gp_in.get("known")
+    try:
+        st = resolve(gp_in["rkhs_bound"], gp_in.get("lengthscale"), gp_in.get("misspecification", 0.0), mode_names, n,
+                     prefix="[gp].", known=known)
+    except InvalidInputError as exc:
+        raise ProblemFileError(f"{where}: {exc}") from None
+    out = {"rkhs_bound": gp_in["rkhs_bound"], "misspecification": gp_in.get("misspecification", 0.0)}
+    if known is not None:  # the B table with 0 for the known components
+        out["rkhs_bound"] = {m: st.rkhs_bound[u].tolist() for u, m in enumerate(mode_names)}
+    if "lengthscale" in gp_in:
+        out["lengthscale"] = gp_in["lengthscale"]
+    return out
 
 
 def _read_text(path: Path, where: str, expected: str) -> str:
@@ -474,6 +537,7 @@ def load_problem(path):
             "table needs data"
         )
     noise = make_noise(spec["noise"])
+    _check_known_domains(spec)
     _check_samples_possible(spec, noise, x, u, x_next, rows)
     _warn_few_samples(spec, u, rows)
     _warn_refined_grid(spec, str(path))
@@ -490,13 +554,29 @@ def load_problem(path):
         space_lower=spec["lower"], space_upper=spec["upper"], cell_size=spec["cell_size"],
         regions=spec["regions"], formula=spec["formula"], threshold=spec["threshold"],
         horizon=spec["horizon"], data=Dataset(x, u, x_next, modes=tuple(names)),
-        mode_names=tuple(names), maps=tuple(AffineMap(A, b) for A, b in spec["modes"].values()),
+        mode_names=tuple(names), maps=tuple(m if not isinstance(m, tuple) else AffineMap(*m)
+                                            for m in spec["modes"].values()),
         noise=noise, rkhs_bound=rkhs_bound, gp_options=gp,
         bound_tol=bound_tol, bound_max_boxes=bound_max_boxes, eta=ab["eta"], eps_rule=ab["eps_rule"], combine=ab["combine"],
         guarantee=ab["guarantee"], confidence=ab["confidence"], error_bound=error_bound,
         misspecification=misspecification, iid_noise=iid_noise, local_points=local_points,
         refine=spec["refine"], dim_names=spec["names"],
     )
+
+
+def _check_known_domains(spec) -> None:
+    """Refuse a nonlinear known part undefined on part of X, at load time: its interval enclosure over
+    every cell of the grid (``KnownDynamics.image_bounds``, the natural extension the bound stage starts
+    from) raises ``ExpressionDomainError`` naming the file, the mode's table, the component and the box."""
+    nonlinear = [m for m in spec["modes"].values() if not isinstance(m, tuple)]
+    if not nonlinear:
+        return
+    from robust_imdp.geometry import Box, Partition, Region
+
+    regions = [Region(name, [Box(lo, up) for lo, up in boxes]) for name, boxes in spec["regions"].items()]
+    part = Partition(Box(spec["lower"], spec["upper"]), spec["cell_size"], regions)
+    for m in nonlinear:
+        m.image_bounds(part.cells_lower, part.cells_upper, form="natural")
 
 
 #: A mode with fewer samples than this gets a warning at load time.
@@ -523,31 +603,53 @@ def _check_samples_possible(spec, noise, x, u, x_next, rows) -> None:
     from robust_imdp.pipeline import CHECK_DELTA
     from robust_imdp.rkhs import min_rkhs_norm, noise_bound_at_confidence
 
-    B = float(spec["gp"]["rkhs_bound"])
-    tau = float(spec["gp"]["misspecification"])
-    lengthscale = spec["gp"].get("lengthscale", 1.0)
+    from robust_imdp.assumptions import resolve
+
+    names = list(spec["modes"])
+    st = resolve(spec["gp"]["rkhs_bound"], spec["gp"].get("lengthscale"), spec["gp"]["misspecification"], names,
+                 x.shape[1])
     # the pipeline's assumption check uses this bound (unbounded noise: all samples at 1 - 1e-6)
     nb, fail = noise_bound_at_confidence(noise, x.shape[0], CHECK_DELTA)
     nb = np.broadcast_to(np.asarray(nb, float), (x.shape[1],))
-    names = list(spec["modes"])
     bad = []  # (single-sample minimum norm, mode, component, data row, residual, limit, other rows)
-    for m, (A, b) in enumerate(spec["modes"].values()):
+    for m, part in enumerate(spec["modes"].values()):
         sel = np.flatnonzero(u == m)
-        res = x_next[sel] - (x[sel] @ A.T + b)
+        nb_m = nb
+        if isinstance(part, tuple):
+            A, b = part
+            res = x_next[sel] - (x[sel] @ A.T + b)
+        else:  # a nonlinear known part: its residuals' rounding bound joins the noise allowance (as in the pipeline)
+            r_all = part.residuals(x[sel], x_next[sel])
+            res = r_all.y
+            nb_m = np.nextafter(nb + r_all.bound.max(axis=0), np.inf)
         for i in range(res.shape[1]):
-            r = min_rkhs_norm(x[sel], res[:, i], lengthscale, float(nb[i]), tau, solver=False)
+            B, tau = float(st.rkhs_bound[m, i]), float(st.misspecification[m, i])
+            lengthscale = st.lengthscale[m, i] if not st.uniform else spec["gp"].get("lengthscale", 1.0)
+            r = min_rkhs_norm(x[sel], res[:, i], lengthscale, float(nb_m[i]), tau, solver=False)
             if r["single_minimum"] > B:
-                limit = B + tau + float(nb[i])
+                limit = B + tau + float(nb_m[i])
                 others = [k for k in sel[np.abs(res[:, i]) > limit].tolist() if k != sel[r["sample"]]]
                 bad.append((r["single_minimum"], m, i, int(sel[r["sample"]]), float(res[r["sample"], i]), limit,
-                            others))
+                            others, B, lengthscale))
     if not bad:
         return
-    minimum, m, i, row, residual, limit, others = max(bad, key=lambda c: c[0])
+    minimum, m, i, row, residual, limit, others, B, lengthscale = max(bad, key=lambda c: c[0] - c[7])
     where = f"data file {spec['data_file']}, {_rows_text(rows, [row])}"
     component = f"component {i + 1}" + (f" ({spec['names'][i]})" if spec.get("names") else "")
+    if B == 0:
+        raise AssumptionError(
+            f"[gp] declares {component} of mode {names[m]!r} known (rkhs_bound = 0 or known = true), but sample {row} "
+            f"({where}) has residual {residual:.6g} there, beyond the noise bound + misspecification = {limit:.6g}"
+            + (f"; {len(others)} more samples of this mode and component are beyond it too "
+               f"({_rows_text(rows, np.array(others))})" if others else "")
+            + ": the known part does not explain the data; give the component an rkhs_bound > 0, a misspecification "
+            "allowance, or check the known part and the data")
+    if not st.uniform:
+        B_text = f"{B:g} for mode {names[m]!r}, {component}"
+    else:
+        B_text = f"{B:g}"
     raise AssumptionError(
-        f"[gp].rkhs_bound = {B:g} is refuted by the data: mode {names[m]!r}, {component} needs an RKHS norm "
+        f"[gp].rkhs_bound = {B_text} is refuted by the data: mode {names[m]!r}, {component} needs an RKHS norm "
         f"of at least {minimum:.4g} (lengthscale {np.asarray(lengthscale).tolist()}); sample {row} ({where}): its "
         f"residual {residual:.6g} in {component} is impossible under the assumption, since |g| <= B + noise "
         f"bound + misspecification = {limit:.6g} everywhere"

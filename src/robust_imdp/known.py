@@ -1109,6 +1109,26 @@ class KnownDynamics:
                                     f"lower {lower[r].tolist()}, upper {upper[r].tolist()}")
         return lower, upper
 
+    # ------------------------------------------------------------------ the known-part interface
+    # (shared with system.AffineMap: what the pipeline needs of a mode's known part)
+    @property
+    def dim(self) -> int:
+        """The state dimension n."""
+        return int(self.n_dims)
+
+    def __call__(self, x) -> np.ndarray:
+        """``evaluate(x)``: ``(k, n) -> (k, n)`` floating-point values."""
+        return self.evaluate(x)
+
+    def fingerprint(self) -> str:
+        """A digest of the expression graphs and the constants' enclosures (cache keys)."""
+        import hashlib
+
+        h = hashlib.sha256(b"KnownDynamics")
+        h.update(repr([(t.instrs, t.outputs) for t in self._tapes]).encode())
+        h.update(np.asarray(self._consts, dtype=float).tobytes())
+        return h.hexdigest()
+
     def __repr__(self):
         return f"KnownDynamics({list(self.expressions)!r})"
 

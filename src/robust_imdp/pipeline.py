@@ -185,7 +185,9 @@ class Problem:
         if self.guarantee == "paper" and self.error_bound != "chowdhury":
             raise InvalidInputError(
                 f"guarantee 'paper' (Thm 1 as printed) needs error_bound 'chowdhury'; got {self.error_bound!r}")
-        tau = float(self.misspecification)
+        # one number (checked here as before), or per mode and component (checked by _check_known_parts)
+        tau = float(self.misspecification) if np.ndim(self.misspecification) == 0 and not isinstance(
+            self.misspecification, dict) else float(_settings(self).misspecification.max())
         if not (np.isfinite(tau) and tau >= 0):
             raise InvalidInputError(f"misspecification must be a finite float >= 0; got {self.misspecification!r}")
         if self.local_points is not None and (int(self.local_points) != self.local_points or self.local_points < 1):
@@ -200,6 +202,7 @@ class Problem:
                 raise InvalidInputError(
                     f"gp_options {extra} apply only to error_bound 'chowdhury' (a GP posterior); error_bound "
                     f"{self.error_bound!r} uses the unit-amplitude kernel with the given lengthscale only")
+        self._check_known_parts()
         if self.refine is not None:
             from robust_imdp.refine import RefineOptions
 
@@ -210,6 +213,37 @@ class Problem:
                 raise InvalidInputError(
                     "[refine] needs error_bound 'optimal' or 'ridge' without iid_noise (the bounds of new cells "
                     f"must hold on the same event); got error_bound={self.error_bound!r}, iid_noise={self.iid_noise!r}")
+
+    def _check_known_parts(self) -> None:
+        """Every mode's known part has the known-part interface; the assumption resolves per mode and component."""
+        n = int(np.size(self.space_lower))
+        maps = tuple(self.maps)
+        if len(maps) != len(self.mode_names):
+            raise InvalidInputError(f"maps must give one known part per mode ({len(self.mode_names)}: "
+                                    f"{list(self.mode_names)}); got {len(maps)}")
+        for name, m in zip(self.mode_names, maps):
+            missing = [a for a in ("dim", "image_bounds", "fingerprint") if not hasattr(m, a)] + \
+                ([] if callable(m) else ["__call__"])
+            if missing:
+                raise InvalidInputError(
+                    f"maps: the known part of mode {name!r} must be a system.AffineMap or a known.KnownDynamics "
+                    f"(it needs {missing}); got {type(m).__name__} {m!r}")
+            if int(m.dim) != n:
+                raise InvalidInputError(f"maps: the known part of mode {name!r} must act on {n} dimensions like "
+                                        f"space_lower; got dimension {m.dim}")
+        settings = _settings(self)  # raises on a wrong form, naming rkhs_bound / lengthscale / misspecification
+        if self.error_bound == "chowdhury":
+            nonlinear = [name for name, m in zip(self.mode_names, maps) if not _is_affine(m)]
+            if nonlinear:
+                raise InvalidInputError(
+                    f"error_bound 'chowdhury' (the GP route, bounds.bound_image) bounds f_u + mu jointly for an affine "
+                    f"f_u = A x + b only; modes {nonlinear} have a nonlinear known part f: use error_bound 'optimal' "
+                    "or 'ridge'")
+            if not settings.uniform:
+                raise InvalidInputError(
+                    "error_bound 'chowdhury' (the GP route) takes one rkhs_bound, one lengthscale and no known "
+                    "components; per-mode or per-component values need error_bound 'optimal' or 'ridge'; got "
+                    f"rkhs_bound={self.rkhs_bound!r}, lengthscale={self.gp_options.get('lengthscale')!r}")
 
     def replace(self, **changes) -> "Problem":
         """A copy with some attributes changed (e.g. ``formula=...``)."""
@@ -238,13 +272,15 @@ class Problem:
         formula : str
             LTLf over the region names (``[spec]``).
         threshold : float in [0, 1]
-        modes : dict str -> (A (n, n), b (n,)) or system.AffineMap
-            The known part ``f_u(x) = A x + b`` of each mode, in mode order (``[modes.NAME]``).
+        modes : dict str -> (A (n, n), b (n,)), system.AffineMap, known.KnownDynamics, a list of n
+            expression strings in ``x1..xn`` or a pair (casadi expression (n, 1), casadi symbol (n, 1))
+            The known part ``f_u`` of each mode, in mode order (``[modes.NAME]``: ``A``/``b`` or ``f``).
         noise : noise model (``TruncatedGaussianNoise``, ``GaussianNoise``, ``UniformNoise``)
-        rkhs_bound : float
-            The assumption B (``[gp].rkhs_bound``).
+        rkhs_bound : float, list of n floats or dict mode -> either
+            The assumption B (``[gp].rkhs_bound``), per mode and component where given so; 0 marks a
+            known component (``robust_imdp.assumptions``).
         horizon : int or None
-        lengthscale : float or (n,) float array, optional
+        lengthscale : float, (n,) float array (per input dimension), per-component list or dict per mode
             The kernel lengthscale (``[gp].lengthscale``, kept in ``gp_options``).
         names : sequence of n str, optional
             Dimension names (``[space].names``).
@@ -293,16 +329,10 @@ class Problem:
                                     f"got {modes!r}")
         maps = []
         for name, m in modes.items():
-            if not isinstance(m, AffineMap):
-                try:
-                    A, b = m
-                except (TypeError, ValueError):
-                    raise InvalidInputError(
-                        f"modes must give (A, b) or an AffineMap for mode {name!r}; got {m!r}") from None
-                m = AffineMap(A, b)
+            m = _known_part(m, name)
             if m.dim != n:
-                raise DimensionError(f"modes[{name!r}] must act on {n} dimensions like lower; got A of shape "
-                                     f"{m.A.shape}")
+                raise DimensionError(f"modes[{name!r}] must act on {n} dimensions like lower; got "
+                                     + (f"A of shape {m.A.shape}" if _is_affine(m) else f"{m.dim} components"))
             maps.append(m)
         if not isinstance(regions, dict):
             raise InvalidInputError(f"regions must be a dict name -> box or list of boxes; got {regions!r}")
@@ -344,7 +374,63 @@ class Problem:
                 f"  formula {self.formula!r}, threshold {float(self.threshold):g}"
                 f"{'' if self.horizon is None else f', horizon {self.horizon}'}; regions {list(self.regions)}\n"
                 f"  modes {list(self.mode_names)}, {m} samples, {type(self.noise).__name__}, "
-                f"rkhs_bound {float(self.rkhs_bound):g}, error_bound {self.error_bound!r})")
+                f"rkhs_bound {_setting_text(self.rkhs_bound)}, error_bound {self.error_bound!r})")
+
+
+def _is_affine(m) -> bool:
+    """The affine fast path: ``f_u(x) = A x + b`` bounded jointly with ``g_u`` at the cell vertices (eq. C)."""
+    return hasattr(m, "A") and hasattr(m, "b")
+
+
+def _known_part(m, name):
+    """A mode's known part from the forms :meth:`Problem.from_arrays` accepts."""
+    from robust_imdp.known import KnownDynamics, _is_casadi
+    from robust_imdp.system import AffineMap
+
+    if isinstance(m, (AffineMap, KnownDynamics)):
+        return m
+    if isinstance(m, (list, tuple)) and m and all(isinstance(e, str) for e in m):
+        return KnownDynamics(list(m), name=f"modes[{name!r}]")
+    if isinstance(m, (list, tuple)) and len(m) == 2 and _is_casadi(m[0]):
+        return KnownDynamics(m[0], m[1], name=f"modes[{name!r}]")
+    try:
+        A, b = m
+    except (TypeError, ValueError):
+        raise InvalidInputError(
+            f"modes must give (A, b), an AffineMap, a KnownDynamics, a list of expressions in x1..xn or a pair "
+            f"(casadi expression, casadi symbol) for mode {name!r}; got {m!r}") from None
+    return AffineMap(A, b)
+
+
+def _settings(problem):
+    """The assumption per mode and component (``assumptions.Settings``)."""
+    from robust_imdp.assumptions import resolve
+
+    return resolve(problem.rkhs_bound, problem.gp_options.get("lengthscale"), problem.misspecification,
+                   problem.mode_names, int(np.size(problem.space_lower)))
+
+
+def _setting_text(value) -> str:
+    try:
+        return f"{float(value):g}"
+    except (TypeError, ValueError):
+        return repr(value)
+
+
+def _setting_value(value):
+    """A setting as the cache keys and result files carry it: a float when it is one number (as before)."""
+    if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool):
+        return float(value)
+    if isinstance(value, dict):
+        return {str(k): _setting_value(v) for k, v in value.items()}
+    return np.asarray(value, dtype=float).tolist()
+
+
+def _map_key(m):
+    """What the cache keys fingerprint of a known part: (A, b) for an affine one (as before), else its digest."""
+    if _is_affine(m):
+        return (np.asarray(m.A, float), np.asarray(m.b, float))
+    return ("known", m.fingerprint())
 
 
 @dataclass(frozen=True, eq=False)
@@ -634,9 +720,9 @@ def bounds_key(problem: Problem) -> str:
         {k: [(np.asarray(lo, float), np.asarray(up, float)) for lo, up in v]
          for k, v in problem.regions.items()},
         np.asarray(d.x, float), np.asarray(d.u), np.asarray(d.x_next, float),
-        list(problem.mode_names), [(np.asarray(m.A, float), np.asarray(m.b, float)) for m in problem.maps],
-        problem.noise, float(problem.rkhs_bound), problem.gp_options, float(problem.bound_tol),
-        int(problem.bound_max_boxes), problem.error_bound, float(problem.misspecification),
+        list(problem.mode_names), [_map_key(m) for m in problem.maps],
+        problem.noise, _setting_value(problem.rkhs_bound), problem.gp_options, float(problem.bound_tol),
+        int(problem.bound_max_boxes), problem.error_bound, _setting_value(problem.misspecification),
         bool(problem.iid_noise), float(problem.confidence) if problem.error_bound != "chowdhury" else None,
         problem.local_points,
     ])
@@ -814,7 +900,7 @@ def _parameters(problem: Problem, abstraction) -> dict:
         "space": {"lower": problem.space_lower, "upper": problem.space_upper},
         "cell_size": problem.cell_size,
         "n_data": int(np.asarray(problem.data.u).shape[0]),
-        "rkhs_bound": float(problem.rkhs_bound),
+        "rkhs_bound": _setting_value(problem.rkhs_bound),
         "gp_options": {k: v for k, v in problem.gp_options.items()},
         "bound_tol": float(problem.bound_tol),
         "bound_max_boxes": int(problem.bound_max_boxes),
@@ -828,10 +914,13 @@ def _parameters(problem: Problem, abstraction) -> dict:
         "guarantee": problem.guarantee,
         "confidence": float(problem.confidence) if problem.guarantee == "confidence" else None,
         "error_bound": problem.error_bound,
-        "misspecification": float(problem.misspecification),
+        "misspecification": _setting_value(problem.misspecification),
         "iid_noise": bool(problem.iid_noise),
         "local_points": problem.local_points,
         "abstraction_key": abstraction_key(problem),
+        **({} if all(_is_affine(m) for m in problem.maps) else
+           {"known_parts": {name: (None if _is_affine(m) else list(m.expressions))
+                            for name, m in zip(problem.mode_names, problem.maps)}}),
         "refine": None if problem.refine is None else problem.refine.to_dict(),
     }
     from robust_imdp.jsonable import jsonable as _jsonable
@@ -974,6 +1063,114 @@ def _residual_data(problem: Problem):
     return out
 
 
+def _one_setting(problem: Problem) -> bool:
+    """Affine known parts and one assumption for every mode and component: the original path, unchanged."""
+    return all(_is_affine(m) for m in problem.maps) and _settings(problem).uniform
+
+
+def _affine_part(problem: Problem, u: int):
+    """(A, b) of mode ``u``'s affine known part, or zeros for a nonlinear one (its range is added to g's)."""
+    m = problem.maps[u]
+    if _is_affine(m):
+        return m.A, m.b
+    n = int(np.size(problem.space_lower))
+    return np.zeros((n, n)), np.zeros(n)
+
+
+def _noise_allowance(problem: Problem, noise_bound) -> np.ndarray:
+    """(n_modes, n) data-noise bound of the certificate per mode: the noise bound plus the residuals' rounding.
+
+    Eq. W (docs/rkhs_bounds.md, section 1) needs ``|h(x_i) - y_i| <= dbar + tau`` for the residuals
+    it is given. For a nonlinear known part the computed residual ``fl(x_next - fl(f(x)))`` is within
+    ``r_i`` of the exact ``y_i`` (``KnownDynamics.residuals``), so the certificate and the assumption
+    check take ``dbar + max_i r_i`` per component, rounded up. Affine parts keep ``dbar``.
+    """
+    M, n = len(problem.mode_names), int(np.size(problem.space_lower))
+    out = np.array(np.broadcast_to(np.asarray(noise_bound, float), (M, n)))
+    for u, m in enumerate(problem.maps):
+        if not _is_affine(m):
+            x, xn = problem.data.by_mode(u)
+            rb = m.residuals(x, xn).bound.max(axis=0)
+            out[u] = np.nextafter(out[u] + rb, np.inf)
+    return out
+
+
+def _known_ranges(problem: Problem, cells_lower, cells_upper) -> list:
+    """Per mode: None (affine) or the certified range of the nonlinear known part over the cells
+    (``KnownDynamics.image_bounds``; raises ``ExpressionDomainError`` where f is undefined)."""
+    return [None if _is_affine(m) else m.image_bounds(cells_lower, cells_upper) for m in problem.maps]
+
+
+def _add_known_range(lower, upper, ranges) -> None:
+    """``g``'s certified range plus ``f``'s, in place: the image of ``f_u + g_u`` over each cell is in the
+    Minkowski sum of the two ranges; the sum is rounded outward (``assumptions.add_ranges``)."""
+    from robust_imdp.assumptions import add_ranges
+
+    lower[...], upper[...] = add_ranges(lower, upper, ranges.lower, ranges.upper)
+
+
+def _base_settings(problem: Problem, settings=None) -> dict:
+    """The bound stage's problem-wide settings: the problem's own values with one assumption (as before);
+    otherwise stand-ins (the largest B, the first lengthscale) that every mode's groups override."""
+    if _settings(problem).uniform:
+        return {"lengthscale": problem.gp_options.get("lengthscale", 1.0), "rkhs_bound": problem.rkhs_bound,
+                "misspecification": problem.misspecification}
+    st = _settings(problem) if settings is None else settings
+    B = st.rkhs_bound
+    return {"lengthscale": st.lengthscale[0, 0], "rkhs_bound": float(B.max()) if np.any(B > 0) else 1.0,
+            "misspecification": float(st.misspecification.max())}
+
+
+def _mode_extras(problem: Problem, data, partition, allowance, local) -> list:
+    """Per mode: None (the original path) or the dict of ``assumptions.bound_mode_chunk``."""
+    if _one_setting(problem):
+        return [None] * len(problem.mode_names)
+    from robust_imdp.rkhs import local_lambda
+
+    st = _settings(problem)
+    out = []
+    for u in range(len(problem.mode_names)):
+        extra = {"noise_bound": allowance[u]}
+        if not st.uniform:
+            extra["groups"] = st.groups(u)
+            if problem.error_bound == "ridge" and local[u] is not None:
+                # one ridge lambda per group, for all chunks (as _local_settings does per mode)
+                extra["local_lambda"] = [
+                    None if B == 0 else local_lambda(data[u][0], partition.cells_lower, partition.cells_upper,
+                                                     lengthscale=L, rkhs_bound=B,
+                                                     noise_l1=float(np.max(allowance[u][idx])) + tau, k=local[u][0])
+                    for idx, B, L, tau in extra["groups"]]
+        out.append(extra)
+    return out
+
+
+def _extra(mode) -> tuple:
+    """The task's optional last argument: nothing on the original path (the tasks' arguments as before)."""
+    return () if mode is None else (mode,)
+
+
+def _known_gap(problem: Problem, partition, ranges, n_cells: int = 8) -> list:
+    """Gap of the certified range of each nonlinear known part to the range it attains (sampling + IPOPT)
+    on ``n_cells`` evenly spaced cells (``KnownDynamics.achieved_range``, ``gap_to``): a diagnostic."""
+    rows = []
+    N = partition.n_cells
+    pick = np.unique(np.linspace(0, N - 1, min(n_cells, N)).round().astype(np.int64))
+    lo, up = partition.cells_lower[pick], partition.cells_upper[pick]
+    width = np.max(up - lo, axis=1)
+    for u, (m, r) in enumerate(zip(problem.maps, ranges)):
+        if r is None:
+            continue
+        from robust_imdp.known import ImageBounds
+
+        sub = ImageBounds(r.lower[pick], r.upper[pick], r.leaves[pick])
+        gap = m.achieved_range(lo, up).gap_to(sub)
+        for i in range(gap.shape[1]):
+            rows.append({"mode": problem.mode_names[u], "component": i + 1, "expression": m.expressions[i],
+                         "cells": int(pick.size), "gap_max": float(gap[:, i].max()),
+                         "gap_over_cell_width_max": float(np.max(gap[:, i] / width))})
+    return rows
+
+
 def _failure_budget(problem: Problem):
     """Split ``1 - confidence`` between the data-noise bound and the iid event (route 'optimal'/'ridge')."""
     fail = 1.0 - float(problem.confidence)
@@ -995,9 +1192,9 @@ def check_key(problem: Problem) -> str:
     d = problem.data
     _fingerprint(h, [
         robust_imdp.__version__, np.asarray(d.x, float), np.asarray(d.u), np.asarray(d.x_next, float),
-        list(problem.mode_names), [(np.asarray(m.A, float), np.asarray(m.b, float)) for m in problem.maps],
-        problem.noise, problem.gp_options.get("lengthscale", 1.0), float(problem.rkhs_bound),
-        float(problem.misspecification), CHECK_DELTA,
+        list(problem.mode_names), [_map_key(m) for m in problem.maps],
+        problem.noise, problem.gp_options.get("lengthscale", 1.0), _setting_value(problem.rkhs_bound),
+        _setting_value(problem.misspecification), CHECK_DELTA,
     ])
     return h.hexdigest()[:20]
 
@@ -1026,17 +1223,23 @@ def _check_assumption(problem: Problem, data, log: _Log, cache_dir=None):
         checks, nb = cached
     else:
         with log.stage("check"):
-            checks = check_assumption([(x, y) for x, y, _ in data],
-                                      lengthscale=problem.gp_options.get("lengthscale", 1.0),
-                                      rkhs_bound=problem.rkhs_bound, noise_bound=nb,
-                                      misspecification=problem.misspecification, mode_names=problem.mode_names,
-                                      sample_index=[idx for _, _, idx in data])
+            if _one_setting(problem):
+                checks = check_assumption([(x, y) for x, y, _ in data],
+                                          lengthscale=problem.gp_options.get("lengthscale", 1.0),
+                                          rkhs_bound=problem.rkhs_bound, noise_bound=nb,
+                                          misspecification=problem.misspecification, mode_names=problem.mode_names,
+                                          sample_index=[idx for _, _, idx in data])
+            else:  # per mode and component, with the residuals' rounding in the noise allowance
+                from robust_imdp.assumptions import check_modes
+
+                checks = check_modes([(x, y) for x, y, _ in data], _settings(problem), _noise_allowance(problem, nb),
+                                     mode_names=problem.mode_names, sample_index=[idx for _, _, idx in data])
         if check_file is not None:
             _write_json_entry(check_file, {"checks": [asdict(c) for c in checks], "noise_bound": nb})
     worst = max(checks, key=lambda c: c.minimum)
     log.info(f"assumption check{' (reused from the cache)' if cached is not None else ''}: the data need RKHS "
              f"norm >= {worst.minimum:.4g} (mode {problem.mode_names[worst.mode]}, component {worst.output + 1}); "
-             f"rkhs_bound = {problem.rkhs_bound:g}")
+             f"rkhs_bound = {_setting_text(problem.rkhs_bound)}")
     return checks, nb
 
 
@@ -1045,6 +1248,10 @@ def _fitted(problem: Problem, data):
     from robust_imdp.advice import fit_modes
 
     sigma = np.asarray(problem.noise.sub_gaussian_parameter(), float)
+    if not _settings(problem).uniform:
+        from robust_imdp.assumptions import fit_components
+
+        return fit_components([(x, y) for x, y, _ in data], problem.maps, _settings(problem), sigma)
     # ridge parameter sigma^2 / B^2: the GP posterior mean with prior variance B^2 (kept >= 1e-6)
     lam = np.maximum(sigma / float(problem.rkhs_bound), 1e-3) ** 2
     return fit_modes([(x, y) for x, y, _ in data], problem.maps, problem.gp_options.get("lengthscale", 1.0), lam)
@@ -1074,15 +1281,25 @@ def _diagnostics(problem: Problem, partition, cell_bounds, data, checks, check_n
         "cell_half_width": half.tolist(),
         "eps": rows,
         "assumption": {
-            "rkhs_bound": float(problem.rkhs_bound),
-            "lengthscale": np.broadcast_to(np.asarray(problem.gp_options.get("lengthscale", 1.0), float),
-                                           (len(half),)).tolist(),
-            "misspecification": float(problem.misspecification),
+            **_assumption_diagnostics(problem, len(half)),
             "check_noise_bound": np.asarray(check_noise, float).tolist(),
             "min_norm": [{"mode": problem.mode_names[c.mode], "component": c.output + 1, "minimum": c.minimum,
                           "n_points": c.n_points} for c in checks],
         },
     }
+
+
+def _assumption_diagnostics(problem: Problem, n: int) -> dict:
+    """rkhs_bound, lengthscale, misspecification of the diagnostics (as before with one setting); per mode and
+    component in ``per_component`` otherwise, with the largest B and tau and the smallest lengthscales on top."""
+    st = _settings(problem)
+    if st.uniform:
+        return {"rkhs_bound": float(problem.rkhs_bound),
+                "lengthscale": np.broadcast_to(np.asarray(problem.gp_options.get("lengthscale", 1.0), float),
+                                               (n,)).tolist(),
+                "misspecification": float(problem.misspecification)}
+    return {"rkhs_bound": float(st.rkhs_bound.max()), "lengthscale": st.lengthscale.min(axis=(0, 1)).tolist(),
+            "misspecification": float(st.misspecification.max()), "per_component": st.to_rows(problem.mode_names)}
 
 
 def diagnostics_line(diag: dict) -> str:
@@ -1114,9 +1331,18 @@ def _chunk_cells(run: "_Run", n_cells: int, default: int) -> int:
     return max(CELL_BLOCK, -(-min(c, max(n_cells, 1)) // CELL_BLOCK) * CELL_BLOCK)
 
 
-def _bound_task(X, Y, A, b, lower, upper, local, *, threads=1, **settings):
-    """One chunk of the bound stage; ``local`` = (points, ridge lambda) of the mode or None."""
+def _bound_task(X, Y, A, b, lower, upper, local, mode=None, *, threads=1, **settings):
+    """One chunk of the bound stage; ``local`` = (points, ridge lambda) of the mode or None; ``mode``: None
+    (the problem-wide settings) or the mode's own (``assumptions.bound_mode_chunk``)."""
     from robust_imdp.rkhs import bound_chunk
+
+    if mode is not None:
+        from robust_imdp.assumptions import bound_mode_chunk
+
+        t0 = time.perf_counter()
+        out = bound_mode_chunk(X, Y, A, b, lower, upper, local, mode, threads=threads, **settings)
+        out["seconds"] = time.perf_counter() - t0
+        return out
 
     if local is not None:
         settings = dict(settings, local_points=local[0], local_lambda=local[1])
@@ -1137,9 +1363,10 @@ def _local_settings(problem: Problem, data, partition, noise_bound):
             continue
         lam = None
         if problem.error_bound == "ridge":
+            base = _base_settings(problem)
             lam = local_lambda(x, partition.cells_lower, partition.cells_upper,
-                               lengthscale=problem.gp_options.get("lengthscale", 1.0), rkhs_bound=problem.rkhs_bound,
-                               noise_l1=float(np.max(noise_bound)) + float(problem.misspecification), k=k)
+                               lengthscale=base["lengthscale"], rkhs_bound=base["rkhs_bound"],
+                               noise_l1=float(np.max(noise_bound)) + float(base["misspecification"]), k=k)
         out.append((int(k), lam))
     return out
 
@@ -1160,6 +1387,9 @@ def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" 
 
     run = run if run is not None else _Run()
     data = _residual_data(problem)
+    # the known parts' certified ranges first: a function undefined on part of X is refused before
+    # the long stages (ExpressionDomainError names the mode, the component and the box)
+    known_ranges = _known_ranges(problem, partition.cells_lower, partition.cells_upper)
     checks, check_noise = _check_assumption(problem, data, log, cache_dir)
     if problem.error_bound == "chowdhury":
         return _learn_and_bound_gp(problem, partition, log, checks, check_noise)
@@ -1171,13 +1401,13 @@ def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" 
     M, n, N = len(problem.mode_names), len(problem.space_lower), partition.n_cells
     lo, up = partition.cells_lower, partition.cells_upper
     iid_theta = problem.noise.sub_gaussian_parameter() if problem.iid_noise else None
-    settings = {"lengthscale": problem.gp_options.get("lengthscale", 1.0), "rkhs_bound": problem.rkhs_bound,
-                "noise_bound": noise_bound, "misspecification": problem.misspecification,
+    settings = {**_base_settings(problem), "noise_bound": noise_bound,
                 "method": problem.error_bound, "iid_theta": iid_theta,
                 "iid_factor": None if iid_theta is None else hoeffding_factor(M * n * N * 2 ** n, iid_delta)}
     chunk = _chunk_cells(run, N, 256)
     tasks = [(u, s0) for u in range(M) for s0 in range(0, N, chunk)]
     local = _local_settings(problem, data, partition, noise_bound)
+    extras = _mode_extras(problem, data, partition, _noise_allowance(problem, noise_bound), local)
     if any(loc is not None for loc in local):
         log.info("local weights: " + ", ".join(f"mode {problem.mode_names[u]}: "
                                                + ("all points" if loc is None else f"{loc[0]} nearest points")
@@ -1200,7 +1430,7 @@ def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" 
             from robust_imdp import rkhs
 
             x0, y0, _ = data[0]
-            A0, b0 = problem.maps[0].A, problem.maps[0].b
+            A0, b0 = _affine_part(problem, 0)
             # The kernels' first call in a process compiles them (no warm-up at install) or loads
             # them from numba's cache (about 1 s): a one-cell call takes that time, so that the
             # timed pilot below measures bounding only.
@@ -1215,7 +1445,8 @@ def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" 
             # share the cores with whatever else runs, and this measures the speed the tasks get.
             threads = int(getattr(sched, "threads", 1))
             k = min(N, CELL_BLOCK * threads)
-            pilot = _bound_task(x0, y0, A0, b0, lo[:k], up[:k], local[0], threads=threads, **settings)
+            pilot = _bound_task(x0, y0, A0, b0, lo[:k], up[:k], local[0], *_extra(extras[0]), threads=threads,
+                                **settings)
             per_cell = pilot["seconds"] / k  # wall seconds per cell and mode, on ``threads`` threads
             lanes = max(1, sched.n_workers // threads)  # tasks running at once
             wall = per_cell * N * M * len(missing) / len(tasks) / lanes
@@ -1224,8 +1455,8 @@ def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" 
                      f"on one core), about {wall:.0f} s on {sched.n_workers} core{'s' if sched.n_workers > 1 else ''}")
             shared = [(sched.share(np.ascontiguousarray(x)), sched.share(np.ascontiguousarray(y)))
                       for x, y, _ in data]  # sent to the workers once
-            args = [(*shared[u], problem.maps[u].A, problem.maps[u].b, lo[s0:s0 + chunk], up[s0:s0 + chunk],
-                     local[u]) for u, s0 in missing]
+            args = [(*shared[u], *_affine_part(problem, u), lo[s0:s0 + chunk], up[s0:s0 + chunk],
+                     local[u], *_extra(extras[u])) for u, s0 in missing]
             t0 = time.perf_counter()
             for i, res in sched.run(_bound_task, args, settings):
                 key = missing[i]
@@ -1244,6 +1475,8 @@ def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" 
         unconv += int(r["n_unconverged"])
     for u in range(M):
         check_ranges(lower[u], upper[u], u)
+        if known_ranges[u] is not None:  # f_u's certified range plus g_u's (the chunks bounded g_u alone)
+            _add_known_range(lower[u], upper[u], known_ranges[u])
     confidence = 1.0 - data_fail - (iid_delta if iid_theta is not None else 0.0)
     log.info(f"bounded images of {N} cells x {M} modes x {n} outputs ({problem.error_bound} weights)")
     if confidence >= 1.0:
@@ -1261,6 +1494,8 @@ def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" 
     cell_bounds = CellBounds(lower, upper, None)
     diag = _diagnostics(problem, partition, cell_bounds, data, checks, check_noise, confidence, statement)
     diag["support_median"] = float(np.median(support))
+    if any(r is not None for r in known_ranges):
+        diag["known_part_gap"] = _known_gap(problem, partition, known_ranges)
     if unconv:
         diag["unconverged_vertex_problems"] = int(unconv)
     return cell_bounds, None, diag
@@ -1512,6 +1747,8 @@ def _advice(problem: Problem, partition, cell_bounds, dfa, classes, log: _Log, r
     from robust_imdp.advice import MAX_AUTO_TRANSITIONS, MAX_CELLS, advice_line, advise
 
     want = getattr(run, "advice", "auto")
+    if not _settings(problem).uniform:
+        return {}  # the smaller-B lever halves one B; per-mode and per-component assumptions have many
     n_fine = partition.n_cells * 2 ** partition.dim
     work = n_fine * len(problem.mode_names) * 3 ** partition.dim  # ~ listed transitions of the finer grid
     if (want is False or (want == "auto" and (n_fine > MAX_CELLS or work > MAX_AUTO_TRANSITIONS))
@@ -1568,10 +1805,10 @@ def _cell_bounder(problem: Problem, partition, log: _Log, run: _Run):
     data_fail, _ = _failure_budget(problem)
     m_total = sum(x.shape[0] for x, _, _ in data)
     noise_bound, _ = noise_bound_at_confidence(problem.noise, m_total, data_fail if data_fail > 0 else 0.5)
-    settings = {"lengthscale": problem.gp_options.get("lengthscale", 1.0), "rkhs_bound": problem.rkhs_bound,
-                "noise_bound": noise_bound, "misspecification": problem.misspecification,
+    settings = {**_base_settings(problem), "noise_bound": noise_bound,
                 "method": problem.error_bound, "iid_theta": None, "iid_factor": None}
     local = _local_settings(problem, data, partition, noise_bound)
+    extras = _mode_extras(problem, data, partition, _noise_allowance(problem, noise_bound), local)
     sched = run.scheduler(log)
     shared = [(sched.share(np.ascontiguousarray(x)), sched.share(np.ascontiguousarray(y))) for x, y, _ in data]
     M, n = len(problem.mode_names), len(problem.space_lower)
@@ -1580,14 +1817,17 @@ def _cell_bounder(problem: Problem, partition, log: _Log, run: _Run):
         k = lower.shape[0]
         chunk = _chunk_cells(run, k, 256)
         tasks = [(u, s0) for u in range(M) for s0 in range(0, k, chunk)]
-        args = [(*shared[u], problem.maps[u].A, problem.maps[u].b, lower[s0:s0 + chunk], upper[s0:s0 + chunk],
-                 local[u]) for u, s0 in tasks]
+        args = [(*shared[u], *_affine_part(problem, u), lower[s0:s0 + chunk], upper[s0:s0 + chunk],
+                 local[u], *_extra(extras[u])) for u, s0 in tasks]
         lo, hi = np.empty((M, k, n)), np.empty((M, k, n))
         for i, res in sched.run(_bound_task, args, settings):
             u, s0 = tasks[i]
             lo[u, s0:s0 + chunk], hi[u, s0:s0 + chunk] = res["lower"], res["upper"]
+        known = _known_ranges(problem, lower, upper)
         for u in range(M):
             check_ranges(lo[u], hi[u], u)
+            if known[u] is not None:  # f_u's certified range plus g_u's
+                _add_known_range(lo[u], hi[u], known[u])
         return lo, hi
 
     return bound_cells

@@ -1,7 +1,8 @@
 """Switched stochastic systems and their data (the paper's eq. (system) and data set D).
 
 ``x_{k+1} = f_u(x_k) + g_u(x_k) + v_k``: the known part ``f_u`` is affine
-(:class:`AffineMap`), ``g_u`` is unknown (learned by ``gp.learn`` from the residuals
+(:class:`AffineMap`) or any ``known.KnownDynamics`` (both have ``dim``, ``__call__``,
+``image_bounds`` and ``fingerprint``), ``g_u`` is unknown (learned by ``gp.learn`` from the residuals
 ``y = x_next - f_u(x)``, eq. (NewDataset)), ``v_k`` is i.i.d. noise.
 
 * :class:`Dataset` -- validated samples ``(x_i, u_i, x_next_i)``.
@@ -206,6 +207,51 @@ class AffineMap:
         if x.ndim != 2 or x.shape[1] != self.dim:
             raise DimensionError(f"x must have shape (k, {self.dim}); got {x.shape}")
         return x @ self.A.T + self.b
+
+    def image_bounds(self, lower: Any, upper: Any):
+        """Certified range of every component over boxes, rounded outward.
+
+        ``min_{x in box} a.x + b = b + sum_j min(a_j lo_j, a_j hi_j)`` (and max likewise). Each
+        product is correctly rounded (relative error u), the sum of ``n + 1`` terms adds at most
+        ``gamma_n`` times the sum of their magnitudes; the bound moves out by ``gamma_{n+2}`` of
+        that sum (plus 1e-300 for underflow) and one more ulp.
+
+        Parameters
+        ----------
+        lower, upper : (k, n) float arrays, ``lower <= upper``
+
+        Returns
+        -------
+        known.ImageBounds with ``lower``, ``upper`` (k, n) and ``leaves`` (k,) (all 1)
+        """
+        from robust_imdp.known import ImageBounds
+
+        lo = np.asarray(lower, dtype=np.float64)
+        hi = np.asarray(upper, dtype=np.float64)
+        if lo.ndim != 2 or lo.shape[1] != self.dim or hi.shape != lo.shape:
+            raise DimensionError(f"lower and upper must have shape (k, {self.dim}); got {lo.shape}, {hi.shape}")
+        if not np.all(lo <= hi):
+            r = int(np.argwhere(~(lo <= hi))[0][0])
+            raise InvalidInputError(f"boxes must have lower <= upper; box {r} is {lo[r].tolist()}, {hi[r].tolist()}")
+        p_lo = self.A[None, :, :] * lo[:, None, :]  # (k, n_out, n): a_ij lo_j
+        p_hi = self.A[None, :, :] * hi[:, None, :]
+        t_min = np.minimum(p_lo, p_hi)
+        t_max = np.maximum(p_lo, p_hi)
+        n = self.dim
+        u = 2.0 ** -53
+        gamma = (n + 2) * u / (1.0 - (n + 2) * u) * 1.01
+        s_min = t_min.sum(axis=2) + self.b
+        s_max = t_max.sum(axis=2) + self.b
+        e_min = gamma * (np.abs(t_min).sum(axis=2) + np.abs(self.b)) + 1e-300
+        e_max = gamma * (np.abs(t_max).sum(axis=2) + np.abs(self.b)) + 1e-300
+        return ImageBounds(lower=np.nextafter(s_min - e_min, -np.inf), upper=np.nextafter(s_max + e_max, np.inf),
+                           leaves=np.ones(lo.shape[0], dtype=np.int64))
+
+    def fingerprint(self) -> str:
+        """A digest of ``A`` and ``b`` (cache keys)."""
+        import hashlib
+
+        return hashlib.sha256(b"AffineMap" + self.A.tobytes() + self.b.tobytes()).hexdigest()
 
 
 class ModeResiduals(NamedTuple):
