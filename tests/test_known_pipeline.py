@@ -298,6 +298,9 @@ def test_problem_file_with_f_runs_end_to_end(tmp_path, capsys):
     doc = json.loads((out / "result.json").read_text())
     assert doc["parameters"]["known_parts"]["a"] == ["x1 + 0.2*cos(x2)", "x2 + 0.1*sin(3*x1)"]
     assert doc["parameters"]["rkhs_bound"] == {"a": [0.08, 0.04], "b": [0.05, 0.02]}
+    from test_result_schema import SCHEMA, validate_schema
+
+    assert validate_schema(doc, SCHEMA) == []
     gaps = doc["diagnostics"]["known_part_gap"]
     assert len(gaps) == 4 and max(r["gap_over_cell_width_max"] for r in gaps) < 1e-2
     # the same problem in Python gives the same boxes as the file

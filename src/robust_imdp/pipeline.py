@@ -397,8 +397,8 @@ def _known_part(m, name):
         A, b = m
     except (TypeError, ValueError):
         raise InvalidInputError(
-            f"modes must give (A, b), an AffineMap, a KnownDynamics, a list of expressions in x1..xn or a pair "
-            f"(casadi expression, casadi symbol) for mode {name!r}; got {m!r}") from None
+            f"modes must give (A, b) or an AffineMap for mode {name!r}; got {m!r} (a nonlinear known part: a "
+            "KnownDynamics, a list of expressions in x1..xn or a pair (casadi expression, casadi symbol))") from None
     return AffineMap(A, b)
 
 
