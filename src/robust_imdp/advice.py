@@ -250,9 +250,9 @@ class Lever:
     note: str = ""
 
     def to_dict(self) -> dict:
+        """JSON-able, without ``seconds`` (a result file differs from another only in its timings)."""
         return {"name": self.name, "setting": self.setting, "q_yes_share": self.q_yes_share, "gain": self.gain,
-                "n_cells": self.n_cells, "excess_ratio": self.excess_ratio, "seconds": self.seconds,
-                "note": self.note}
+                "n_cells": self.n_cells, "excess_ratio": self.excess_ratio, "note": self.note}
 
 
 @dataclass(frozen=True)
@@ -266,8 +266,9 @@ class Advice:
     note: str = ""
 
     def to_dict(self) -> dict:
+        """JSON-able, without ``seconds`` (the run's ``timings["advice"]`` has the time)."""
         return {"baseline_share": self.baseline_share, "levers": [lv.to_dict() for lv in self.levers],
-                "winner": self.winner, "seconds": self.seconds, "note": self.note}
+                "winner": self.winner, "note": self.note}
 
 
 def advice_line(adv: dict) -> str:
@@ -293,7 +294,7 @@ def advice_line(adv: dict) -> str:
                 f"{pct(w['q_yes_share'])} of X" + (f"; {others}" if others else ""))
     if skipped:
         text += f"; not estimated: {skipped}"
-    return text + f" (estimated in {adv.get('seconds', 0.0):.1f} s by re-solving with modified image boxes)"
+    return text + " (estimated by re-solving with modified image boxes)"
 
 
 def _share(partition, yes) -> float:
@@ -414,8 +415,10 @@ def advise(partition, cell_bounds, fits: FittedModes, noise, dfa, *, threshold: 
         glo, ghi = fits.grid_ranges(fine.breakpoints)
         ratio = None
         if bound_cells is not None:
-            # one sub-cell per pilot cell, its position cycling through the 2^d children
-            sub = np.array([np.flatnonzero(parent == q)[k % 2 ** d] for k, q in enumerate(pilot)])
+            # one sub-cell per pilot cell, its position cycling through the children (2^d, or fewer
+            # where a region's boundary already split the cell)
+            kids = [np.flatnonzero(parent == q) for q in pilot]
+            sub = np.array([c[k % c.size] for k, c in enumerate(kids)])
             blo, bhi = bound_cells(fine.cells_lower[sub], fine.cells_upper[sub], rkhs_bound)
             s_lo, s_hi = _excess_sides(blo, bhi, glo[:, sub], ghi[:, sub])
             ratio = _ratio(np.concatenate([s_lo, s_hi], axis=1),

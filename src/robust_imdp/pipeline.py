@@ -1776,7 +1776,8 @@ def _advice(problem: Problem, partition, cell_bounds, dfa, classes, log: _Log, r
 
     def bound_cells(lower, upper, rkhs_bound):
         if rkhs_bound not in bounders:
-            bounders[rkhs_bound] = _cell_bounder(problem.replace(rkhs_bound=rkhs_bound), partition, _Log(False), run)
+            bounders[rkhs_bound] = _cell_bounder(problem.replace(rkhs_bound=rkhs_bound), partition, _Log(False), run,
+                                                 task=_pilot_task)
         return bounders[rkhs_bound](lower, upper)
 
     with log.stage("advice"):
@@ -1793,7 +1794,16 @@ def _advice(problem: Problem, partition, cell_bounds, dfa, classes, log: _Log, r
     return out
 
 
-def _cell_bounder(problem: Problem, partition, log: _Log, run: _Run):
+def _pilot_task(X, Y, A, b, lower, upper, local, *, threads=1, **settings):
+    """The advice's pilot cells: the work of :func:`_bound_task` under its own name (not a bound-stage chunk)."""
+    from robust_imdp.rkhs import bound_chunk
+
+    if local is not None:
+        settings = dict(settings, local_points=local[0], local_lambda=local[1])
+    return bound_chunk(X, Y, A, b, lower, upper, threads=threads, **settings)
+
+
+def _cell_bounder(problem: Problem, partition, log: _Log, run: _Run, task=None):
     """``bound_cells(lower, upper) -> (image_lower, image_upper)`` for new cells: the bound stage's settings.
 
     The same data, noise bound (one event over the data, whatever the cells), weights and local
@@ -1820,7 +1830,7 @@ def _cell_bounder(problem: Problem, partition, log: _Log, run: _Run):
         args = [(*shared[u], *_affine_part(problem, u), lower[s0:s0 + chunk], upper[s0:s0 + chunk],
                  local[u], *_extra(extras[u])) for u, s0 in tasks]
         lo, hi = np.empty((M, k, n)), np.empty((M, k, n))
-        for i, res in sched.run(_bound_task, args, settings):
+        for i, res in sched.run(task or _bound_task, args, settings):
             u, s0 = tasks[i]
             lo[u, s0:s0 + chunk], hi[u, s0:s0 + chunk] = res["lower"], res["upper"]
         known = _known_ranges(problem, lower, upper)
