@@ -93,14 +93,17 @@ def test_image_is_the_outward_sum_of_the_f_range_and_the_g_range():
     # the noise allowance (noise bound + residual rounding), summed with one ulp outward.
     from robust_imdp.rkhs import bound_chunk
 
+    # The allowance is the largest over the modes (one noise bound for every mode, as the one-setting
+    # path has): dbar plus each mode's largest rounding bound, rounded up, then the maximum.
     p = _problem()
     part, cb, _ = _bounds(p)
+    nb = np.max([np.nextafter(BOUND + KnownDynamics(F[m]).residuals(*p.data.by_mode(u)).bound.max(axis=0), np.inf)
+                 for u, m in enumerate(("a", "b"))], axis=0)
     for u, mode in enumerate(("a", "b")):
         f = KnownDynamics(F[mode])
         fr = f.image_bounds(part.cells_lower, part.cells_upper)
         x, xn = p.data.by_mode(u)
         res = f.residuals(x, xn)
-        nb = np.nextafter(BOUND + res.bound.max(axis=0), np.inf)
         g = bound_chunk(x, res.y, np.zeros((2, 2)), np.zeros(2), part.cells_lower, part.cells_upper,
                         lengthscale=LENGTHSCALE, rkhs_bound=0.1, noise_bound=nb)
         lo, hi = add_ranges(g["lower"], g["upper"], fr.lower, fr.upper)

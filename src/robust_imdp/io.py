@@ -616,8 +616,11 @@ def _check_samples_possible(spec, noise, x, u, x_next, rows) -> None:
         sel = np.flatnonzero(u == m)
         nb_m = nb
         if isinstance(part, tuple):
-            A, b = part
-            res = x_next[sel] - (x[sel] @ A.T + b)
+            from robust_imdp.system import AffineMap
+
+            r_all = AffineMap(*part).residuals(x[sel], x_next[sel])
+            res = r_all.y
+            nb_m = np.nextafter(nb + (r_all.bound.max(axis=0) if sel.size else 0.0), np.inf)
         else:  # a nonlinear known part: its residuals' rounding bound joins the noise allowance (as in the pipeline)
             r_all = part.residuals(x[sel], x_next[sel])
             res = r_all.y

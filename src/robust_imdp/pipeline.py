@@ -1082,17 +1082,23 @@ def _noise_allowance(problem: Problem, noise_bound) -> np.ndarray:
 
     Eq. W (docs/rkhs_bounds.md, section 1) needs ``|h(x_i) - y_i| <= dbar + tau`` for the residuals
     it is given. For a nonlinear known part the computed residual ``fl(x_next - fl(f(x)))`` is within
-    ``r_i`` of the exact ``y_i`` (``KnownDynamics.residuals``), so the certificate and the assumption
-    check take ``dbar + max_i r_i`` per component, rounded up. Affine parts keep ``dbar``.
+    ``r_i`` of the exact ``y_i`` (``KnownDynamics.residuals``, ``AffineMap.residuals`` for an affine
+    part), so the certificate and the assumption check take ``dbar + max_i r_i`` per component,
+    rounded up.
     """
     M, n = len(problem.mode_names), int(np.size(problem.space_lower))
     out = np.array(np.broadcast_to(np.asarray(noise_bound, float), (M, n)))
     for u, m in enumerate(problem.maps):
-        if not _is_affine(m):
-            x, xn = problem.data.by_mode(u)
+        x, xn = problem.data.by_mode(u)
+        if x.shape[0]:
             rb = m.residuals(x, xn).bound.max(axis=0)
             out[u] = np.nextafter(out[u] + rb, np.inf)
     return out
+
+
+def _shared_allowance(problem: Problem, noise_bound) -> np.ndarray:
+    """(n,) the largest data-noise allowance over the modes (the one-setting path's single noise bound)."""
+    return np.max(_noise_allowance(problem, noise_bound), axis=0)
 
 
 def _known_ranges(problem: Problem, cells_lower, cells_upper) -> list:
@@ -1130,7 +1136,7 @@ def _mode_extras(problem: Problem, data, partition, allowance, local) -> list:
     st = _settings(problem)
     out = []
     for u in range(len(problem.mode_names)):
-        extra = {"noise_bound": allowance[u]}
+        extra = {"noise_bound": np.asarray(allowance, float)}
         if not st.uniform:
             extra["groups"] = st.groups(u)
             if problem.error_bound == "ridge" and local[u] is not None:
@@ -1226,7 +1232,7 @@ def _check_assumption(problem: Problem, data, log: _Log, cache_dir=None):
             if _one_setting(problem):
                 checks = check_assumption([(x, y) for x, y, _ in data],
                                           lengthscale=problem.gp_options.get("lengthscale", 1.0),
-                                          rkhs_bound=problem.rkhs_bound, noise_bound=nb,
+                                          rkhs_bound=problem.rkhs_bound, noise_bound=_shared_allowance(problem, nb),
                                           misspecification=problem.misspecification, mode_names=problem.mode_names,
                                           sample_index=[idx for _, _, idx in data])
             else:  # per mode and component, with the residuals' rounding in the noise allowance
@@ -1401,13 +1407,14 @@ def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" 
     M, n, N = len(problem.mode_names), len(problem.space_lower), partition.n_cells
     lo, up = partition.cells_lower, partition.cells_upper
     iid_theta = problem.noise.sub_gaussian_parameter() if problem.iid_noise else None
-    settings = {**_base_settings(problem), "noise_bound": noise_bound,
+    settings = {**_base_settings(problem), "noise_bound": _shared_allowance(problem, noise_bound),
                 "method": problem.error_bound, "iid_theta": iid_theta,
                 "iid_factor": None if iid_theta is None else hoeffding_factor(M * n * N * 2 ** n, iid_delta)}
     chunk = _chunk_cells(run, N, 256)
     tasks = [(u, s0) for u in range(M) for s0 in range(0, N, chunk)]
     local = _local_settings(problem, data, partition, noise_bound)
-    extras = _mode_extras(problem, data, partition, _noise_allowance(problem, noise_bound), local)
+    # one allowance for every mode (the largest), as on the one-setting path: equal settings, equal bytes
+    extras = _mode_extras(problem, data, partition, _shared_allowance(problem, noise_bound), local)
     if any(loc is not None for loc in local):
         log.info("local weights: " + ", ".join(f"mode {problem.mode_names[u]}: "
                                                + ("all points" if loc is None else f"{loc[0]} nearest points")
@@ -1815,10 +1822,11 @@ def _cell_bounder(problem: Problem, partition, log: _Log, run: _Run, task=None):
     data_fail, _ = _failure_budget(problem)
     m_total = sum(x.shape[0] for x, _, _ in data)
     noise_bound, _ = noise_bound_at_confidence(problem.noise, m_total, data_fail if data_fail > 0 else 0.5)
-    settings = {**_base_settings(problem), "noise_bound": noise_bound,
+    settings = {**_base_settings(problem), "noise_bound": _shared_allowance(problem, noise_bound),
                 "method": problem.error_bound, "iid_theta": None, "iid_factor": None}
     local = _local_settings(problem, data, partition, noise_bound)
-    extras = _mode_extras(problem, data, partition, _noise_allowance(problem, noise_bound), local)
+    # one allowance for every mode (the largest), as on the one-setting path: equal settings, equal bytes
+    extras = _mode_extras(problem, data, partition, _shared_allowance(problem, noise_bound), local)
     sched = run.scheduler(log)
     shared = [(sched.share(np.ascontiguousarray(x)), sched.share(np.ascontiguousarray(y))) for x, y, _ in data]
     M, n = len(problem.mode_names), len(problem.space_lower)

@@ -247,6 +247,27 @@ class AffineMap:
         return ImageBounds(lower=np.nextafter(s_min - e_min, -np.inf), upper=np.nextafter(s_max + e_max, np.inf),
                            leaves=np.ones(lo.shape[0], dtype=np.int64))
 
+    def residuals(self, x: Any, x_next: Any):
+        """``y = fl(x_next - fl(A x + b))`` with a bound on its rounding error (``known.Residuals``).
+
+        The certificate (eq. W of docs/rkhs_bounds.md) needs the exact residual within the data-noise
+        allowance, so the float error of ``y`` joins it. ``fl(A x + b)`` is a sum of ``n + 1`` correctly
+        rounded products in any order (BLAS, FMA or not): error ``<= gamma_{n+1} (|A| |x| + |b|)``; the
+        subtraction adds at most half an ulp of ``|y|`` (bounded by one ``spacing``). The sum is moved
+        up by ``gamma_3`` relative, 1e-300 absolute and one ulp.
+        """
+        from robust_imdp.known import Residuals
+
+        x = np.asarray(x, dtype=np.float64)
+        xn = np.asarray(x_next, dtype=np.float64)
+        y = xn - self(x)
+        n = self.dim
+        u = 2.0 ** -53
+        g = (n + 1) * u / (1.0 - (n + 1) * u)
+        e = g * (np.abs(x) @ np.abs(self.A).T + np.abs(self.b)) + np.spacing(np.abs(y))
+        e = np.nextafter(e * (1.0 + 4 * u) + 1e-300, np.inf)
+        return Residuals(y=y, bound=e)
+
     def fingerprint(self) -> str:
         """A digest of ``A`` and ``b`` (cache keys)."""
         import hashlib
