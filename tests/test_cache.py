@@ -11,29 +11,8 @@ import robust_imdp.pipeline as pipeline
 import robust_imdp.rkhs as rkhs
 from robust_imdp.errors import RobustImdpWarning
 from robust_imdp.io import load_problem
+from problem_texts import ONE_D
 
-ONE_D = """
-[space]
-lower = [0.0]
-upper = [4.0]
-cell_size = [0.25]
-[[regions.des]]
-lower = [2.0]
-upper = [3.0]
-[spec]
-formula = "F des"
-threshold = 0.9
-[data]
-path = "d.csv"
-[modes.a]
-A = [[0.5]]
-b = [1.0]
-[noise]
-kind = "uniform"
-bound = [0.01]
-[gp]
-rkhs_bound = 1.0
-"""
 
 
 @pytest.fixture

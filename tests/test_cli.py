@@ -7,6 +7,7 @@ import sys
 import pytest
 
 from robust_imdp.cli import main
+from problem_texts import ONE_D
 
 GOOD_HEAD = """
 [space]
@@ -328,28 +329,6 @@ def test_simulate_user_system_errors_name_the_file_and_the_interface(synthetic_r
     assert "Traceback" not in err
 
 
-ONE_D = """
-[space]
-lower = [0.0]
-upper = [4.0]
-cell_size = [0.25]
-[[regions.des]]
-lower = [2.0]
-upper = [3.0]
-[spec]
-formula = "F des"
-threshold = 0.9
-[data]
-path = "d.csv"
-[modes.a]
-A = [[0.5]]
-b = [1.0]
-[noise]
-kind = "uniform"
-bound = [0.01]
-[gp]
-rkhs_bound = 1.0
-"""
 
 
 @pytest.mark.slow

@@ -7,28 +7,8 @@ import pytest
 from robust_imdp.cli import main
 from robust_imdp.errors import ProblemFileError
 from robust_imdp.io import load_problem, load_result, parse_problem_file, read_data_file
+from problem_texts import ONE_D_TEMPLATE as TOML
 
-TOML = """[space]
-lower = [0.0]
-upper = [4.0]
-cell_size = [0.25]
-[[regions.des]]
-lower = [2.0]
-upper = [3.0]
-[spec]
-formula = "F des"
-threshold = 0.9
-[data]
-path = "{data}"
-[modes.a]
-A = [[0.5]]
-b = [1.0]
-[noise]
-kind = "uniform"
-bound = [0.01]
-[gp]
-rkhs_bound = 1.0
-"""
 
 CSV = "x_1,u,x_next_1\n0.5,a,1.25\n1.5,a,1.75\n"
 
