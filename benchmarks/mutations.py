@@ -345,6 +345,11 @@ MUTATIONS = [
                       "ranges.lower), ranges.upper - 1e-3 * (ranges.upper - ranges.lower))"),
          description="pipeline: the known part's certified range shrunk inward by 0.1 % of its width per side "
                      "before it is added to g's range"),
+    dict(name="affine-residual-rounding-off", file="src/robust_imdp/system.py",
+         original="        e = g * (np.abs(x) @ np.abs(self.A).T + np.abs(self.b)) + np.spacing(np.abs(y))",
+         replacement="        e = 0.0 * (g * (np.abs(x) @ np.abs(self.A).T + np.abs(self.b)) + np.spacing(np.abs(y)))",
+         description="system: the affine known part's residual rounding bound set to 0 (an a-priori gamma bound: "
+                     "a 0.1 % shrink of it cannot be seen against exact arithmetic, its absence can)"),
     dict(name="pipeline-rounding-allowance-off", file=_PIPE,
          original="            out[u] = np.nextafter(out[u] + rb, np.inf)",
          replacement="            out[u] = out[u] + 0.0 * rb",
