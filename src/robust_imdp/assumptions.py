@@ -329,7 +329,7 @@ def check_modes(data, settings: Settings, noise_bound, *, mode_names, sample_ind
         Naming ``[gp].rkhs_bound``, the mode, the component and the sample (or the data-implied
         minimum), for the worst refuted component.
     """
-    from robust_imdp.rkhs import NormCheck, min_rkhs_norm
+    from robust_imdp.rkhs import NormCheck, min_rkhs_norm, refutation_reason
 
     nb = np.asarray(noise_bound, float)
     checks, bad = [], []
@@ -355,12 +355,7 @@ def check_modes(data, settings: Settings, noise_bound, *, mode_names, sample_ind
                 f"misspecification = {nbi + tau:.6g}: the known part does not explain the data; give the component "
                 "an rkhs_bound > 0, a misspecification allowance, or check the known part and the data"
                 + (f" ({len(bad)} components are refuted)" if len(bad) > 1 else ""))
-        if c.single_minimum > B:
-            why = (f"sample {c.sample} alone has residual {c.residual:.6g} in component {c.output + 1}, but |g| <= B + "
-                   f"noise bound + misspecification = {B + nbi + tau:.6g} everywhere")
-        else:
-            why = (f"no function of RKHS norm <= {B:g} fits its {c.n_points} samples within the noise bound "
-                   f"{nbi:g}" + (f" + misspecification {tau:g}" if tau else ""))
+        why = refutation_reason(c, B, nbi, tau)
         raise AssumptionError(
             f"[gp].rkhs_bound = {B:g} for mode {name!r}, component {c.output + 1} is refuted by the data: it needs an "
             f"RKHS norm of at least {c.minimum:.4g} (lengthscale {settings.lengthscale[c.mode, c.output].tolist()}); "

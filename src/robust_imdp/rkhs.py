@@ -1316,14 +1316,7 @@ def check_assumption(data, *, lengthscale, rkhs_bound: float, noise_bound, missp
         bad = [c for c in checks if c.minimum > float(rkhs_bound)]
         if bad:
             c = max(bad, key=lambda c: c.minimum)
-            tau = float(misspecification)
-            if c.single_minimum > float(rkhs_bound):
-                why = (f"sample {c.sample} alone has residual {c.residual:.6g} in component {c.output + 1}, but "
-                       f"|g| <= B + noise bound + misspecification = "
-                       f"{float(rkhs_bound) + float(nb[c.output]) + tau:.6g} everywhere")
-            else:
-                why = (f"no function of RKHS norm <= {float(rkhs_bound):g} fits its {c.n_points} samples within "
-                       f"the noise bound {float(nb[c.output]):g}" + (f" + misspecification {tau:g}" if tau else ""))
+            why = refutation_reason(c, float(rkhs_bound), float(nb[c.output]), float(misspecification))
             raise AssumptionError(
                 f"[gp].rkhs_bound = {float(rkhs_bound):g} is refuted by the data: mode {names[c.mode]!r}, component "
                 f"{c.output + 1} needs an RKHS norm of at least {c.minimum:.4g} (lengthscale "
@@ -1331,6 +1324,16 @@ def check_assumption(data, *, lengthscale, rkhs_bound: float, noise_bound, missp
                 "a different lengthscale, a misspecification allowance, or check the data"
                 + (f" ({len(bad)} of {len(checks)} components are refuted)" if len(bad) > 1 else ""))
     return tuple(checks)
+
+
+def refutation_reason(c, rkhs_bound: float, noise_bound: float, tau: float) -> str:
+    """Why the check ``c`` refutes ``rkhs_bound``: one sample beyond ``B + noise bound + tau``, or no
+    function of norm <= B fitting the samples (the refusal messages of every assumption check)."""
+    if c.single_minimum > rkhs_bound:
+        return (f"sample {c.sample} alone has residual {c.residual:.6g} in component {c.output + 1}, but "
+                f"|g| <= B + noise bound + misspecification = {rkhs_bound + noise_bound + tau:.6g} everywhere")
+    return (f"no function of RKHS norm <= {rkhs_bound:g} fits its {c.n_points} samples within "
+            f"the noise bound {noise_bound:g}" + (f" + misspecification {tau:g}" if tau else ""))
 
 
 # ============================================================================ noise events
