@@ -313,6 +313,17 @@ def test_problem_file_with_f_runs_end_to_end(tmp_path, capsys):
     assert isinstance(p.maps[0], KnownDynamics) and p.maps[0].name.endswith("[modes.a]")
 
 
+def test_advice_runs_with_a_nonlinear_known_part(tmp_path, capsys):
+    """The advice's pilot cells go through the bound task of a mode with its own known part (its
+    extra arguments once crashed the pilot task); the advice is written and names the levers."""
+    path = _write(tmp_path)
+    out = tmp_path / "out"
+    code, err = _cli(["run", str(path), "--out", str(out), "--no-figures", "--quiet", "--advice", "on"], capsys)
+    assert code == 0, err
+    adv = json.loads((out / "result.json").read_text())["diagnostics"]["advice"]
+    assert adv and "internal error" not in err
+
+
 @pytest.mark.parametrize("mode_a, match", [
     ('f = ["x1 + * 2", "x2"]', r"p\.toml: \[modes\.a\]: f\[1\] = \"x1 \+ \* 2\": unexpected '\*' at position 5"),
     ('f = ["x1", "x3 + 1"]', r"p\.toml: \[modes\.a\]: f\[2\] = \"x3 \+ 1\": .*x3.*x1\.\.x2"),

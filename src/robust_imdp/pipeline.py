@@ -1801,13 +1801,10 @@ def _advice(problem: Problem, partition, cell_bounds, dfa, classes, log: _Log, r
     return out
 
 
-def _pilot_task(X, Y, A, b, lower, upper, local, *, threads=1, **settings):
-    """The advice's pilot cells: the work of :func:`_bound_task` under its own name (not a bound-stage chunk)."""
-    from robust_imdp.rkhs import bound_chunk
-
-    if local is not None:
-        settings = dict(settings, local_points=local[0], local_lambda=local[1])
-    return bound_chunk(X, Y, A, b, lower, upper, threads=threads, **settings)
+def _pilot_task(*args, threads=1, **settings):
+    """The advice's pilot cells: the work of :func:`_bound_task` (same arguments, including a mode's own
+    settings) under its own name, so that progress does not count them as bound-stage chunks."""
+    return _bound_task(*args, threads=threads, **settings)
 
 
 def _cell_bounder(problem: Problem, partition, log: _Log, run: _Run, task=None):

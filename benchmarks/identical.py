@@ -1,0 +1,282 @@
+"""Behaviour check for refactors: are a tree's results identical to another tree's?
+
+    python benchmarks/identical.py record OUT [--src SRC] [--full]   # run every problem, write digests
+    python benchmarks/identical.py compare A B                       # exit 1 if any result differs
+
+``record`` runs ``robust-imdp run`` on every shipped problem file (``examples/problems``, the
+newcomer problems of ``examples/newcomer`` with their data generators, the case studies written
+by ``robust-imdp example``) and on small variants of the first case study that take the other code
+paths (ridge and local weights, the GP route, iid noise, known nonlinear parts, per-component
+settings, refinement, a finite horizon, other noise kinds, a 1-D problem). ``--src`` puts another
+checkout's ``src`` first on ``PYTHONPATH`` (the tree before a change); the problem files always
+come from *this* checkout, so both trees solve the same problems.
+
+Compared: ``result.json`` with the fields that measure the run rather than the result removed
+(``version``, ``timings`` and, anywhere in ``diagnostics``, keys naming seconds, times, memory or
+progress; the removed key paths are listed in the digest file), and every array of ``result.npz``
+(dtype, shape and bytes). The npz *file* bytes differ from run to run by design (zip entries
+carry the write time), so its arrays are compared instead. The digests and the full outputs are
+kept in OUT; ``compare`` prints the first differing key of a differing result.
+
+Slow problems (the 3-D and 4-D newcomer problems, the 3-D case study at 16^3) run only with
+``--full``.
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+#: keys (anywhere under diagnostics) that measure the run, not the result
+_RUN_KEYS = re.compile(r"(seconds|_s$|^time|_time|elapsed|rss|memory|wall|progress|workers|threads)", re.I)
+
+_VARIANT_BASE = ROOT / "examples" / "problems" / "three_mode_linear.toml"
+
+
+def _variants() -> dict[str, tuple[str, str]]:
+    """name -> (edit to the coarse three-mode problem, what path it takes)."""
+    return {
+        "v_ridge": ('[gp]\nerror_bound = "ridge"\n', "ridge weights"),
+        "v_local": ("[gp]\nlocal_points = 40\n", "local optimal weights"),
+        "v_local_ridge": ('[gp]\nlocal_points = 40\nerror_bound = "ridge"\n', "local ridge weights"),
+        "v_gp": ('[gp]\nerror_bound = "chowdhury"\n', "GP route (Chowdhury & Gopalan)"),
+        "v_iid": ("[gp]\niid_noise = true\n", "iid (sub-Gaussian) route"),
+        "v_known_f": ("MODES_F", "known nonlinear parts f = [...]"),
+        "v_per_component": ('[gp]\nrkhs_bound = {"1" = [6.0, 5.0], "2" = [6.0, 6.0], "3" = [5.5, 6.0]}\n'
+                            'misspecification = [0.001, 0.002]\n', "per-mode and per-component settings"),
+        "v_refine": ("[refine]\nmax_cells = 160\nmax_rounds = 2\n", "adaptive refinement"),
+        "v_horizon": ("[spec]\nhorizon = 6\n", "finite horizon"),
+        "v_uniform": ('[noise]\nkind = "uniform"\nbound = [0.01, 0.01]\n', "uniform noise"),
+        "v_abstraction": ('[abstraction]\neps_rule = "paper"\neta = [0.05, 0.05]\n', "the paper's eps rule"),
+    }
+
+
+def _edit_toml(text: str, edit: str) -> str:
+    """Apply an edit to a problem text: table keys in ``edit`` replace or join those of the same table."""
+    if edit == "MODES_F":
+        for m in ("1", "2", "3"):
+            text = text.replace(f'[modes."{m}"]\nA = [[0.0, 0.0], [0.0, 0.0]]\nb = [0.0, 0.0]\n',
+                                f'[modes."{m}"]\nf = ["0.0*sin(x1) + 0.0*x2", "0.0*cos(x2)"]\n')
+        return text
+    table, body = edit.split("\n", 1)
+    lines = text.splitlines(keepends=True)
+    new_keys = {ln.split("=", 1)[0].strip(): ln for ln in body.splitlines(keepends=True) if "=" in ln}
+    if table + "\n" not in lines:
+        return text.rstrip("\n") + "\n\n" + edit
+    out, inside = [], False
+    for ln in lines:
+        if ln.startswith("["):
+            if inside:  # keys not present yet join at the table's end
+                out.extend(new_keys.values())
+                new_keys = {}
+            inside = ln == table + "\n"
+            out.append(ln)
+            continue
+        key = ln.split("=", 1)[0].strip() if "=" in ln else None
+        if inside and key in new_keys:
+            out.append(new_keys.pop(key))
+            continue
+        if inside and table == "[noise]" and key in ("sigma",):
+            continue  # another noise kind: its own keys only
+        out.append(ln)
+    if inside:
+        out.extend(new_keys.values())
+    return "".join(out)
+
+
+def _problems(work: Path, full: bool, env: dict) -> list[tuple[str, Path]]:
+    """Write every problem (and its data) under ``work``; return (name, problem file)."""
+    probs: list[tuple[str, Path]] = []
+    src = ROOT / "examples" / "problems"
+    d = work / "problems"
+    d.mkdir(parents=True)
+    for f in sorted(src.iterdir()):
+        shutil.copy(f, d / f.name)
+    for f in sorted(d.glob("*.toml")):
+        probs.append((f.stem, f))
+    # variants of the first case study on a coarse grid (64 cells)
+    base = _VARIANT_BASE.read_text().replace("cell_size = [0.125, 0.125]", "cell_size = [0.5, 0.5]")
+    for name, (edit, _what) in _variants().items():
+        p = d / f"{name}.toml"
+        p.write_text(_edit_toml(base, edit))
+        probs.append((name, p))
+    # a 1-D problem
+    one = work / "one_d"
+    one.mkdir()
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0.0, 4.0, 200)
+    with open(one / "d.csv", "w") as fh:
+        fh.write("x_1,u,x_next_1\n")
+        for xi, vi in zip(x, rng.uniform(-0.01, 0.01, 200)):
+            fh.write(f"{xi!r},a,{0.5 * xi + 1.0 + 0.05 * np.sin(xi) + vi!r}\n")
+    sys.path.insert(0, str(ROOT / "tests"))
+    from problem_texts import ONE_D  # noqa: E402
+
+    (one / "one_d.toml").write_text(ONE_D)
+    probs.append(("one_d", one / "one_d.toml"))
+    # newcomer problems (data from their generators, run in their folder)
+    nc = work / "newcomer"
+    nc.mkdir()
+    for f in (ROOT / "examples" / "newcomer").glob("*.toml"):
+        shutil.copy(f, nc / f.name)
+    gens = [("robot2d_data.py", [])] + ([("unicycle3d_data.py", ["plain", "uni.csv"]), ("di4d_data.py", [])]
+                                        if full else [])
+    for gen, args in gens:
+        subprocess.run([sys.executable, str(ROOT / "examples" / "newcomer" / gen), *args], cwd=nc, check=True, env=env)
+    for stem in ["robot2d_16", "robot2d_32"] + (["unicycle3d_16", "di4d_8"] if full else []):
+        probs.append((stem, nc / f"{stem}.toml"))
+    # the case studies as `robust-imdp example` writes them (the 3-D one only with --full)
+    ex = work / "example"
+    for name in ["three_mode_linear", "four_mode_nonlinear"] + (["unicycle_3d"] if full else []):
+        subprocess.run([_cli(), "example", name, "--out", str(ex / name)], check=True, env=env,
+                       stdout=subprocess.DEVNULL)
+        p = ex / name / f"{name}.toml"
+        if name == "unicycle_3d":  # 16^3 instead of 64^3: the same code paths, minutes instead of a quarter hour
+            t = p.read_text()
+            t = re.sub(r"cell_size = \[[^\]]*\]", "cell_size = [0.25, 0.25, 0.39269908169872414]", t)
+            p.write_text(t)
+        probs.append((f"example_{name}", p))
+    return probs
+
+
+def _cli() -> str:
+    return str(Path(sys.executable).parent / "robust-imdp")
+
+
+def _strip(obj, path: str, removed: list):
+    if isinstance(obj, dict):
+        out = {}
+        for k, v in obj.items():
+            p = f"{path}.{k}" if path else k
+            if (path == "" and k in ("version", "timings")) or (path.startswith("diagnostics") and _RUN_KEYS.search(k)):
+                removed.append(p)
+                continue
+            out[k] = _strip(v, p, removed)
+        return out
+    if isinstance(obj, list):
+        return [_strip(v, f"{path}[]", removed) for v in obj]
+    return obj
+
+
+def digest(out_dir: Path) -> dict:
+    """Digests of one result directory: the stripped result.json and every npz array."""
+    doc = json.loads((out_dir / "result.json").read_text())
+    removed: list[str] = []
+    kept = _strip(doc, "", removed)
+    canon = json.dumps(kept, sort_keys=True, separators=(",", ":"))
+    arrays = {}
+    with np.load(out_dir / "result.npz") as z:
+        for k in sorted(z.files):
+            a = z[k]
+            arrays[k] = hashlib.sha256(f"{a.dtype.str}{a.shape}".encode() + np.ascontiguousarray(a).tobytes()).hexdigest()
+    return {"json": hashlib.sha256(canon.encode()).hexdigest(), "npz": arrays,
+            "removed": sorted(set(removed))}
+
+
+def record(out: Path, src: str | None, full: bool, only: list[str] | None) -> int:
+    out = out.resolve()
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    env = dict(os.environ)
+    if src:
+        env["PYTHONPATH"] = str(Path(src).resolve()) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    work = out / "work"
+    probs = _problems(work, full, env)
+    digests, rc = {}, 0
+    for name, prob in probs:
+        if only and name not in only:
+            continue
+        t0 = time.perf_counter()
+        res = out / "results" / name
+        p = subprocess.run([_cli(), "run", str(prob), "--out", str(res), "--no-figures", "--quiet"], env=env, cwd=prob.parent,
+                           capture_output=True, text=True)
+        dt = time.perf_counter() - t0
+        if p.returncode not in (0,) or not (res / "result.json").exists():
+            print(f"{name}: exit {p.returncode}\n{p.stderr[-2000:]}", flush=True)
+            digests[name] = {"error": p.returncode, "stderr": p.stderr[-2000:]}
+            rc = 1
+            continue
+        digests[name] = {**digest(res), "seconds": round(dt, 1)}
+        print(f"{name}: {dt:.1f} s  json {digests[name]['json'][:12]}", flush=True)
+    (out / "digests.json").write_text(json.dumps({"src": src or str(ROOT / "src"), "full": full,
+                                                  "problems": digests}, indent=1))
+    return rc
+
+
+def _first_difference(a, b, path=""):
+    if type(a) is not type(b):
+        return path or "(root)"
+    if isinstance(a, dict):
+        for k in sorted(set(a) | set(b)):
+            if k not in a or k not in b:
+                return f"{path}.{k}"
+            d = _first_difference(a[k], b[k], f"{path}.{k}")
+            if d:
+                return d
+        return None
+    if isinstance(a, list):
+        if len(a) != len(b):
+            return f"{path} (length {len(a)} vs {len(b)})"
+        for i, (x, y) in enumerate(zip(a, b)):
+            d = _first_difference(x, y, f"{path}[{i}]")
+            if d:
+                return d
+        return None
+    return None if a == b else path
+
+
+def compare(a: Path, b: Path) -> int:
+    da = json.loads((a / "digests.json").read_text())["problems"]
+    db = json.loads((b / "digests.json").read_text())["problems"]
+    rows, bad = [], 0
+    for name in sorted(set(da) | set(db)):
+        x, y = da.get(name), db.get(name)
+        if x is None or y is None or "error" in x or "error" in y:
+            rows.append((name, "missing or failed"))
+            bad += 1
+            continue
+        diff = [k for k in sorted(set(x["npz"]) | set(y["npz"])) if x["npz"].get(k) != y["npz"].get(k)]
+        if x["json"] != y["json"]:
+            ja = _strip(json.loads((a / "results" / name / "result.json").read_text()), "", [])
+            jb = _strip(json.loads((b / "results" / name / "result.json").read_text()), "", [])
+            diff.append(f"result.json at {_first_difference(ja, jb)}")
+        if x["removed"] != y["removed"]:
+            diff.append(f"removed run fields differ: {sorted(set(x['removed']) ^ set(y['removed']))}")
+        rows.append((name, "identical" if not diff else "DIFFERS: " + ", ".join(diff)))
+        bad += bool(diff)
+    for name, what in rows:
+        print(f"{name:32s} {what}")
+    print(f"{len(rows) - bad} of {len(rows)} identical")
+    return 1 if bad else 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("record")
+    r.add_argument("out", type=Path)
+    r.add_argument("--src", help="another checkout's src directory, first on PYTHONPATH")
+    r.add_argument("--full", action="store_true", help="also the slow 3-D and 4-D problems")
+    r.add_argument("--only", nargs="*", help="only these problem names")
+    c = sub.add_parser("compare")
+    c.add_argument("a", type=Path)
+    c.add_argument("b", type=Path)
+    args = ap.parse_args(argv)
+    if args.cmd == "record":
+        return record(args.out, args.src, args.full, args.only)
+    return compare(args.a, args.b)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
