@@ -17,7 +17,7 @@ $(VENV)/.installed: pyproject.toml
 # Compile the numba kernels once, on tiny problems, into numba's cache next to the sources
 # (src/robust_imdp/__pycache__, git-ignored): the first real run then only loads them. Re-run
 # when a source is newer than the stamp (numba recompiles only the kernels of changed files).
-$(VENV)/.warm: $(VENV)/.installed $(wildcard src/robust_imdp/*.py)
+$(VENV)/.warm: $(VENV)/.installed $(shell find src/robust_imdp -name "*.py")
 	$(PY) -m robust_imdp.warmup
 	touch $@
 

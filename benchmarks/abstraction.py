@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from robust_imdp.abstraction import CellBounds, abstract
-from robust_imdp.geometry import Box, Partition
-from robust_imdp.noise import GaussianNoise, TruncatedGaussianNoise
+from robust_imdp.abstraction.rows import CellBounds, abstract
+from robust_imdp.models.geometry import Box, Partition
+from robust_imdp.models.noise import GaussianNoise, TruncatedGaussianNoise
 
 OUT = Path(__file__).parent / "results"
 
@@ -84,9 +84,9 @@ def run_case(n, d, noise_name, rule, repeats):
 
 def rule_comparison(n: int = 32):
     """Tightness: synthesis classes (yes/no/maybe) of "!obs U goal" under each rule (2-D, 4 modes)."""
-    from robust_imdp.dfa import ltlf_to_dfa
-    from robust_imdp.geometry import Region
-    from robust_imdp.synthesis import synthesize
+    from robust_imdp.spec.dfa import ltlf_to_dfa
+    from robust_imdp.models.geometry import Region
+    from robust_imdp.synthesis.core import synthesize
 
     base, cb, models = problem(n, 2)
     regions = [Region("goal", (Box([0.5, 0.5], [1.5, 1.5]),)), Region("obs", (Box([-1.0, -0.25], [0.0, 0.25]),))]

@@ -29,8 +29,8 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
-from robust_imdp.bounds import bound_image  # noqa: E402
-from robust_imdp.gp import GaussianProcess  # noqa: E402
+from robust_imdp.bounds.gp_cells import bound_image  # noqa: E402
+from robust_imdp.bounds.gp import GaussianProcess  # noqa: E402
 
 A_LIN = [
     np.array([[0.4, 0.1], [0.0, 0.5]]),

@@ -84,12 +84,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from reference import _counts, _git_commit  # noqa: E402
 
 import robust_imdp  # noqa: E402
-from robust_imdp import rkhs  # noqa: E402
-from robust_imdp.abstraction import CellBounds, abstract  # noqa: E402
-from robust_imdp.dfa import ltlf_to_dfa  # noqa: E402
-from robust_imdp.geometry import Box, Partition, Region  # noqa: E402
-from robust_imdp.noise import TruncatedGaussianNoise  # noqa: E402
-from robust_imdp.synthesis import synthesize  # noqa: E402
+from robust_imdp.bounds import rkhs  # noqa: E402
+from robust_imdp.abstraction.rows import CellBounds, abstract  # noqa: E402
+from robust_imdp.spec.dfa import ltlf_to_dfa  # noqa: E402
+from robust_imdp.models.geometry import Box, Partition, Region  # noqa: E402
+from robust_imdp.models.noise import TruncatedGaussianNoise  # noqa: E402
+from robust_imdp.synthesis.core import synthesize  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 OUT = HERE / "results"
@@ -361,7 +361,7 @@ def optimal_ranges(sy: dict, cells: np.ndarray) -> dict:
 
 def verify_clarabel(sy: dict, opt: dict, n_points: int) -> list[dict]:
     """Our pointwise optimum against cvxpy + Clarabel (``lp.rkhs_vertex_socp``) at a few grid points."""
-    from robust_imdp.lp import rkhs_vertex_socp
+    from robust_imdp.solvers.lp import rkhs_vertex_socp
 
     A, b = sy["maps"][0]
     model = opt["model"]
@@ -445,7 +445,7 @@ def run_config(c: dict, seed: int, verify: int) -> dict:
 # --------------------------------------------------------------------------- start-up and pipeline
 def startup() -> dict:
     """Import time and the first bound-kernel call (numba cache load) in a fresh process."""
-    code = ("import time; t=time.perf_counter(); import numpy as np, robust_imdp, robust_imdp.pipeline; "
+    code = ("import time; t=time.perf_counter(); import numpy as np, robust_imdp, robust_imdp.pipeline.run; "
             "t1=time.perf_counter(); from robust_imdp import rkhs; t2=time.perf_counter(); "
             "X=np.random.default_rng(0).uniform(0,1,(20,2)); "
             "rkhs.bound_chunk(X, X[:, :1]*0, np.eye(1, 2), np.zeros(1), np.zeros((1, 2)), np.full((1, 2), 0.1), "
@@ -463,7 +463,7 @@ def startup() -> dict:
 
 def pipeline_run(c: dict, seed: int, ours_yes: int) -> dict:
     """``synthesize_from_data`` on configuration ``c`` (same data): stage timings and Q_yes."""
-    from robust_imdp.pipeline import Problem, synthesize_from_data
+    from robust_imdp.pipeline.run import Problem, synthesize_from_data
 
     sy = system(c, seed)
     x = np.concatenate([X for X, _, _ in sy["data"]])

@@ -49,7 +49,7 @@ def _variants() -> dict[str, tuple[str, str]]:
         "v_ridge": ('[gp]\nerror_bound = "ridge"\n', "ridge weights"),
         "v_local": ("[gp]\nlocal_points = 40\n", "local optimal weights"),
         "v_local_ridge": ('[gp]\nlocal_points = 40\nerror_bound = "ridge"\n', "local ridge weights"),
-        "v_gp": ('[gp]\nerror_bound = "chowdhury"\n', "GP route (Chowdhury & Gopalan)"),
+        "v_gp": ('[gp]\nerror_bound = "chowdhury"\nmisspecification = 0.0\n', "GP route (Chowdhury & Gopalan)"),
         "v_iid": ("[gp]\niid_noise = true\n", "iid (sub-Gaussian) route"),
         "v_known_f": ("MODES_F", "known nonlinear parts f = [...]"),
         "v_per_component": ('[gp]\nrkhs_bound = {"1" = [6.0, 5.0], "2" = [6.0, 6.0], "3" = [5.5, 6.0]}\n'
@@ -118,7 +118,7 @@ def _problems(work: Path, full: bool, env: dict) -> list[tuple[str, Path]]:
     with open(one / "d.csv", "w") as fh:
         fh.write("x_1,u,x_next_1\n")
         for xi, vi in zip(x, rng.uniform(-0.01, 0.01, 200)):
-            fh.write(f"{xi!r},a,{0.5 * xi + 1.0 + 0.05 * np.sin(xi) + vi!r}\n")
+            fh.write(f"{float(xi)!r},a,{float(0.5 * xi + 1.0 + 0.05 * np.sin(xi) + vi)!r}\n")
     sys.path.insert(0, str(ROOT / "tests"))
     from problem_texts import ONE_D  # noqa: E402
 
@@ -185,20 +185,25 @@ def digest(out_dir: Path) -> dict:
 
 def record(out: Path, src: str | None, full: bool, only: list[str] | None) -> int:
     out = out.resolve()
-    if out.exists():
+    previous = {}
+    if only and (out / "digests.json").exists():  # add to (or redo some of) an earlier record
+        previous = json.loads((out / "digests.json").read_text())["problems"]
+        shutil.rmtree(out / "work")
+    elif out.exists():
         shutil.rmtree(out)
-    out.mkdir(parents=True)
+    out.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ)
     if src:
         env["PYTHONPATH"] = str(Path(src).resolve()) + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     work = out / "work"
     probs = _problems(work, full, env)
-    digests, rc = {}, 0
+    digests, rc = dict(previous), 0
     for name, prob in probs:
         if only and name not in only:
             continue
         t0 = time.perf_counter()
         res = out / "results" / name
+        shutil.rmtree(res, ignore_errors=True)
         p = subprocess.run([_cli(), "run", str(prob), "--out", str(res), "--no-figures", "--quiet"], env=env, cwd=prob.parent,
                            capture_output=True, text=True)
         dt = time.perf_counter() - t0

@@ -48,15 +48,15 @@ ROOT = Path(__file__).resolve().parent.parent
 DOC = ROOT / "docs" / "mutations.md"
 RAW = ROOT / "benchmarks" / "results" / "mutations.json"
 
-_ABS = "src/robust_imdp/abstraction.py"
-_BOUNDS = "src/robust_imdp/bounds.py"
-_GP = "src/robust_imdp/gp.py"
-_RKHS = "src/robust_imdp/rkhs.py"
-_SOLVE = "src/robust_imdp/solve.py"
-_SYN = "src/robust_imdp/synthesis.py"
-_KNOWN = "src/robust_imdp/known.py"
-_PIPE = "src/robust_imdp/pipeline.py"
-_ASSUME = "src/robust_imdp/assumptions.py"
+_ABS = "src/robust_imdp/abstraction/rows.py"
+_BOUNDS = "src/robust_imdp/bounds/gp_cells.py"
+_GP = "src/robust_imdp/bounds/gp.py"
+_RKHS = "src/robust_imdp/bounds/rkhs.py"
+_SOLVE = "src/robust_imdp/solvers/api.py"
+_SYN = "src/robust_imdp/synthesis/core.py"
+_KNOWN = "src/robust_imdp/models/known.py"
+_PIPE = "src/robust_imdp/pipeline/run.py"
+_ASSUME = "src/robust_imdp/bounds/assumptions.py"
 
 _VI_RETURN = ("    return ReachabilityResult(lower=lo, upper=up, strategy=strat, iterations=it, "
               "precision=gap, converged=converged)")
@@ -265,7 +265,7 @@ MUTATIONS = [
          replacement="    p_up_star = np.maximum(np.array(optimistic.initial_upper, dtype=np.float64)[:n_cells] * (1 - 1e-3), p_low)",
          description="p_up_star x (1 - 1e-3) (kept >= p_low; p_up = min(., p_up_star) follows)"),
     # ------------------------------------------------------------------ controller and Monte-Carlo validation
-    dict(name="controller-next-mode", file="src/robust_imdp/controller.py",
+    dict(name="controller-next-mode", file="src/robust_imdp/synthesis/controller.py",
          original="        mode = int(table[self.cell, self.dfa_state])",
          replacement="        mode = (int(table[self.cell, self.dfa_state]) + 1) % max(self.n_modes, 1)",
          description="the refined controller applies the next mode (cyclically) instead of the strategy's"),
@@ -345,7 +345,7 @@ MUTATIONS = [
                       "ranges.lower), ranges.upper - 1e-3 * (ranges.upper - ranges.lower))"),
          description="pipeline: the known part's certified range shrunk inward by 0.1 % of its width per side "
                      "before it is added to g's range"),
-    dict(name="affine-residual-rounding-off", file="src/robust_imdp/system.py",
+    dict(name="affine-residual-rounding-off", file="src/robust_imdp/models/system.py",
          original="        e = g * (np.abs(x) @ np.abs(self.A).T + np.abs(self.b)) + np.spacing(np.abs(y))",
          replacement="        e = 0.0 * (g * (np.abs(x) @ np.abs(self.A).T + np.abs(self.b)) + np.spacing(np.abs(y)))",
          description="system: the affine known part's residual rounding bound set to 0 (an a-priori gamma bound: "

@@ -33,8 +33,8 @@ sys.path.insert(0, str(HERE))
 
 from solver import loadavg, med, random_model, targets  # noqa: E402
 
-from robust_imdp import solve  # noqa: E402
-from robust_imdp.solve import solve_reachability  # noqa: E402
+from robust_imdp.solvers import api as solve  # noqa: E402
+from robust_imdp.solvers.api import solve_reachability  # noqa: E402
 
 OUT = HERE / "results"
 PAR_DEFAULT = solve.PAR_MIN_STATES  # restored after the serial runs of bounded_solve

@@ -46,13 +46,13 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 import robust_imdp  # noqa: E402
-from robust_imdp import abstraction as _abstraction  # noqa: E402
-from robust_imdp.casestudies import CASE_STUDIES, known_dynamics_cell_bounds, true_system  # noqa: E402
-from robust_imdp.dfa import ltlf_to_dfa  # noqa: E402
-from robust_imdp.geometry import Box, Partition, Region  # noqa: E402
-from robust_imdp.io import load_problem  # noqa: E402
-from robust_imdp.pipeline import synthesize_from_data  # noqa: E402
-from robust_imdp.synthesis import synthesize  # noqa: E402
+from robust_imdp.abstraction import rows as _abstraction  # noqa: E402
+from robust_imdp.casestudies.systems import CASE_STUDIES, known_dynamics_cell_bounds, true_system  # noqa: E402
+from robust_imdp.spec.dfa import ltlf_to_dfa  # noqa: E402
+from robust_imdp.models.geometry import Box, Partition, Region  # noqa: E402
+from robust_imdp.io.files import load_problem  # noqa: E402
+from robust_imdp.pipeline.run import synthesize_from_data  # noqa: E402
+from robust_imdp.synthesis.core import synthesize  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
@@ -158,7 +158,7 @@ def _load(stem: str):
     path = PROBLEMS / f"{stem}.toml"
     if path.exists():
         return load_problem(path), f"examples/problems/{stem}.toml"
-    from robust_imdp.casestudies import write_problem_files
+    from robust_imdp.casestudies.systems import write_problem_files
 
     with tempfile.TemporaryDirectory() as d:  # the data are read into memory by load_problem
         return load_problem(write_problem_files(CASES[stem], d)), f"casestudies.write_problem_files({CASES[stem]!r})"

@@ -37,15 +37,15 @@ from pathlib import Path
 
 import numpy as np
 
-from robust_imdp import refine as _refine_module
-from robust_imdp.abstraction import abstract
-from robust_imdp.casestudies import known_dynamics_cell_bounds, true_system
-from robust_imdp.dfa import ltlf_to_dfa
-from robust_imdp.geometry import Box, Partition, Region
-from robust_imdp.io import load_problem, save_result
-from robust_imdp.pipeline import synthesize_from_data
-from robust_imdp.refine import class_shares
-from robust_imdp.synthesis import synthesize
+from robust_imdp.synthesis import refine as _refine_module
+from robust_imdp.abstraction.rows import abstract
+from robust_imdp.casestudies.systems import known_dynamics_cell_bounds, true_system
+from robust_imdp.spec.dfa import ltlf_to_dfa
+from robust_imdp.models.geometry import Box, Partition, Region
+from robust_imdp.io.files import load_problem, save_result
+from robust_imdp.pipeline.run import synthesize_from_data
+from robust_imdp.synthesis.refine import class_shares
+from robust_imdp.synthesis.core import synthesize
 from robust_imdp.validate import validate
 
 HERE = Path(__file__).resolve().parent

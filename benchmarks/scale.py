@@ -49,9 +49,9 @@ def speedup(repeat: int = 3) -> dict:
     import dask
     from distributed import Client, LocalCluster
 
-    from robust_imdp.io import load_problem, result_to_dict
-    from robust_imdp.parallel import LOCAL_PROFILER_KEY
-    from robust_imdp.pipeline import synthesize_from_data
+    from robust_imdp.io.files import load_problem, result_to_dict
+    from robust_imdp.pipeline.parallel import LOCAL_PROFILER_KEY
+    from robust_imdp.pipeline.run import synthesize_from_data
 
     problem = load_problem(HERE.parent / "examples" / "problems" / "four_mode_nonlinear.toml").replace(
         cell_size=np.array([0.0625, 0.0625]))
@@ -62,7 +62,7 @@ def speedup(repeat: int = 3) -> dict:
     docs = set()
     runs = {1: [], 2: []}
     t0 = time.perf_counter()
-    # the cluster that `--workers 2` starts (robust_imdp.parallel.open_scheduler)
+    # the cluster that `--workers 2` starts (robust_imdp.pipeline.parallel.open_scheduler)
     with dask.config.set({LOCAL_PROFILER_KEY: False}), \
             LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
                          silence_logs=40) as cluster, Client(cluster) as client:
@@ -95,9 +95,9 @@ def speedup(repeat: int = 3) -> dict:
 
 
 def three_d(cells_per_axis: int) -> dict:
-    from robust_imdp.casestudies import write_problem_files
-    from robust_imdp.io import load_problem
-    from robust_imdp.pipeline import estimate_resources, synthesize_from_data
+    from robust_imdp.casestudies.systems import write_problem_files
+    from robust_imdp.io.files import load_problem
+    from robust_imdp.pipeline.run import estimate_resources, synthesize_from_data
 
     with tempfile.TemporaryDirectory() as d:
         problem = load_problem(write_problem_files("unicycle_3d", d))

@@ -43,8 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
-from robust_imdp import solve as S
-from robust_imdp.imdp import IMDP
+from robust_imdp.solvers import api as S
+from robust_imdp.models.imdp import IMDP
 
 RESULTS = Path(__file__).resolve().parent / "results"
 A = 3  # actions per state
@@ -143,7 +143,7 @@ def med(xs):
 # --------------------------------------------------------------------------- random models vs Storm
 def storm_available():
     try:
-        from robust_imdp.formats import storm_reachability, to_stormpy  # noqa: F401
+        from robust_imdp.io.formats import storm_reachability, to_stormpy  # noqa: F401
         import stormpy  # noqa: F401
         return True
     except ImportError:
@@ -195,7 +195,7 @@ def floor_case(n, rng, args):
 
 
 def random_case(n, rng, args):
-    from robust_imdp.formats import storm_reachability, to_stormpy
+    from robust_imdp.io.formats import storm_reachability, to_stormpy
 
     t0 = time.perf_counter()
     m = random_model(n, rng)
@@ -235,13 +235,13 @@ def graph_preserving(m: IMDP) -> IMDP:
 def case_study(args):
     import dataclasses
 
-    from robust_imdp import abstraction
-    from robust_imdp.casestudies import known_dynamics_cell_bounds
-    from robust_imdp.dfa import ltlf_to_dfa
-    from robust_imdp.geometry import Box, Partition, Region
-    from robust_imdp.io import load_problem
-    from robust_imdp.product import materialize_product, solve_product
-    from robust_imdp.synthesis import remap_letters, synthesize
+    from robust_imdp.abstraction import rows as abstraction
+    from robust_imdp.casestudies.systems import known_dynamics_cell_bounds
+    from robust_imdp.spec.dfa import ltlf_to_dfa
+    from robust_imdp.models.geometry import Box, Partition, Region
+    from robust_imdp.io.files import load_problem
+    from robust_imdp.solvers.product import materialize_product, solve_product
+    from robust_imdp.synthesis.core import remap_letters, synthesize
 
     root = Path(__file__).resolve().parent.parent
     problem = load_problem(root / "examples" / "problems" / "four_mode_nonlinear_two_goals.toml")
@@ -265,7 +265,7 @@ def case_study(args):
                                        outside_state=part.n_cells))
     out["synthesize_wall"], out["synthesize_cpu"] = w, c
     if args.storm and storm_available():
-        from robust_imdp.formats import storm_reachability, to_stormpy
+        from robust_imdp.io.formats import storm_reachability, to_stormpy
 
         gp = graph_preserving(m)
         mp = materialize_product(gp, letters, dfa, avoid=avoid)
@@ -316,7 +316,7 @@ def per_entry(fn, m, repeat):
 
 
 def storm_per_iteration(m, t, z, steps=20):
-    from robust_imdp.formats import storm_reachability, to_stormpy
+    from robust_imdp.io.formats import storm_reachability, to_stormpy
 
     model = to_stormpy(m, t, avoid=z)
     one = lambda h: timed(lambda: storm_reachability(model, t, avoid=z, adversary="pessimistic", horizon=h))  # noqa: E731

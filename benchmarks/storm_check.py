@@ -23,8 +23,8 @@ import time
 
 import numpy as np
 
-from robust_imdp.formats import read_drn, storm_reachability, to_stormpy, write_drn
-from robust_imdp.imdp import IMDP
+from robust_imdp.io.formats import read_drn, storm_reachability, to_stormpy, write_drn
+from robust_imdp.models.imdp import IMDP
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
@@ -63,7 +63,7 @@ def main(argv=None):
     except ImportError:
         have_storm = False
     try:
-        from robust_imdp.solve import solve_reachability
+        from robust_imdp.solvers.api import solve_reachability
     except ImportError:
         solve_reachability = None
 
@@ -104,7 +104,7 @@ def main(argv=None):
     small = random_sparse_imdp(30, a=2, k=5, rng=1)
     stgt = np.zeros(30, bool)
     stgt[0] = True
-    from robust_imdp.lp import solve_reachability_lp
+    from robust_imdp.solvers.lp import solve_reachability_lp
 
     t = time.perf_counter()
     lp = solve_reachability_lp(small, stgt, adversary="optimistic")

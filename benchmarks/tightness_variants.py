@@ -30,8 +30,8 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from reference import CASES, OUT, PROBLEMS, _counts, _git_commit, reference  # noqa: E402
 
-from robust_imdp.io import load_problem  # noqa: E402
-from robust_imdp.pipeline import resynthesize, synthesize_from_data  # noqa: E402
+from robust_imdp.io.files import load_problem  # noqa: E402
+from robust_imdp.pipeline.run import resynthesize, synthesize_from_data  # noqa: E402
 
 VARIANTS = {
     "optimal": {},

@@ -18,9 +18,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from robust_imdp.casestudies import write_problem_files  # noqa: E402
-from robust_imdp.io import load_problem  # noqa: E402
-from robust_imdp.pipeline import synthesize_from_data  # noqa: E402
+from robust_imdp.casestudies.systems import write_problem_files  # noqa: E402
+from robust_imdp.io.files import load_problem  # noqa: E402
+from robust_imdp.pipeline.run import synthesize_from_data  # noqa: E402
 from robust_imdp.plotting import plot_eta_sweep  # noqa: E402
 
 FRACTIONS = (0.96, 0.97, 0.985, 0.995, 1.0)  # 1.0 sigma = the noise bound, for reference

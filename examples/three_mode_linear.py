@@ -19,9 +19,9 @@ matplotlib.use("Agg")
 
 import numpy as np  # noqa: E402
 
-from robust_imdp.casestudies import true_system, write_problem_files  # noqa: E402
-from robust_imdp.io import load_problem, save_result  # noqa: E402
-from robust_imdp.pipeline import synthesize_from_data  # noqa: E402
+from robust_imdp.casestudies.systems import true_system, write_problem_files  # noqa: E402
+from robust_imdp.io.files import load_problem, save_result  # noqa: E402
+from robust_imdp.pipeline.run import synthesize_from_data  # noqa: E402
 from robust_imdp.plotting import save_figures  # noqa: E402
 from robust_imdp.validate import simulate, validate  # noqa: E402
 

@@ -1,4 +1,4 @@
-"""Tests of robust_imdp.abstraction: soundness against closed forms and Monte Carlo.
+"""Tests of robust_imdp.abstraction.rows: soundness against closed forms and Monte Carlo.
 
 Independent checks used here:
 * 1-D linear system with Gaussian noise: T(q'|x) = Phi((b - a x - c)/s) - Phi((a' - a x - c)/s)
@@ -15,10 +15,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import stats
 
-from robust_imdp.abstraction import Abstraction, CellBounds, _check_rows, abstract
+from robust_imdp.abstraction.rows import Abstraction, CellBounds, _check_rows, abstract
 from robust_imdp.errors import DimensionError, InvalidInputError, SoundnessError
-from robust_imdp.geometry import Box, Partition, Region
-from robust_imdp.noise import GaussianNoise, TruncatedGaussianNoise, UniformNoise
+from robust_imdp.models.geometry import Box, Partition, Region
+from robust_imdp.models.noise import GaussianNoise, TruncatedGaussianNoise, UniformNoise
 
 from soundness_checks import (
     check_intervals, check_unlisted_mass, dense_rows, drop_upper, gauss_interval, interval_kinds, shrink_kind,

@@ -13,14 +13,14 @@
 import numpy as np
 import pytest
 
-from robust_imdp.abstraction import CellBounds
-from robust_imdp.advice import FittedModes, advice_line, advise, excess_radius, fit_modes
-from robust_imdp.dfa import ltlf_to_dfa
+from robust_imdp.abstraction.rows import CellBounds
+from robust_imdp.synthesis.advice import FittedModes, advice_line, advise, excess_radius, fit_modes
+from robust_imdp.spec.dfa import ltlf_to_dfa
 from robust_imdp.errors import DimensionError, InvalidInputError
-from robust_imdp.geometry import Box, Partition, Region
-from robust_imdp.noise import TruncatedGaussianNoise
-from robust_imdp.pipeline import Problem, synthesize_from_data
-from robust_imdp.system import AffineMap, Dataset
+from robust_imdp.models.geometry import Box, Partition, Region
+from robust_imdp.models.noise import TruncatedGaussianNoise
+from robust_imdp.pipeline.run import Problem, synthesize_from_data
+from robust_imdp.models.system import AffineMap, Dataset
 
 
 # =========================================================================== the fitted function
@@ -117,8 +117,8 @@ def _robot_setup(cell: float):
 
 
 def _solve_classes(part, cb, noise, dfa):
-    from robust_imdp.abstraction import abstract
-    from robust_imdp.synthesis import synthesize
+    from robust_imdp.abstraction.rows import abstract
+    from robust_imdp.synthesis.core import synthesize
 
     syn = synthesize(abstract(part, cb, noise).imdp, part.labels, part.atoms, dfa, threshold=0.9,
                      outside_state=part.outside_state)
@@ -205,7 +205,7 @@ def tiny_runs(tmp_path_factory):
 def test_the_run_prints_and_saves_the_advice(tiny_runs):
     import json
 
-    from robust_imdp.io import save_result
+    from robust_imdp.io.files import save_result
     from test_result_schema import SCHEMA, validate_schema
 
     first, again, off, out = tiny_runs

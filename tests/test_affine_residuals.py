@@ -10,7 +10,7 @@ from fractions import Fraction
 
 import numpy as np
 
-from robust_imdp.system import AffineMap
+from robust_imdp.models.system import AffineMap
 
 
 def test_affine_residual_bound_covers_the_exact_error():
@@ -32,9 +32,9 @@ def test_affine_residual_bound_covers_the_exact_error():
 
 
 def test_pipeline_allowance_includes_the_affine_rounding():
-    from robust_imdp.pipeline import _noise_allowance
-    from robust_imdp.casestudies import write_problem_files
-    from robust_imdp.io import load_problem
+    from robust_imdp.pipeline.run import _noise_allowance
+    from robust_imdp.casestudies.systems import write_problem_files
+    from robust_imdp.io.files import load_problem
     import tempfile
 
     with tempfile.TemporaryDirectory() as d:

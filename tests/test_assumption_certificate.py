@@ -24,7 +24,7 @@ import mpmath
 import numpy as np
 import pytest
 
-from robust_imdp.casestudies import (CASE_STUDIES, assumption_certificate, certify_expansion, get_case_study,
+from robust_imdp.casestudies.systems import (CASE_STUDIES, assumption_certificate, certify_expansion, get_case_study,
                                      rkhs_norm_upper)
 from robust_imdp.errors import DimensionError, InvalidInputError
 

@@ -1,4 +1,4 @@
-"""Tests of robust_imdp.bounds: certified bounds of GP posterior mean/std over boxes.
+"""Tests of robust_imdp.bounds.gp_cells: certified bounds of GP posterior mean/std over boxes.
 
 Independent checks: dense uniform samples per box (10^4), closed-form extrema of a one-point
 GP, exhaustive grids for the relaxation alone (hypothesis), the joint affine+mean image.
@@ -13,7 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from robust_imdp.bounds import (
+from robust_imdp.bounds.gp_cells import (
     ImageBounds,
     PosteriorBounds,
     _kernel_sum_lower,
@@ -21,7 +21,7 @@ from robust_imdp.bounds import (
     bound_posterior,
 )
 from robust_imdp.errors import DimensionError, InvalidInputError
-from robust_imdp.gp import GaussianProcess
+from robust_imdp.bounds.gp import GaussianProcess
 
 from soundness_checks import check_posterior_bounds
 
@@ -293,13 +293,13 @@ def test_mean_bounds_cover_the_exact_posterior_despite_an_inexact_alpha():
     widens by a bound of |k^T (alpha - alpha_)| from the residual. Perturb alpha_ by 1e-3 (far
     above float error) and check the bounds still contain the exact posterior mean at dense
     samples, while the widening stays tiny for an unperturbed GP."""
-    from robust_imdp.gp import GaussianProcess
+    from robust_imdp.bounds.gp import GaussianProcess
 
     rng = np.random.default_rng(11)
     X = rng.uniform(-1, 1, (40, 2))
     y = np.sin(3 * X[:, 0]) + 0.1 * rng.standard_normal(40)
     gp = GaussianProcess(0.5, 1.0, "chowdhury").fit(X, y)
-    from robust_imdp.bounds import _GPTerms
+    from robust_imdp.bounds.gp_cells import _GPTerms
 
     assert 0.0 < _GPTerms(gp).alpha_err < 1e-10  # unperturbed: only float error
     K = gp.kernel(X, X) + gp.noise_variance_ * np.eye(40)

@@ -7,10 +7,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-import robust_imdp.pipeline as pipeline
-import robust_imdp.rkhs as rkhs
+import robust_imdp.pipeline.run as pipeline
+import robust_imdp.bounds.rkhs as rkhs
 from robust_imdp.errors import RobustImdpWarning
-from robust_imdp.io import load_problem
+from robust_imdp.io.files import load_problem
 from problem_texts import ONE_D
 
 
@@ -194,7 +194,7 @@ def test_the_eta_after_a_resume_uses_the_rate_of_this_process(problem, tmp_path,
 
     monkeypatch.setattr(pipeline, "_bound_task", fake_task)
     part = pipeline._Run(workers=1, chunk_cells=16)
-    from robust_imdp.geometry import Box, Partition
+    from robust_imdp.models.geometry import Box, Partition
 
     partition = Partition(Box(p.space_lower, p.space_upper), p.cell_size, pipeline._region_objects(p))
     assert partition.n_cells == 256
@@ -225,7 +225,7 @@ def test_a_damaged_bounds_file_does_not_break_the_advice_stage(problem, tmp_path
 
 
 def test_result_files_are_flushed_to_disk_before_they_are_renamed(problem, tmp_path, monkeypatch):
-    from robust_imdp.io import save_result
+    from robust_imdp.io.files import save_result
 
     res = _run(problem, None)
     events = []

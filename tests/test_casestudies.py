@@ -13,11 +13,11 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from robust_imdp.abstraction import CellBounds
-from robust_imdp.casestudies import (CASE_STUDIES, TrueSystem, get_case_study,
+from robust_imdp.abstraction.rows import CellBounds
+from robust_imdp.casestudies.systems import (CASE_STUDIES, TrueSystem, get_case_study,
                                      known_dynamics_cell_bounds, true_system)
 from robust_imdp.errors import DimensionError, InvalidInputError
-from robust_imdp.geometry import Box, Partition, Region
+from robust_imdp.models.geometry import Box, Partition, Region
 
 NAMES = sorted(CASE_STUDIES)
 N_CELLS = 48  # sampled cells per case study

@@ -9,16 +9,16 @@ import json
 import numpy as np
 import pytest
 
-from robust_imdp import parallel
-from robust_imdp.abstraction import CellBounds, abstract, abstract_rows, assemble_abstraction
-from robust_imdp.casestudies import get_case_study
+from robust_imdp.pipeline import parallel
+from robust_imdp.abstraction.rows import CellBounds, abstract, abstract_rows, assemble_abstraction
+from robust_imdp.casestudies.systems import get_case_study
 from robust_imdp.cli import main
 from robust_imdp.errors import ResourceError
-from robust_imdp.geometry import Box, Partition
-from robust_imdp.io import result_to_dict
-from robust_imdp.noise import TruncatedGaussianNoise
-from robust_imdp.pipeline import Problem, estimate_resources, synthesize_from_data
-from robust_imdp.system import AffineMap, Dataset
+from robust_imdp.models.geometry import Box, Partition
+from robust_imdp.io.files import result_to_dict
+from robust_imdp.models.noise import TruncatedGaussianNoise
+from robust_imdp.pipeline.run import Problem, estimate_resources, synthesize_from_data
+from robust_imdp.models.system import AffineMap, Dataset
 
 CASE = get_case_study("three_mode_linear")
 
@@ -90,7 +90,7 @@ def test_result_identical_on_a_two_process_local_cluster():
 def test_resume_computes_only_the_missing_chunks(tmp_path, monkeypatch):
     p = problem()
     calls = []
-    import robust_imdp.pipeline as pl
+    import robust_imdp.pipeline.run as pl
 
     real = pl._bound_task
 
@@ -138,14 +138,14 @@ def test_open_scheduler_rules():
 
 
 def test_cli_interrupt_exits_130_with_one_line(tmp_path, capsys, monkeypatch):
-    import robust_imdp.pipeline as pl
+    import robust_imdp.pipeline.run as pl
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(pl, "synthesize_from_data", interrupted)
     (tmp_path / "p.toml").write_text("")
-    from robust_imdp.casestudies import write_problem_files
+    from robust_imdp.casestudies.systems import write_problem_files
 
     path = write_problem_files("three_mode_linear", tmp_path)
     code = main(["run", str(path), "--out", str(tmp_path / "out")])

@@ -127,8 +127,8 @@ def test_unknown_region_in_formula_exit_1(tmp_path, capsys):
 @pytest.mark.slow
 def test_run_end_to_end_on_a_coarse_problem(tmp_path, capsys):
     # Tiny run through the command line: 64 cells, 40 points per mode; writes the contract files.
-    from robust_imdp.casestudies import get_case_study, problem_toml
-    from robust_imdp.io import write_data_file
+    from robust_imdp.casestudies.systems import get_case_study, problem_toml
+    from robust_imdp.io.files import write_data_file
 
     case = get_case_study("three_mode_linear")
     x, u, xn = case.system.sample_dataset(40, case.lower, case.upper, rng=1)
@@ -210,7 +210,7 @@ def test_problem_refuses_a_bad_threshold_when_made():
     from pathlib import Path
 
     from robust_imdp.errors import InvalidInputError
-    from robust_imdp.io import load_problem
+    from robust_imdp.io.files import load_problem
 
     problem = load_problem(Path(__file__).parents[1] / "examples" / "problems" / "three_mode_linear.toml")
     with pytest.raises(InvalidInputError, match=r"threshold must be a probability in \[0, 1\]; got 1.5"):

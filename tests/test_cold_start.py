@@ -15,10 +15,10 @@ import sys
 import numpy as np
 import pytest
 
-from robust_imdp import rkhs
+from robust_imdp.bounds import rkhs
 from robust_imdp.errors import InvalidInputError
-from robust_imdp.pipeline import synthesize_from_data
-from robust_imdp.rkhs import CELL_BLOCK
+from robust_imdp.pipeline.run import synthesize_from_data
+from robust_imdp.bounds.rkhs import CELL_BLOCK
 
 from test_chunks import problem
 
@@ -85,7 +85,7 @@ def test_every_kernel_is_cached_on_disk():
     from robust_imdp.warmup import kernels
 
     ks = kernels()
-    assert len(ks) > 30 and {"solve.solve_components", "rkhs._optimal_cells", "rkhs._local_cells"} <= set(ks)
+    assert len(ks) > 30 and {"solvers.solve_components", "bounds._optimal_cells", "bounds._local_cells"} <= set(ks)
     uncached = [name for name, d in ks.items() if isinstance(d._cache, NullCache)]
     assert uncached == []  # a kernel without cache=True compiles again in every process
 
@@ -106,10 +106,10 @@ def test_warmup_solver_case_reaches_every_solver_path():
         "from robust_imdp import warmup\n"
         "warmup.warm(['solver'], progress=False)\n"
         "ks = warmup.kernels()\n"
-        "need = ['solve.stay_exit_bounds', 'solve.response_end_components', 'solve.dd_prefix',"
-        " 'solve.solve_components', 'solve.bellman_layer', 'solve.fill_local_order']\n"
+        "need = ['solvers.stay_exit_bounds', 'solvers.response_end_components', 'solvers.dd_prefix',"
+        " 'solvers.solve_components', 'solvers.bellman_layer', 'solvers.fill_local_order']\n"
         "print(json.dumps({'untyped': [k for k in need if not ks[k].signatures],"
-        " 'perm_dtypes': sorted({str(s[1].dtype) for s in ks['solve.fill_local_order'].signatures})}))\n"
+        " 'perm_dtypes': sorted({str(s[1].dtype) for s in ks['solvers.fill_local_order'].signatures})}))\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     doc = json.loads(out.strip().splitlines()[-1])

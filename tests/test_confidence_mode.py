@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from scipy.stats import norm
 
-from robust_imdp.abstraction import CellBounds, abstract, confidence_cell_bounds
+from robust_imdp.abstraction.rows import CellBounds, abstract, confidence_cell_bounds
 from robust_imdp.errors import InvalidInputError
-from robust_imdp.geometry import Box, Partition
-from robust_imdp.noise import GaussianNoise
+from robust_imdp.models.geometry import Box, Partition
+from robust_imdp.models.noise import GaussianNoise
 
 A = np.array([[0.3, 0.05], [-0.05, 0.3]])
 B = np.array([0.05, -0.02])

@@ -5,11 +5,11 @@ import json
 import numpy as np
 import pytest
 
-from robust_imdp.controller import Controller
-from robust_imdp.dfa import ltlf_to_dfa
+from robust_imdp.synthesis.controller import Controller
+from robust_imdp.spec.dfa import ltlf_to_dfa
 from robust_imdp.errors import DimensionError, InvalidInputError, OutsideDomainError
-from robust_imdp.geometry import Box, Partition, Region
-from robust_imdp.synthesis import synthesize
+from robust_imdp.models.geometry import Box, Partition, Region
+from robust_imdp.synthesis.core import synthesize
 
 from test_synthesis import ATOMS, LABELS, SPEC, reach_avoid_imdp
 
@@ -183,8 +183,8 @@ def test_end_to_end_abstraction_synthesis_controller_monte_carlo():
     (exact image boxes), synthesis of G !obs & F des, then the controller on the true system.
     The satisfaction frequency from uniform starts in a cell must lie in [p_low, p_up] up to
     5 standard errors (N = 400 runs per cell, SE <= 0.025)."""
-    from robust_imdp.abstraction import CellBounds, abstract
-    from robust_imdp.noise import GaussianNoise
+    from robust_imdp.abstraction.rows import CellBounds, abstract
+    from robust_imdp.models.noise import GaussianNoise
 
     X = Box(np.array([0.0]), np.array([4.0]))
     part = Partition(X, 0.5, [Region("des", Box([3.0], [4.0])), Region("obs", Box([1.0], [1.5]))])

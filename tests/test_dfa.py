@@ -1,6 +1,6 @@
 """Tests of the DFA type and of the LTLf -> minimal DFA translation.
 
-Oracle: the direct finite-trace semantics ``robust_imdp.ltlf.holds`` (dynamic programming over
+Oracle: the direct finite-trace semantics ``robust_imdp.spec.ltlf.holds`` (dynamic programming over
 the trace, no automaton), on every non-empty trace up to length 6 over 2 atoms, and on every
 trace up to length 4 plus seeded random traces of length 5-6 over 3 atoms (8**6 traces per
 formula would take too long). Minimality is checked by brute-force language comparison.
@@ -14,9 +14,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from robust_imdp.dfa import DFA, ltlf_to_dfa, minimize
+from robust_imdp.spec.dfa import DFA, ltlf_to_dfa, minimize
 from robust_imdp.errors import DimensionError, InvalidInputError, InvalidModelError, UnknownAtomError
-from robust_imdp.ltlf import Not, holds, parse
+from robust_imdp.spec.ltlf import Not, holds, parse
 
 from test_ltlf import formulas
 

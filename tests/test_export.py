@@ -23,8 +23,8 @@ N = 64  # cells: [-2, 2]^2 in steps of 0.5
 
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory):
-    from robust_imdp.casestudies import get_case_study, problem_toml
-    from robust_imdp.io import write_data_file
+    from robust_imdp.casestudies.systems import get_case_study, problem_toml
+    from robust_imdp.io.files import write_data_file
 
     d = tmp_path_factory.mktemp("export")
     case = get_case_study("three_mode_linear")
@@ -46,8 +46,8 @@ def _export(run_dir, capsys, *args):
 
 
 def test_abstraction_export_reads_back_as_the_cached_imdp(run_dir, tmp_path, capsys):
-    from robust_imdp.abstraction import Abstraction
-    from robust_imdp.formats import load_drn, load_prism_explicit
+    from robust_imdp.abstraction.rows import Abstraction
+    from robust_imdp.io.formats import load_drn, load_prism_explicit
 
     doc = json.loads((run_dir / "result.json").read_text())
     cached = Abstraction.load(run_dir / "cache" / f"abstraction-{doc['parameters']['abstraction_key']}.npz").imdp
@@ -71,7 +71,7 @@ def test_abstraction_export_reads_back_as_the_cached_imdp(run_dir, tmp_path, cap
 @pytest.mark.stormpy
 def test_product_export_has_our_values_in_storm(run_dir, tmp_path, capsys):
     stormpy = pytest.importorskip("stormpy")
-    from robust_imdp.formats import load_prism_explicit, storm_reachability, to_stormpy
+    from robust_imdp.io.formats import load_prism_explicit, storm_reachability, to_stormpy
 
     doc = json.loads((run_dir / "result.json").read_text())
     p_low, p_up_star = np.array(doc["p_low"]), np.array(doc["p_up_star"])

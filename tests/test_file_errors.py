@@ -6,7 +6,7 @@ import pytest
 
 from robust_imdp.cli import main
 from robust_imdp.errors import ProblemFileError
-from robust_imdp.io import load_problem, load_result, parse_problem_file, read_data_file
+from robust_imdp.io.files import load_problem, load_result, parse_problem_file, read_data_file
 from problem_texts import ONE_D_TEMPLATE as TOML
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from robust_imdp.errors import InvalidInputError, InvalidIntervalError, InvalidModelError
-from robust_imdp.formats import (
+from robust_imdp.io.formats import (
     densified_rows,
     load_drn,
     load_prism_explicit,
@@ -15,7 +15,7 @@ from robust_imdp.formats import (
     write_drn,
     write_prism_explicit,
 )
-from robust_imdp.imdp import IMDP
+from robust_imdp.models.imdp import IMDP
 
 FIELDS = ("state_ptr", "row_ptr", "col", "lower", "upper", "floor", "actions")
 

@@ -1,4 +1,4 @@
-"""Tests of robust_imdp.geometry: boxes, regions, region-respecting partitions, locate."""
+"""Tests of robust_imdp.models.geometry: boxes, regions, region-respecting partitions, locate."""
 
 import json
 
@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from robust_imdp.errors import DimensionError, InvalidInputError, OutsideDomainError
-from robust_imdp.geometry import Box, Partition, Region
+from robust_imdp.models.geometry import Box, Partition, Region
 
 
 # ----------------------------------------------------------------------------- Box / Region

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from robust_imdp.errors import AssumptionWarning, DimensionError, InvalidInputError
-from robust_imdp.gp import (
+from robust_imdp.bounds.gp import (
     GaussianProcess,
     LearnedModel,
     RKHSErrorBound,
@@ -421,7 +421,7 @@ def test_tune_signal_variance_is_the_argmin_and_ignores_y():
 def test_learn_with_fitted_hyperparameters_warns_about_the_assumption():
     """Issue 4: a kernel fitted on the same data must not feed the guarantee silently."""
     from robust_imdp.errors import AssumptionWarning
-    from robust_imdp.system import AffineMap, Dataset
+    from robust_imdp.models.system import AffineMap, Dataset
 
     rng = np.random.default_rng(5)
     x = rng.uniform(-1, 1, (30, 1))

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from robust_imdp.errors import DimensionError, InvalidIntervalError, InvalidModelError
-from robust_imdp.imdp import IMDP, ROW_SUM_TOL
+from robust_imdp.models.imdp import IMDP, ROW_SUM_TOL
 
 
 def small():

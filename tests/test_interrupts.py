@@ -101,7 +101,7 @@ def test_interrupt_in_follows_cause_and_context():
 
 @pytest.mark.parametrize("stage", ["check", "bound", "abstract", "synthesize", "refine"])
 def test_every_pipeline_stage_turns_an_interrupt_in_compiled_code_into_keyboardinterrupt(stage):
-    from robust_imdp.pipeline import _Log
+    from robust_imdp.pipeline.run import _Log
 
     log = _Log(False)
     with pytest.raises(KeyboardInterrupt, match=f"during the {stage} stage") as info:
@@ -118,7 +118,7 @@ def test_every_pipeline_stage_turns_an_interrupt_in_compiled_code_into_keyboardi
 def test_cli_exits_130_for_an_interrupt_seen_as_another_exception(tmp_path, monkeypatch, capsys, wrap):
     # Outside the pipeline's stages (a user's step(), plotting, saving) the command itself
     # recognises the interrupt behind a SystemError or behind an error raised from one.
-    import robust_imdp.pipeline as pipeline
+    import robust_imdp.pipeline.run as pipeline
 
     def interrupted(*a, **k):
         exc = _systemerror_from_interrupt()

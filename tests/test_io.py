@@ -7,9 +7,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from robust_imdp.casestudies import problem_toml, get_case_study, write_problem_files
+from robust_imdp.casestudies.systems import problem_toml, get_case_study, write_problem_files
 from robust_imdp.errors import ProblemFileError
-from robust_imdp.io import (
+from robust_imdp.io.files import (
     load_result, parse_problem_file, read_data_file, save_result, write_data_file,
 )
 
@@ -227,7 +227,7 @@ def test_load_result_errors(tmp_path):
 
 
 def test_committed_example_problems_load():
-    from robust_imdp.io import load_problem
+    from robust_imdp.io.files import load_problem
 
     root = Path(__file__).parents[1] / "examples" / "problems"
     for name, n_modes in (("three_mode_linear", 3), ("four_mode_nonlinear", 4),
@@ -275,8 +275,8 @@ def test_impossible_sample_is_refused_at_load_like_the_assumption_check(tmp_path
     # |g| <= B + tau = 3 everywhere (unit-amplitude kernel) and |noise| <= 0.05, so a residual
     # with |r| > 3.05 cannot come from the stated system; 3.04 can.
     from robust_imdp.errors import AssumptionError
-    from robust_imdp.io import load_problem
-    from robust_imdp.rkhs import check_assumption
+    from robust_imdp.io.files import load_problem
+    from robust_imdp.bounds.rkhs import check_assumption
 
     residuals = [0.1] * 11 + [r] + [0.2] * 3  # the bad sample is data row 12: file line 13
     path = _one_mode(tmp_path, residuals)
@@ -301,7 +301,7 @@ def test_impossible_sample_is_refused_at_load_like_the_assumption_check(tmp_path
 
 def test_other_impossible_samples_are_counted(tmp_path):
     from robust_imdp.errors import AssumptionError
-    from robust_imdp.io import load_problem
+    from robust_imdp.io.files import load_problem
 
     path = _one_mode(tmp_path, [0.0] * 10 + [99.0, 5.0, -4.0])  # lines 12, 13, 14; 99 is the worst
     # a single sample needs ||g|| >= |99| - 0.05 = 98.95 (|h(x)| <= ||h|| for the unit-amplitude kernel)
@@ -313,7 +313,7 @@ def test_other_impossible_samples_are_counted(tmp_path):
 
 def test_few_samples_warn_and_ten_do_not(tmp_path):
     from robust_imdp.errors import RobustImdpWarning
-    from robust_imdp.io import FEW_SAMPLES, load_problem
+    from robust_imdp.io.files import FEW_SAMPLES, load_problem
 
     assert FEW_SAMPLES == 10
     with pytest.warns(RobustImdpWarning, match=r"mode 'a' has 3 samples \(fewer than 10\)"):
@@ -327,8 +327,8 @@ def test_few_samples_warn_and_ten_do_not(tmp_path):
 
 def test_region_off_the_grid_warns_with_the_partitions_cell_count(tmp_path):
     from robust_imdp.errors import RobustImdpWarning
-    from robust_imdp.geometry import Box, Partition, Region
-    from robust_imdp.io import load_problem
+    from robust_imdp.models.geometry import Box, Partition, Region
+    from robust_imdp.io.files import load_problem
 
     text = ONE_MODE.replace("upper = [1.0, 1.0]", "upper = [1.1, 1.0]").replace(
         "[spec]", "[[regions.obs]]\nlower = [-1.3, -1.0]\nupper = [-1.0, 0.3]\n[spec]")
@@ -346,7 +346,7 @@ def test_region_off_the_grid_warns_with_the_partitions_cell_count(tmp_path):
 def test_committed_examples_load_without_warnings():
     import warnings
 
-    from robust_imdp.io import load_problem
+    from robust_imdp.io.files import load_problem
 
     root = Path(__file__).parents[1] / "examples" / "problems"
     with warnings.catch_warnings():

@@ -1,4 +1,4 @@
-"""Known nonlinear dynamics (robust_imdp.known): parser, certified image bounds, rounding margins.
+"""Known nonlinear dynamics (robust_imdp.models.known): parser, certified image bounds, rounding margins.
 
 Soundness tests compare against exact values: mpmath at 120 bits (exact to far below one ulp of
 a double), ``fractions.Fraction`` for decimal constants, and ranges attained at vertices or at
@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from robust_imdp.errors import DimensionError, ExpressionDomainError, ExpressionError, InvalidInputError
-from robust_imdp.known import MARGIN_ULP, KnownDynamics, _widen
+from robust_imdp.models.known import MARGIN_ULP, KnownDynamics, _widen
 
 mpmath.mp.prec = 120  # exact reference: 120-bit values round to the correctly rounded double
 

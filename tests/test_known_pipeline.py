@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 
 from robust_imdp import Problem, TruncatedGaussianNoise, UniformNoise
-from robust_imdp import pipeline
-from robust_imdp.assumptions import add_ranges, resolve
+from robust_imdp.pipeline import run as pipeline
+from robust_imdp.bounds.assumptions import add_ranges, resolve
 from robust_imdp.errors import AssumptionError, InvalidInputError, ProblemFileError
-from robust_imdp.geometry import Box, Partition
-from robust_imdp.known import KnownDynamics
+from robust_imdp.models.geometry import Box, Partition
+from robust_imdp.models.known import KnownDynamics
 
 F = {"a": ["x1 + 0.2*cos(x2)", "x2 + 0.1*sin(3*x1)"], "b": ["0.9*x1 - 0.1*x2^2", "x2 - 0.2*tanh(x1)"]}
 LENGTHSCALE = 1.0
@@ -91,7 +91,7 @@ def test_monte_carlo_containment_with_a_nonlinear_known_part():
 def test_image_is_the_outward_sum_of_the_f_range_and_the_g_range():
     # Computed independently: known.image_bounds of f plus rkhs.bound_chunk of g (A = 0, b = 0) with
     # the noise allowance (noise bound + residual rounding), summed with one ulp outward.
-    from robust_imdp.rkhs import bound_chunk
+    from robust_imdp.bounds.rkhs import bound_chunk
 
     # The allowance is the largest over the modes (one noise bound for every mode, as the one-setting
     # path has): dbar plus each mode's largest rounding bound, rounded up, then the maximum.
@@ -277,7 +277,7 @@ MODE_A = 'f = ["x1 + 0.2*cos(x2)", "x2 + 0.1*sin(3*x1)"]'
 
 
 def _write(tmp_path, mode_a=MODE_A, gp="rkhs_bound = 0.1"):
-    from robust_imdp.io import write_data_file
+    from robust_imdp.io.files import write_data_file
 
     x, u, xn = _data()
     write_data_file(tmp_path / "data.csv", x, u, xn)
@@ -307,7 +307,7 @@ def test_problem_file_with_f_runs_end_to_end(tmp_path, capsys):
     gaps = doc["diagnostics"]["known_part_gap"]
     assert len(gaps) == 4 and max(r["gap_over_cell_width_max"] for r in gaps) < 1e-2
     # the same problem in Python gives the same boxes as the file
-    from robust_imdp.io import load_problem
+    from robust_imdp.io.files import load_problem
 
     p = load_problem(path)
     assert isinstance(p.maps[0], KnownDynamics) and p.maps[0].name.endswith("[modes.a]")
@@ -333,7 +333,7 @@ def test_advice_runs_with_a_nonlinear_known_part(tmp_path, capsys):
     ('A = [[1.0, 0.0], [0.0, 1.0]]', r"\[modes\.a\] is missing required key 'b' \(or give f = \[\.\.\.\]"),
 ])
 def test_problem_file_errors_in_f(tmp_path, capsys, mode_a, match):
-    from robust_imdp.io import parse_problem_file
+    from robust_imdp.io.files import parse_problem_file
 
     path = _write(tmp_path, mode_a=mode_a)
     with pytest.raises(ProblemFileError, match=match):
@@ -351,7 +351,7 @@ def test_problem_file_errors_in_f(tmp_path, capsys, mode_a, match):
     ("rkhs_bound = 0.1\nknown = [true]", r"\[gp\]\.known must be a list of 2 true/false values"),
 ])
 def test_problem_file_errors_per_component(tmp_path, capsys, gp, match):
-    from robust_imdp.io import parse_problem_file
+    from robust_imdp.io.files import parse_problem_file
 
     path = _write(tmp_path, gp=gp)
     with pytest.raises(ProblemFileError, match=match):
@@ -361,7 +361,7 @@ def test_problem_file_errors_per_component(tmp_path, capsys, gp, match):
 
 
 def test_known_component_refused_at_load_naming_the_line(tmp_path):
-    from robust_imdp.io import load_problem
+    from robust_imdp.io.files import load_problem
 
     path = _write(tmp_path, gp="rkhs_bound = 0.1\nknown = {a = [false, true], b = [false, false]}")
     with pytest.raises(AssumptionError, match=r"declares component 2 of mode 'a' known .*data\.csv, line \d+"):

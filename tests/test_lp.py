@@ -12,10 +12,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from robust_imdp import solve
+from robust_imdp.solvers import api as solve
 from robust_imdp.errors import ConvergenceError, DimensionError, InvalidInputError
-from robust_imdp.imdp import IMDP
-from robust_imdp.lp import (
+from robust_imdp.models.imdp import IMDP
+from robust_imdp.solvers.lp import (
     evaluate_strategy_lp,
     inner_lp,
     nature_maximises,
@@ -309,7 +309,7 @@ def test_heavy_backends_are_imported_lazily():
     import subprocess
     import sys
 
-    code = ("import sys, robust_imdp.lp, robust_imdp.formats; "
+    code = ("import sys, robust_imdp.solvers.lp, robust_imdp.io.formats; "
             "print(sorted(m for m in ('cvxpy', 'clarabel', 'stormpy') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"

@@ -5,7 +5,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from robust_imdp.errors import FormulaSyntaxError, InvalidInputError
-from robust_imdp.ltlf import (
+from robust_imdp.spec.ltlf import (
     And,
     Atom,
     Bottom,

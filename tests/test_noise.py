@@ -1,11 +1,11 @@
-"""Tests of robust_imdp.noise: probabilities vs closed forms and Monte Carlo, moments, validation."""
+"""Tests of robust_imdp.models.noise: probabilities vs closed forms and Monte Carlo, moments, validation."""
 
 import numpy as np
 import pytest
 from scipy import integrate, stats
 
 from robust_imdp.errors import DimensionError, InvalidInputError
-from robust_imdp.noise import GaussianNoise, TruncatedGaussianNoise, UniformNoise
+from robust_imdp.models.noise import GaussianNoise, TruncatedGaussianNoise, UniformNoise
 
 MODELS = [
     GaussianNoise([0.1, 0.3]),

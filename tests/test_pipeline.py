@@ -3,14 +3,14 @@
 import numpy as np
 import pytest
 
-from robust_imdp.casestudies import get_case_study
+from robust_imdp.casestudies.systems import get_case_study
 from robust_imdp.errors import InvalidInputError, UnknownAtomError
-from robust_imdp.io import load_result, save_result
-from robust_imdp.noise import TruncatedGaussianNoise
-from robust_imdp.pipeline import (
+from robust_imdp.io.files import load_result, save_result
+from robust_imdp.models.noise import TruncatedGaussianNoise
+from robust_imdp.pipeline.run import (
     Problem, abstraction_key, bounds_key, resynthesize, synthesize_from_data,
 )
-from robust_imdp.system import AffineMap, Dataset
+from robust_imdp.models.system import AffineMap, Dataset
 from robust_imdp.validate import validate
 
 CASE = get_case_study("three_mode_linear")
@@ -112,7 +112,7 @@ def test_unknown_region_fails_before_learning():
 def test_library_controller_agrees_with_the_result_tables(run):
     # controller.py and the table-driven simulation in validate.py are written independently;
     # from the same start state they must choose the same first mode.
-    from robust_imdp.io import result_to_dict
+    from robust_imdp.io.files import result_to_dict
     from robust_imdp.validate import ResultFile
 
     res, _ = run
@@ -166,7 +166,7 @@ def test_result_reports_the_synthesis_of_its_own_abstraction(run):
     synthesize() itself are checked against brute force and Monte Carlo in test_synthesis.py,
     test_sensitivity.py and test_tight_monte_carlo.py; together this catches, e.g., a p_low
     scaled by 1.01 between synthesis and the result.)"""
-    from robust_imdp.synthesis import synthesize
+    from robust_imdp.synthesis.core import synthesize
 
     res, _ = run
     part = res.partition

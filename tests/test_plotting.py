@@ -131,7 +131,7 @@ def test_one_d_bounds_against_x(tmp_path):
 
 
 def test_three_d_slices(tmp_path):
-    from robust_imdp.io import ResultFile
+    from robust_imdp.io.files import ResultFile
 
     doc = doc_nd(3)  # 8 x 8 x 8 cells of width 0.5
     res = ResultFile.from_dict(doc)

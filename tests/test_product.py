@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from robust_imdp.errors import DimensionError, InvalidInputError, InvalidModelError
-from robust_imdp.imdp import IMDP
-from robust_imdp.product import evaluate_product_strategy, materialize_product, solve_product
-from robust_imdp.solve import solve_reachability
+from robust_imdp.models.imdp import IMDP
+from robust_imdp.solvers.product import evaluate_product_strategy, materialize_product, solve_product
+from robust_imdp.solvers.api import solve_reachability
 
 # F des over atoms (des,): letter 1 = des.  State 0 initial, 1 accepting.
 F_DES = SimpleNamespace(atoms=("des",), n_states=2, initial=0, accepting=np.array([False, True]),

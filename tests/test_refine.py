@@ -15,12 +15,12 @@ import numpy as np
 import pytest
 from scipy import special
 
-from robust_imdp.abstraction import Abstraction, CellBounds, abstract
-from robust_imdp.dfa import ltlf_to_dfa
+from robust_imdp.abstraction.rows import Abstraction, CellBounds, abstract
+from robust_imdp.spec.dfa import ltlf_to_dfa
 from robust_imdp.errors import DimensionError, InvalidInputError
-from robust_imdp.geometry import Box, BoxPartition, Partition, Region, partition_from_dict
-from robust_imdp.noise import GaussianNoise, TruncatedGaussianNoise, UniformNoise
-from robust_imdp.refine import RefineOptions, refine, select_cells
+from robust_imdp.models.geometry import Box, BoxPartition, Partition, Region, partition_from_dict
+from robust_imdp.models.noise import GaussianNoise, TruncatedGaussianNoise, UniformNoise
+from robust_imdp.synthesis.refine import RefineOptions, refine, select_cells
 
 from soundness_checks import (
     KINDS, check_intervals, check_unlisted_mass, dense_rows, gauss_interval, interval_kinds, shrink_kind, wilson,
@@ -375,7 +375,7 @@ def test_selection_scores_undecided_cells_and_their_successors():
     lo, hi = bound_cells(base.cells_lower, base.cells_upper)
     P = BoxPartition(base)
     ab = abstract(P, CellBounds(lo, hi), noise)
-    from robust_imdp.synthesis import synthesize
+    from robust_imdp.synthesis.core import synthesize
 
     syn = synthesize(ab.imdp, P.labels, P.atoms, ltlf_to_dfa("G !o & F g"), threshold=0.9, outside_state=P.n_cells)
     score = select_cells(P, ab.imdp, syn, 2)
@@ -389,7 +389,7 @@ def test_selection_scores_by_hand():
     cell 0 [0, 0.6], cell 1 [0.1, 0.5], cell 2 [0, 0.2] and the outside state [0, 0.1]."""
     from types import SimpleNamespace
 
-    from robust_imdp.imdp import IMDP
+    from robust_imdp.models.imdp import IMDP
 
     P = BoxPartition(Partition(Box([0.0], [4.0]), [2.0], [Region("r", (Box([0.0], [1.0]),))]))  # 0, 1, 2, 4
     assert P.n_cells == 3 and np.allclose(P.volumes(), [1, 1, 2])
@@ -427,9 +427,9 @@ def test_pipeline_refinement_end_to_end(tmp_path):
     that locates like the partition, result.json with every cell's box, and the cache."""
     from test_pipeline import CASE, tiny_problem
 
-    from robust_imdp.controller import Controller
-    from robust_imdp.io import load_result, save_result
-    from robust_imdp.pipeline import synthesize_from_data
+    from robust_imdp.synthesis.controller import Controller
+    from robust_imdp.io.files import load_result, save_result
+    from robust_imdp.pipeline.run import synthesize_from_data
     from robust_imdp.validate import validate
 
     problem = tiny_problem(refine={"max_cells": 160, "max_rounds": 3, "growth": 0.5})
@@ -474,7 +474,7 @@ def test_refine_table_in_the_problem_file():
     import tomllib
 
     from robust_imdp.errors import ProblemFileError
-    from robust_imdp.io import parse_problem_dict
+    from robust_imdp.io.files import parse_problem_dict
 
     base = (__import__("pathlib").Path(__file__).parent.parent / "examples/problems/three_mode_linear.toml").read_text()
     spec = parse_problem_dict(tomllib.loads(base))

@@ -100,7 +100,7 @@ def test_schema_uses_only_keywords_the_validator_enforces():
 
 def synthetic_doc():
     """A result.json as written by io.save_result for a hand-built 2x1 result with diagnostics."""
-    from robust_imdp.io import result_to_dict
+    from robust_imdp.io.files import result_to_dict
 
     res = _fake_result()
     res.diagnostics = {
@@ -114,7 +114,7 @@ def synthetic_doc():
 
 
 def test_written_result_follows_the_schema(tmp_path):
-    from robust_imdp.io import save_result
+    from robust_imdp.io.files import save_result
 
     doc = synthetic_doc()
     assert validate_schema(doc, SCHEMA) == []
@@ -148,7 +148,7 @@ def test_schema_rejects_broken_documents(change, error):
 def test_per_cell_lengths_are_checked_by_the_reader():
     # What the schema cannot say (one entry per cell) the reader checks.
     from robust_imdp.errors import DimensionError
-    from robust_imdp.io import ResultFile
+    from robust_imdp.io.files import ResultFile
 
     doc = synthetic_doc()
     ResultFile.from_dict(doc)

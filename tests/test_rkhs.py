@@ -18,10 +18,10 @@ import mpmath as mp
 import numpy as np
 import pytest
 
-from robust_imdp import rkhs
+from robust_imdp.bounds import rkhs
 from robust_imdp.errors import AssumptionError, DimensionError, InvalidInputError
-from robust_imdp.lp import rkhs_min_norm_socp, rkhs_vertex_socp
-from robust_imdp.noise import GaussianNoise, TruncatedGaussianNoise, UniformNoise
+from robust_imdp.solvers.lp import rkhs_min_norm_socp, rkhs_vertex_socp
+from robust_imdp.models.noise import GaussianNoise, TruncatedGaussianNoise, UniformNoise
 
 mp.mp.dps = 50
 SHRINK = 1e-3  # the "slightly unsound" bound of the sensitivity tests: 0.1 % of the width

@@ -22,8 +22,8 @@ import mpmath as mp
 import numpy as np
 import pytest
 
-from robust_imdp import rkhs
-from robust_imdp.lp import rkhs_vertex_socp
+from robust_imdp.bounds import rkhs
+from robust_imdp.solvers.lp import rkhs_vertex_socp
 
 from test_rkhs import count_violations, grid_cells, kern, kernel_function, samples_in_cells
 

@@ -22,10 +22,16 @@ import mpmath
 import numpy as np
 import pytest
 
-from robust_imdp import abstraction, bounds, noise, synthesis
-from robust_imdp.imdp import IMDP
-from robust_imdp.noise import GaussianNoise
-from robust_imdp.solve import _Sweeper
+from robust_imdp.abstraction import rows as abstraction
+
+from robust_imdp.bounds import gp_cells as bounds
+
+from robust_imdp.models import noise
+
+from robust_imdp.synthesis import core as synthesis
+from robust_imdp.models.imdp import IMDP
+from robust_imdp.models.noise import GaussianNoise
+from robust_imdp.solvers.api import _Sweeper
 
 U = 2.0 ** -53
 F = np.vectorize(Fraction, otypes=[object])  # exact value of every float

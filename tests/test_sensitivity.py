@@ -15,14 +15,14 @@ import numpy as np
 import pytest
 from scipy import special
 
-from robust_imdp.abstraction import CellBounds, abstract
-from robust_imdp.bounds import bound_image, bound_posterior
-from robust_imdp.dfa import ltlf_to_dfa
-from robust_imdp.geometry import Box, Partition, Region
-from robust_imdp.imdp import IMDP
-from robust_imdp.noise import GaussianNoise
-from robust_imdp.solve import evaluate_strategy, solve_reachability
-from robust_imdp.synthesis import synthesize
+from robust_imdp.abstraction.rows import CellBounds, abstract
+from robust_imdp.bounds.gp_cells import bound_image, bound_posterior
+from robust_imdp.spec.dfa import ltlf_to_dfa
+from robust_imdp.models.geometry import Box, Partition, Region
+from robust_imdp.models.imdp import IMDP
+from robust_imdp.models.noise import GaussianNoise
+from robust_imdp.solvers.api import evaluate_strategy, solve_reachability
+from robust_imdp.synthesis.core import synthesize
 
 from soundness_checks import (
     KINDS, check_bracket, check_intervals, check_posterior_bounds, check_synthesis, dense_rows, drop_upper,

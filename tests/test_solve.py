@@ -10,8 +10,8 @@ from hypothesis import strategies as st
 from scipy.optimize import linprog
 
 from robust_imdp.errors import ConvergenceWarning, DimensionError, InvalidInputError
-from robust_imdp.imdp import IMDP
-from robust_imdp.solve import (Adversary, Objective, _Sweeper, evaluate_strategy, solve_reachability)
+from robust_imdp.models.imdp import IMDP
+from robust_imdp.solvers.api import (Adversary, Objective, _Sweeper, evaluate_strategy, solve_reachability)
 
 from soundness_checks import check_bracket
 
@@ -384,7 +384,7 @@ def test_strong_components_match_scipy():
     import scipy.sparse as sp
     from scipy.sparse import csgraph
 
-    from robust_imdp.solve import strong_components
+    from robust_imdp.solvers.api import strong_components
 
     rng = np.random.default_rng(0)
     for _ in range(30):
@@ -403,9 +403,9 @@ def test_parallel_jacobi_sweeps_give_the_serial_results_bit_for_bit(monkeypatch)
     bounds and strategies, and the parallel kernel was really used."""
     import numba
 
-    from robust_imdp import solve as S
-    from robust_imdp.dfa import ltlf_to_dfa
-    from robust_imdp.product import solve_product
+    from robust_imdp.solvers import api as S
+    from robust_imdp.spec.dfa import ltlf_to_dfa
+    from robust_imdp.solvers.product import solve_product
 
     rng = np.random.default_rng(5)
     n, A, k = 2600, 2, 5  # more than two of the kernel's blocks of PAR_BLOCK = 1024 states

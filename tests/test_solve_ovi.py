@@ -8,7 +8,7 @@ comparison must see a bracket end shrunk by 0.1 % (issue 14's standard):
 * two-sided dense value iteration (``lp.ordering_inner_dense``, numpy, no code shared with the
   solver) on models that leave every row with probability >= 0.05 per step: the lower and upper
   sequences meet within 1e-13, so their midpoint is the value to ~1e-13;
-* the LP of :mod:`robust_imdp.lp` on tiny models with zero lower bounds and end components;
+* the LP of :mod:`robust_imdp.solvers.lp` on tiny models with zero lower bounds and end components;
 * Storm (residual 1e-12) on 400-state models and on a product with a DFA.
 
 The parameter variants (``OVI_PARAMS``) run each path alone: extrapolated + plain guesses (the
@@ -25,11 +25,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from robust_imdp import solve
-from robust_imdp.imdp import IMDP
-from robust_imdp.lp import evaluate_strategy_lp, ordering_inner_dense, solve_reachability_lp
-from robust_imdp.product import evaluate_product_strategy, materialize_product, solve_product
-from robust_imdp.solve import evaluate_strategy, solve_reachability
+from robust_imdp.solvers import api as solve
+from robust_imdp.models.imdp import IMDP
+from robust_imdp.solvers.lp import evaluate_strategy_lp, ordering_inner_dense, solve_reachability_lp
+from robust_imdp.solvers.product import evaluate_product_strategy, materialize_product, solve_product
+from robust_imdp.solvers.api import evaluate_strategy, solve_reachability
 
 from soundness_checks import check_bracket, drop_upper, raise_lower
 
@@ -252,7 +252,7 @@ def storm_model(rng, n, a, k):
 def test_medium_models_against_storm():
     """400 states, 3 actions, 8 successors, 10 % targets / 10 % avoid: both objectives and
     adversaries; Storm at residual 1e-12 (its error is far below the 1e-9 used here)."""
-    from robust_imdp.formats import storm_reachability
+    from robust_imdp.io.formats import storm_reachability
 
     rng = np.random.default_rng(8)
     n = 400
@@ -279,7 +279,7 @@ G_NOT_OBS_F_DES = SimpleNamespace(atoms=("obs", "des"), n_states=3, initial=0,
 def test_product_against_storm_on_the_materialised_product(adversary):
     """The lazy product (layered nodes, components across layers) against Storm on the explicit
     product; the robust strategy's evaluation against Storm on the induced product chain."""
-    from robust_imdp.formats import storm_reachability
+    from robust_imdp.io.formats import storm_reachability
 
     rng = np.random.default_rng(9)
     n = 300

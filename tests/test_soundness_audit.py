@@ -30,12 +30,12 @@ import pytest
 import scipy.optimize
 from scipy import special
 
-from robust_imdp.abstraction import CellBounds, abstract
-from robust_imdp.bounds import bound_image, bound_posterior
-from robust_imdp.gp import GaussianProcess, RKHSErrorBound, chowdhury_regulariser, learn, se_kernel
-from robust_imdp.geometry import Box, Partition
-from robust_imdp.noise import GaussianNoise, TruncatedGaussianNoise
-from robust_imdp.system import AffineMap, Dataset
+from robust_imdp.abstraction.rows import CellBounds, abstract
+from robust_imdp.bounds.gp_cells import bound_image, bound_posterior
+from robust_imdp.bounds.gp import GaussianProcess, RKHSErrorBound, chowdhury_regulariser, learn, se_kernel
+from robust_imdp.models.geometry import Box, Partition
+from robust_imdp.models.noise import GaussianNoise, TruncatedGaussianNoise
+from robust_imdp.models.system import AffineMap, Dataset
 
 # ============================================================================ 1. gp.py
 
@@ -457,7 +457,7 @@ def _wilson(k, n, z=_Z999):
 
 def _pipeline_one_step(step, x, u, x_next, noise, part, theta):
     """learn -> bound_image -> abstract through the public functions (as pipeline.py does)."""
-    from robust_imdp.casestudies import get_case_study
+    from robust_imdp.casestudies.systems import get_case_study
 
     names = get_case_study("four_mode_nonlinear").system.mode_names
     ds = Dataset(x, u, x_next, modes=names)
@@ -507,7 +507,7 @@ def test_end_to_end_four_mode_nonlinear_truncated_noise():
     20 (cell, mode) pairs x 5 points x 2000 steps, 65 targets each: 6500 checks, chance
     failures <= 6.5 + 3 sqrt(6.5) ~ 14.
     """
-    from robust_imdp.casestudies import get_case_study
+    from robust_imdp.casestudies.systems import get_case_study
 
     case = get_case_study("four_mode_nonlinear")
     sysm = case.system
@@ -522,7 +522,7 @@ def test_end_to_end_four_mode_nonlinear_truncated_noise():
 
 def test_end_to_end_four_mode_nonlinear_gaussian_noise():
     """Same with untruncated Gaussian noise N(0, 0.05^2 I) (true system and model)."""
-    from robust_imdp.casestudies import get_case_study
+    from robust_imdp.casestudies.systems import get_case_study
 
     case = get_case_study("four_mode_nonlinear")
     g, sigma = case.system.g, 0.05
@@ -593,8 +593,8 @@ def test_abstraction_closed_form_irregular_grid_nd(d, kind, rule):
     """Region-respecting partition with split (irregular) cells, d = 2 and 3, Gaussian or
     uniform noise: every interval (listed, floor, outside) encloses the exact probability at
     the corners, centre and 2 random points of every cell (tolerance 1e-10)."""
-    from robust_imdp.geometry import Region
-    from robust_imdp.noise import UniformNoise
+    from robust_imdp.models.geometry import Region
+    from robust_imdp.models.noise import UniformNoise
 
     rng = np.random.default_rng(20 + d)
     region = Region("r", [Box(np.full(d, -0.13), np.r_[0.31, np.full(d - 1, 0.58)])])

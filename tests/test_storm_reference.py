@@ -9,11 +9,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robust_imdp import solve
+from robust_imdp.solvers import api as solve
 from robust_imdp.errors import InvalidInputError
-from robust_imdp.formats import storm_reachability, to_stormpy, write_drn
-from robust_imdp.imdp import IMDP
-from robust_imdp.lp import nature_maximises, ordering_inner_dense, solve_reachability_lp
+from robust_imdp.io.formats import storm_reachability, to_stormpy, write_drn
+from robust_imdp.models.imdp import IMDP
+from robust_imdp.solvers.lp import nature_maximises, ordering_inner_dense, solve_reachability_lp
 
 from soundness_checks import check_close, drop_upper, raise_lower
 
@@ -146,7 +146,7 @@ def test_to_stormpy_chunking_is_invisible():
 
 
 def test_read_drn_reads_storms_own_export(tmp_path):
-    from robust_imdp.formats import load_drn
+    from robust_imdp.io.formats import load_drn
 
     m = random_imdp(np.random.default_rng(13), 5, 2, 3, positive_lower=True)
     stormpy.io.export_to_drn(to_stormpy(m, [3]), str(tmp_path / "s.drn"))

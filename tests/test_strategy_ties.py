@@ -16,14 +16,14 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from robust_imdp import product
-from robust_imdp.abstraction import CellBounds, abstract
-from robust_imdp.dfa import ltlf_to_dfa
-from robust_imdp.geometry import Box, Partition, Region
-from robust_imdp.imdp import IMDP
-from robust_imdp.noise import TruncatedGaussianNoise
-from robust_imdp.solve import evaluate_strategy, solve_reachability
-from robust_imdp.synthesis import synthesize
+from robust_imdp.solvers import product
+from robust_imdp.abstraction.rows import CellBounds, abstract
+from robust_imdp.spec.dfa import ltlf_to_dfa
+from robust_imdp.models.geometry import Box, Partition, Region
+from robust_imdp.models.imdp import IMDP
+from robust_imdp.models.noise import TruncatedGaussianNoise
+from robust_imdp.solvers.api import evaluate_strategy, solve_reachability
+from robust_imdp.synthesis.core import synthesize
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_io import _fake_result  # noqa: E402  (a hand-built 2-cell result)
@@ -211,7 +211,7 @@ def test_newcomer_robot_no_q_no_cell_where_a_controller_might_succeed():
 # --------------------------------------------------------------------------- result fields
 def test_result_file_and_summary_separate_no_controller_can():
     res = _fake_result()  # cell 1: "no", p_up_star 0.5 < threshold 0.9
-    from robust_imdp.io import result_to_dict
+    from robust_imdp.io.files import result_to_dict
 
     doc = result_to_dict(res)
     assert doc["no_strategy_can"] == [False, True]
@@ -220,7 +220,7 @@ def test_result_file_and_summary_separate_no_controller_can():
 
 
 def test_result_npz_json_and_read_back(tmp_path):
-    from robust_imdp.io import load_result, save_result
+    from robust_imdp.io.files import load_result, save_result
 
     res = _fake_result()
     save_result(res, tmp_path)
@@ -231,7 +231,7 @@ def test_result_npz_json_and_read_back(tmp_path):
 
 
 def test_pipeline_summary_splits_q_no():
-    from robust_imdp.pipeline import Result
+    from robust_imdp.pipeline.run import Result
 
     syn = SimpleNamespace(p_low=np.array([1.0, 0.0, 0.0]), p_up=np.array([1.0, 0.0, 0.5]),
                           p_up_star=np.array([1.0, 0.95, 0.5]), error=np.array([0.0, 0.95, 0.5]))

@@ -2,7 +2,7 @@
 
 ``bruteforce_solve`` below is an independent, deliberately naive product solver (dense
 intervals, Python loops, ordering-based inner problem, plain value iteration): an oracle for
-the numbers of ``robust_imdp.product`` on small random models, next to hand-derived cases.
+the numbers of ``robust_imdp.solvers.product`` on small random models, next to hand-derived cases.
 """
 
 import importlib
@@ -11,10 +11,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from robust_imdp.dfa import ltlf_to_dfa
+from robust_imdp.spec.dfa import ltlf_to_dfa
 from robust_imdp.errors import DimensionError, InvalidInputError, SoundnessError, UnknownAtomError
-from robust_imdp.imdp import IMDP
-from robust_imdp.synthesis import SynthesisResult, remap_letters, synthesize
+from robust_imdp.models.imdp import IMDP
+from robust_imdp.synthesis.core import SynthesisResult, remap_letters, synthesize
 
 from soundness_checks import check_synthesis
 
@@ -83,7 +83,7 @@ def bruteforce_evaluate(imdp, letters, dfa, strategy, **kw):
 
 @pytest.fixture
 def product_module():
-    return importlib.import_module("robust_imdp.product")
+    return importlib.import_module("robust_imdp.solvers.product")
 
 
 # --------------------------------------------------------------------------- hand-built model

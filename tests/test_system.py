@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from robust_imdp import noise
+from robust_imdp.models import noise
 from robust_imdp.errors import DimensionError, InvalidInputError, InvalidModelError
-from robust_imdp.system import AffineMap, Dataset, ModeResiduals, SwitchedSystem, residuals
+from robust_imdp.models.system import AffineMap, Dataset, ModeResiduals, SwitchedSystem, residuals
 
 
 class _UniformNoise:

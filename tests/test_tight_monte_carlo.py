@@ -43,12 +43,12 @@ import pytest
 from numba import njit
 from scipy import special
 
-from robust_imdp.abstraction import CellBounds, abstract
-from robust_imdp.controller import Controller
-from robust_imdp.dfa import ltlf_to_dfa
-from robust_imdp.geometry import Box, Partition, Region
-from robust_imdp.noise import TruncatedGaussianNoise
-from robust_imdp.synthesis import synthesize
+from robust_imdp.abstraction.rows import CellBounds, abstract
+from robust_imdp.synthesis.controller import Controller
+from robust_imdp.spec.dfa import ltlf_to_dfa
+from robust_imdp.models.geometry import Box, Partition, Region
+from robust_imdp.models.noise import TruncatedGaussianNoise
+from robust_imdp.synthesis.core import synthesize
 
 from soundness_checks import check_frequencies
 

@@ -9,13 +9,13 @@ import json
 import numpy as np
 import pytest
 
-from robust_imdp.casestudies import get_case_study, problem_toml
+from robust_imdp.casestudies.systems import get_case_study, problem_toml
 from robust_imdp.cli import main
 from robust_imdp.errors import AssumptionError
-from robust_imdp.io import write_data_file
-from robust_imdp.noise import GaussianNoise, UniformNoise
-from robust_imdp.pipeline import Problem, synthesize_from_data
-from robust_imdp.system import AffineMap, Dataset
+from robust_imdp.io.files import write_data_file
+from robust_imdp.models.noise import GaussianNoise, UniformNoise
+from robust_imdp.pipeline.run import Problem, synthesize_from_data
+from robust_imdp.models.system import AffineMap, Dataset
 from robust_imdp.validate import validate
 
 
@@ -134,8 +134,8 @@ def test_end_to_end_containment_with_informative_brackets():
     # grid: 26 of 256 cells get p_low strictly inside (0.02, 0.98). Every bracket must contain the
     # Monte-Carlo frequency (99.9 % Wilson intervals, 256 cells: a correct result is flagged with
     # probability <= 256 x 1e-3 = 26 % per seed -- the seed is fixed, and the flagged count must be 0).
-    from robust_imdp.casestudies import TrueSystem
-    from robust_imdp.io import result_to_dict
+    from robust_imdp.casestudies.systems import TrueSystem
+    from robust_imdp.io.files import result_to_dict
     from robust_imdp.validate import ResultFile
 
     case = get_case_study("three_mode_linear")

@@ -25,11 +25,11 @@ from robust_imdp import plotting  # noqa: E402
 from robust_imdp.errors import (  # noqa: E402
     DimensionError, InvalidInputError, ProblemFileError, RegionOverlapWarning, RobustImdpWarning,
 )
-from robust_imdp.geometry import Box, Partition, Region, region_overlaps  # noqa: E402
-from robust_imdp.io import ResultFile, load_problem, load_result, parse_problem_file, save_result  # noqa: E402
-from robust_imdp.noise import TruncatedGaussianNoise  # noqa: E402
-from robust_imdp.pipeline import Problem, Result  # noqa: E402
-from robust_imdp.system import AffineMap, Dataset  # noqa: E402
+from robust_imdp.models.geometry import Box, Partition, Region, region_overlaps  # noqa: E402
+from robust_imdp.io.files import ResultFile, load_problem, load_result, parse_problem_file, save_result  # noqa: E402
+from robust_imdp.models.noise import TruncatedGaussianNoise  # noqa: E402
+from robust_imdp.pipeline.run import Problem, Result  # noqa: E402
+from robust_imdp.models.system import AffineMap, Dataset  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_io import GOOD, _fake_result  # noqa: E402
@@ -235,7 +235,9 @@ def test_save_figures_passes_the_slice(tmp_path):
 
 
 def test_cli_slice_option_is_parsed_checked_and_passed_to_the_figures(tmp_path, monkeypatch, capsys):
-    from robust_imdp import cli, io, pipeline
+    from robust_imdp import cli
+    from robust_imdp.io import files as io
+    from robust_imdp.pipeline import run as pipeline
 
     args = cli._parser().parse_args(["run", "p.toml", "--out", "o", "--slice", "x3=0.5,x4=0"])
     assert args.slice == {"x3": 0.5, "x4": 0.0}
@@ -269,7 +271,7 @@ def test_region_overlaps_are_boxes_of_positive_volume():
 
 
 def test_overlapping_formula_regions_warn_before_the_long_stages(monkeypatch):
-    from robust_imdp import pipeline
+    from robust_imdp.pipeline import run as pipeline
 
     class Stop(Exception):
         pass
@@ -373,7 +375,7 @@ def test_result_shortcuts_read_the_synthesis():
 
 
 def test_controller_act_gives_names_and_act_index_gives_indices():
-    from robust_imdp.controller import Controller
+    from robust_imdp.synthesis.controller import Controller
 
     # 2 cells on [0, 2] (cell 1 = des), DFA of "F des": 0 waiting, 1 accepted
     kw = dict(dfa_delta=[[0, 1], [1, 1]], dfa_initial=0, dfa_accepting=[False, True], atoms=["des"],
@@ -402,7 +404,8 @@ def test_package_ships_py_typed():
 
 
 def test_one_step_cap_for_validate_simulate_and_the_cli(monkeypatch):
-    from robust_imdp import cli, io, validate
+    from robust_imdp import cli, validate
+    from robust_imdp.io import files as io
 
     cap = validate.MAX_STEPS
     assert inspect.signature(validate.validate).parameters["max_steps"].default == cap

@@ -120,7 +120,7 @@ def test_bad_documents():
 
 
 def test_case_study_true_systems_match_the_paper():
-    from robust_imdp.casestudies import true_system
+    from robust_imdp.casestudies.systems import true_system
 
     rng = np.random.default_rng(0)
     x = rng.uniform(-2, 2, size=(500, 2))

@@ -225,7 +225,7 @@ def _cmd_run(args) -> int:
     # formula's regions by the pipeline's first stage.
     created = _writable_dir(out, "--out") + _writable_dir(cache, "--cache")
     if args.formula is not None:
-        from robust_imdp.ltlf import parse
+        from robust_imdp.spec.ltlf import parse
 
         parse(args.formula)
     # Neither a stale complete-looking result nor the old result's figures and validation may
@@ -240,8 +240,8 @@ def _cmd_run(args) -> int:
 
 
 def _run_into(args, out: Path, cache: Path) -> int:
-    from robust_imdp.io import load_problem, save_result
-    from robust_imdp.pipeline import synthesize_from_data
+    from robust_imdp.io.files import load_problem, save_result
+    from robust_imdp.pipeline.run import synthesize_from_data
 
     problem = load_problem(args.problem)
     changes = {}
@@ -312,7 +312,7 @@ def _load_true_system(spec: str):
             raise InvalidInputError(
                 f"--true-system must be a case study name or FILE.py:NAME (NAME: a class or object in "
                 f"FILE.py); got {spec!r}")
-        from robust_imdp.casestudies import true_system
+        from robust_imdp.casestudies.systems import true_system
 
         return true_system(spec)
     path = Path(file)
@@ -350,7 +350,7 @@ def _load_true_system(spec: str):
 def _cmd_simulate(args) -> int:
     import numpy as np
 
-    from robust_imdp.io import load_result
+    from robust_imdp.io.files import load_result
     from robust_imdp.jsonable import jsonable
     from robust_imdp.validate import simulate, validate
 
@@ -394,8 +394,8 @@ def _cmd_simulate(args) -> int:
 def _cmd_export(args) -> int:
     import numpy as np
 
-    from robust_imdp.formats import MAX_ENTRIES, write_drn, write_prism_explicit
-    from robust_imdp.io import load_result
+    from robust_imdp.io.formats import MAX_ENTRIES, write_drn, write_prism_explicit
+    from robust_imdp.io.files import load_result
 
     res = load_result(args.result)
     key = res.parameters.get("abstraction_key")
@@ -405,8 +405,8 @@ def _cmd_export(args) -> int:
         raise InvalidInputError(
             f"export needs the abstraction of this result, abstraction-{key}.npz in the run's cache {cache}; "
             f"it is not there: pass the run's --cache, or run `robust-imdp run PROBLEM --out {args.result}` again")
-    from robust_imdp.abstraction import Abstraction
-    from robust_imdp.pipeline import cache_entry_problem
+    from robust_imdp.abstraction.rows import Abstraction
+    from robust_imdp.pipeline.run import cache_entry_problem
 
     why = cache_entry_problem(file)
     if why is None:
@@ -430,7 +430,7 @@ def _cmd_export(args) -> int:
     if args.product:
         from types import SimpleNamespace
 
-        from robust_imdp.product import materialize_product
+        from robust_imdp.solvers.product import materialize_product
 
         S = res.dfa_delta.shape[0]
         # Materialising lists every floor mass explicitly: refuse before building what cannot be written.
@@ -479,7 +479,7 @@ def _cmd_export(args) -> int:
 
 
 def _cmd_example(args) -> int:
-    from robust_imdp.casestudies import write_problem_files
+    from robust_imdp.casestudies.systems import write_problem_files
 
     path = write_problem_files(args.name, args.out, seed=args.seed, formula=args.formula)
     print(f"wrote {path} and its data file")

@@ -1,6 +1,6 @@
 """Figures (the only matplotlib importer; nothing else in the library imports this module).
 
-Every function takes a result (a :class:`~robust_imdp.io.ResultFile`, a pipeline
+Every function takes a result (a :class:`~robust_imdp.io.files.ResultFile`, a pipeline
 ``Result``, a result dict or a path to ``result.json``) and an optional ``ax``; it draws and
 returns the Axes. :func:`save_figures` writes the standard set of PNGs for any dimension:
 
@@ -35,7 +35,7 @@ from matplotlib.patheffects import withStroke
 from scipy import ndimage
 
 from robust_imdp.errors import DimensionError, InvalidInputError
-from robust_imdp.io import ResultFile, as_result_file as _as_result_file
+from robust_imdp.io.files import ResultFile, as_result_file as _as_result_file
 
 __all__ = [
     "plot_partition",

@@ -14,7 +14,7 @@ real one whatever the capped runs would have done. For k-step formulas (``horizo
 is the horizon and capped runs are exactly the non-satisfying ones.
 
 The controller is driven from the result tables (``result.json`` contract, read by
-:class:`robust_imdp.io.ResultFile`), independently of ``controller.py``: locate the cell, look the mode up in ``strategy[q][s]``, step the DFA with
+:class:`robust_imdp.io.files.ResultFile`), independently of ``controller.py``: locate the cell, look the mode up in ``strategy[q][s]``, step the DFA with
 the new cell's label. Leaving X is a violation (the abstraction's absorbing outside state).
 """
 
@@ -26,7 +26,7 @@ import numpy as np
 from scipy.stats import norm
 
 from robust_imdp.errors import DimensionError, InvalidInputError, OutsideDomainError
-from robust_imdp.io import ResultFile, as_result_file as _as_result_file  # noqa: F401 (re-exported)
+from robust_imdp.io.files import ResultFile, as_result_file as _as_result_file  # noqa: F401 (re-exported)
 
 __all__ = [
     "ResultFile",

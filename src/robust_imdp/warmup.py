@@ -55,8 +55,8 @@ LOCAL_POINTS = 50
 
 
 def _base_problem(directory: Path):
-    from robust_imdp.casestudies import write_problem_files
-    from robust_imdp.io import load_problem
+    from robust_imdp.casestudies.systems import write_problem_files
+    from robust_imdp.io.files import load_problem
 
     problem = load_problem(write_problem_files("three_mode_linear", directory, seed=0))
     return problem.replace(cell_size=[CELL] * len(problem.space_lower))
@@ -64,8 +64,8 @@ def _base_problem(directory: Path):
 
 def _run_case(name: str, base, first):
     """Run case ``name``; returns the pipeline Result of the "optimal" case (reused), else None."""
-    from robust_imdp import solve
-    from robust_imdp.pipeline import resynthesize, synthesize_from_data
+    from robust_imdp.solvers import api as solve
+    from robust_imdp.pipeline.run import resynthesize, synthesize_from_data
 
     if name == "optimal":
         return synthesize_from_data(base, progress=False)
@@ -99,7 +99,7 @@ def _random_imdp(n, rng, *, floor=0.0, wide_row=False):
     """n states, 2 actions, 2-6 successors per row, intervals [0.8 p, 1.2 p] (+ ``floor`` per row);
     action 0 of states 4 and 5 swaps them for sure (an end component away from the targets 0, 1);
     with ``wide_row`` one row of state 0 lists every state (more than 256 successors when n > 256)."""
-    from robust_imdp.imdp import IMDP
+    from robust_imdp.models.imdp import IMDP
 
     R = 2 * n
     k = rng.integers(2, 7, size=R)
@@ -119,7 +119,7 @@ def _random_imdp(n, rng, *, floor=0.0, wide_row=False):
 
 def _solver_models():
     """Solve small random IMDPs through every solver path the pipeline can take."""
-    from robust_imdp.solve import evaluate_strategy, solve_reachability
+    from robust_imdp.solvers.api import evaluate_strategy, solve_reachability
 
     rng = np.random.default_rng(0)
     for model in (_random_imdp(40, rng), _random_imdp(40, rng, floor=0.05), _random_imdp(300, rng, wide_row=True)):
@@ -138,16 +138,26 @@ def _solver_models():
 
 
 def kernels():
-    """``{"module.name": dispatcher}`` of every numba kernel of the package."""
+    """``{"subpackage.name": dispatcher}`` of every numba kernel of the package (keys name the subpackage,
+    e.g. ``solvers.solve_components``, so they survive moves between the modules of a subpackage)."""
+    import importlib
+    import pkgutil
+
     import numba
 
-    from robust_imdp import bounds, rkhs, solve
+    import robust_imdp
 
     out = {}
-    for mod in (solve, rkhs, bounds):
+    root = Path(robust_imdp.__file__).parent
+    for info in pkgutil.walk_packages(robust_imdp.__path__, "robust_imdp."):
+        rel = info.name.split(".")[1:]
+        path = root.joinpath(*rel).with_suffix(".py")
+        if info.ispkg or not path.exists() or "numba" not in path.read_text(encoding="utf-8"):
+            continue  # only modules that use numba are imported here
+        mod = importlib.import_module(info.name)
         for key, obj in vars(mod).items():
             if isinstance(obj, numba.core.registry.CPUDispatcher) and obj.py_func.__module__ == mod.__name__:
-                out[f"{mod.__name__.rsplit('.', 1)[1]}.{key}"] = obj
+                out[f"{rel[0]}.{key}"] = obj
     return out
 
 
@@ -207,7 +217,7 @@ def main(argv=None) -> int:
     if not args.quiet:
         ks = kernels()
         done = sum(1 for d in ks.values() if d.signatures)
-        where = Path(sys.modules["robust_imdp.solve"].__file__).parent / "__pycache__"
+        where = Path(sys.modules["robust_imdp"].__file__).parent / "*" / "__pycache__"
         print(f"[robust-imdp] warm-up: {done} of {len(ks)} numba kernels compiled or loaded from the cache "
               f"({where}) in {time.perf_counter() - t0:.1f} s", file=sys.stderr, flush=True)
     return 1 if failed and args.strict else 0

@@ -6,7 +6,7 @@ Letters are ``int`` bit masks: bit ``i`` of a letter is set iff ``atoms[i]`` hol
 
 Construction of :func:`ltlf_to_dfa` (our own code, no external tool)
 --------------------------------------------------------------------
-1. The formula is put in negation normal form (:func:`robust_imdp.ltlf.to_nnf`).
+1. The formula is put in negation normal form (:func:`robust_imdp.spec.ltlf.to_nnf`).
 2. A DFA state is a formula in a canonical disjunctive normal form: a set of clauses, each a set
    of *elementary* subformulas (literals, ``X``, ``WX``, ``U``, ``R``, ``F``, ``G``), with
    subsumed clauses removed. Every elementary formula that can occur is a subformula of the
@@ -43,7 +43,7 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 
 from robust_imdp.errors import DimensionError, InvalidInputError, InvalidModelError, UnknownAtomError
-from robust_imdp.ltlf import (
+from robust_imdp.spec.ltlf import (
     And,
     Atom,
     Bottom,
@@ -498,7 +498,7 @@ def ltlf_to_dfa(formula: Formula | str, atoms: Sequence[str] | None = None) -> D
     Parameters
     ----------
     formula : str or Formula
-        LTLf formula (syntax in :mod:`robust_imdp.ltlf`).
+        LTLf formula (syntax in :mod:`robust_imdp.spec.ltlf`).
     atoms : sequence of str, optional
         Alphabet order (bit ``i`` = ``atoms[i]``). Must contain every atom of the formula; extra
         atoms are don't-cares. Default: the formula's atoms, sorted.

@@ -1,6 +1,6 @@
 """Robust strategy synthesis on the abstraction: IMDP + cell labels + DFA -> SynthesisResult.
 
-Implements the paper's Sec. 5 ("Strategy Synthesis") on the product of :mod:`robust_imdp.product`
+Implements the paper's Sec. 5 ("Strategy Synthesis") on the product of :mod:`robust_imdp.solvers.product`
 (standard label semantics: the initial product state of cell ``q`` is ``(q, delta(s0, L(q)))``):
 
 * the robust strategy ``pi = argmax_pi min_adversary P(reach accept)``          (eq. strategy-near-optimal)
@@ -31,7 +31,7 @@ the lower value is 0) the choice is lexicographic: best lower value, then best o
 ``p_up_star``): it is the best any controller can still hope for after the step, and it is what
 separates "into the obstacle" from "round it" when no action has a guaranteed positive value.
 Where the lower value is 0 for every action the optimistic solve's own action is used (it makes
-progress towards acceptance; a choice by U alone can circle, see :mod:`robust_imdp.solve`).
+progress towards acceptance; a choice by U alone can circle, see :mod:`robust_imdp.solvers.api`).
 The tie tolerance is ``solve._TIE_TOL`` (1e-12, absolute). The strategy is then evaluated as
 any other, and it is checked that its ``p_low`` keeps the optimal robust lower value at every
 cell (``_keeps_optimal_lower``); if it did not, the first-choice strategy would be used.
@@ -47,11 +47,11 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from robust_imdp import product as _product
-from robust_imdp.controller import Controller, remap_letters  # below synthesis: numpy only
-from robust_imdp.dfa import DFA
+from robust_imdp.solvers import product as _product
+from robust_imdp.synthesis.controller import Controller, remap_letters  # below synthesis: numpy only
+from robust_imdp.spec.dfa import DFA
 from robust_imdp.errors import DimensionError, InvalidInputError, SoundnessError
-from robust_imdp.imdp import IMDP
+from robust_imdp.models.imdp import IMDP
 
 __all__ = ["SolverRun", "SynthesisResult", "synthesize", "remap_letters"]
 
@@ -240,7 +240,7 @@ def synthesize(
     atoms : sequence of str
         Atom order of ``labels`` (e.g. ``partition.atoms``); must contain ``dfa.atoms``.
     dfa : DFA
-        Automaton of the specification (:func:`robust_imdp.dfa.ltlf_to_dfa`).
+        Automaton of the specification (:func:`robust_imdp.spec.dfa.ltlf_to_dfa`).
     threshold : float in [0, 1]
         Probability threshold of the classification.
     horizon : int >= 1, optional

@@ -6,7 +6,7 @@ inside the functions, so ``import robust_imdp`` never pays for them.  The LPs ar
 for small models: rows with a floor are densified (``IMDP.to_dense``, memory R x n), and the
 LPs are solved by an interior-point method whose answers are accurate to about the solver
 tolerances (1e-10 here), not proofs.  The SOCPs (:func:`rkhs_min_norm_socp`,
-:func:`rkhs_vertex_socp`) only *propose* dual weights; ``robust_imdp.rkhs`` turns weights into
+:func:`rkhs_vertex_socp`) only *propose* dual weights; ``robust_imdp.bounds.rkhs`` turns weights into
 certified bounds, so an inaccurate solve costs tightness, never soundness.
 
 Contents
@@ -342,7 +342,7 @@ def _pick_strategy(lo, up, row_state, state_ptr, x, target, nature_max: bool, ct
 class LPReachability:
     """LP values of a reachability problem, bracketed by the solver accuracy (not a proof).
 
-    The fields of :class:`robust_imdp.solve.ReachabilityResult`, which ``solve_reachability(...,
+    The fields of :class:`robust_imdp.solvers.api.ReachabilityResult`, which ``solve_reachability(...,
     method="lp")`` turns this into: lp.py sits below solve.py and does not import it.
 
     Attributes

@@ -224,7 +224,7 @@ class AffineMap:
         -------
         known.ImageBounds with ``lower``, ``upper`` (k, n) and ``leaves`` (k,) (all 1)
         """
-        from robust_imdp.known import ImageBounds
+        from robust_imdp.models.known import ImageBounds
 
         lo = np.asarray(lower, dtype=np.float64)
         hi = np.asarray(upper, dtype=np.float64)
@@ -256,7 +256,7 @@ class AffineMap:
         subtraction adds at most half an ulp of ``|y|`` (bounded by one ``spacing``). The sum is moved
         up by ``gamma_3`` relative, 1e-300 absolute and one ulp.
         """
-        from robust_imdp.known import Residuals
+        from robust_imdp.models.known import Residuals
 
         x = np.asarray(x, dtype=np.float64)
         xn = np.asarray(x_next, dtype=np.float64)

@@ -230,7 +230,7 @@ def known_component_ranges(A, b, cells_lower, cells_upper, tau) -> tuple:
     -------
     lower, upper : (k, k_out) float arrays
     """
-    from robust_imdp.system import AffineMap
+    from robust_imdp.models.system import AffineMap
 
     A = np.asarray(A, float)
     d = A.shape[1]
@@ -268,7 +268,7 @@ def bound_mode_chunk(X, Y, A, b, cells_lower, cells_upper, local, mode: dict, *,
     -------
     dict like ``rkhs.bound_chunk``'s; a known component has ``eps = 0`` and ``support = 0``.
     """
-    from robust_imdp.rkhs import bound_chunk
+    from robust_imdp.bounds.rkhs import bound_chunk
 
     Y = np.asarray(Y, float).reshape(np.shape(X)[0], -1)
     n = Y.shape[1]
@@ -329,7 +329,7 @@ def check_modes(data, settings: Settings, noise_bound, *, mode_names, sample_ind
         Naming ``[gp].rkhs_bound``, the mode, the component and the sample (or the data-implied
         minimum), for the worst refuted component.
     """
-    from robust_imdp.rkhs import NormCheck, min_rkhs_norm, refutation_reason
+    from robust_imdp.bounds.rkhs import NormCheck, min_rkhs_norm, refutation_reason
 
     nb = np.asarray(noise_bound, float)
     checks, bad = [], []
@@ -402,7 +402,7 @@ def fit_components(data, maps, settings: Settings, sigma) -> ComponentFits:
     """Kernel-ridge fits (``advice.fit_modes``) with each mode's and component's lengthscale and
     ``lambda = (sigma / B)^2`` (kept >= 1e-6); a known component (B = 0) is fitted with ``lambda = 1e12``,
     so its fit is its known part."""
-    from robust_imdp.advice import fit_modes
+    from robust_imdp.synthesis.advice import fit_modes
 
     sigma = np.broadcast_to(np.asarray(sigma, float), (settings.rkhs_bound.shape[1],))
     parts = []

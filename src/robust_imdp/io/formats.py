@@ -36,7 +36,7 @@ from fractions import Fraction
 import numpy as np
 
 from robust_imdp.errors import InvalidInputError, InvalidModelError
-from robust_imdp.imdp import IMDP
+from robust_imdp.models.imdp import IMDP
 
 #: Default limit on the number of stored entries after densifying floor rows.
 MAX_ENTRIES = 10_000_000
@@ -528,7 +528,7 @@ def storm_reachability(imdp_or_model, target=None, *, avoid=None, adversary="pes
         not None); ``target``/``avoid`` are then only used as flags.
     target, avoid : (n,) bool mask or index array
     adversary : "pessimistic" | "optimistic"
-        Nature against / with the objective (:func:`robust_imdp.lp.nature_maximises`);
+        Nature against / with the objective (:func:`robust_imdp.solvers.lp.nature_maximises`);
         passed to Storm as ``UncertaintyResolutionMode.MINIMIZE`` / ``MAXIMIZE`` (nature's
         direction), which for ``Pmax`` is Storm's ROBUST / COOPERATIVE.
     objective : "maximize" | "minimize"
@@ -547,7 +547,7 @@ def storm_reachability(imdp_or_model, target=None, *, avoid=None, adversary="pes
     import stormpy
     from stormpy import environments as E
 
-    from robust_imdp.lp import _normalise, nature_maximises
+    from robust_imdp.solvers.lp import _normalise, nature_maximises
 
     nat_max = nature_maximises(adversary, objective)
     obj = _normalise(objective, "objective", ("maximize", "minimize"))

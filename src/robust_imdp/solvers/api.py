@@ -104,7 +104,7 @@ forever.  Changing the rows of nodes whose value under the strategy is 0 cannot 
 value of any other node: with ``y_k = B_pi^k(0)`` and ``x_k = B_pi'^k(0)``, pi' = pi off those
 nodes Z, induction gives ``x_k >= y_k`` (``y_k = 0`` on Z, B monotone elsewhere), and the least
 fixed points are the limits.  The strategy's bounds are always re-evaluated by the caller
-(:func:`robust_imdp.synthesis.synthesize` checks they keep the optimal lower value).
+(:func:`robust_imdp.synthesis.core.synthesize` checks they keep the optimal lower value).
 
 Hot loop: numba (``@njit(cache=True)``), serial.  A numpy formulation needs a per-row sort
 (``np.lexsort`` over all nnz entries each iteration) and several nnz-sized temporaries.  The
@@ -140,7 +140,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from robust_imdp.errors import ConvergenceWarning, DimensionError, InvalidInputError
-from robust_imdp.imdp import IMDP
+from robust_imdp.models.imdp import IMDP
 
 # =========================================================================== numba kernels
 U = 2.0 ** -53  # unit roundoff of float64
@@ -1691,7 +1691,7 @@ def solve_reachability(imdp: IMDP, target, *, avoid=None, adversary="pessimistic
         optimistic value iteration with Gauss-Seidel sweeps and a proven upper vector (falls back to
         interval iteration; models with floor rows use "interval").  "interval": interval
         iteration (a lower and an upper sequence) on the whole model.  Both return proven
-        brackets.  "lp" dispatches to :func:`robust_imdp.lp.solve_reachability_lp` (small models).
+        brackets.  "lp" dispatches to :func:`robust_imdp.solvers.lp.solve_reachability_lp` (small models).
     tie_break : ReachabilityResult, optional
         ``objective="maximize"`` only, not with "lp": the ``adversary="optimistic"`` solve of the
         same problem.  Rows tied in the lower value are then chosen by their optimistic value
@@ -1711,7 +1711,7 @@ def solve_reachability(imdp: IMDP, target, *, avoid=None, adversary="pessimistic
     if method == "lp":
         if tie_break is not None:
             raise InvalidInputError("tie_break is not available with method='lp'; use 'vi' or 'interval'")
-        from robust_imdp import lp  # lazy: cvxpy is imported only there (lp is below solve)
+        from robust_imdp.solvers import lp  # lazy: cvxpy is imported only there (lp is below api)
 
         r = lp.solve_reachability_lp(imdp, target, avoid=avoid, adversary=adversary, objective=objective)
         return ReachabilityResult(r.lower, r.upper, r.strategy, r.iterations, r.precision, r.converged)

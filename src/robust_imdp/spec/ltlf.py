@@ -425,7 +425,7 @@ def holds(formula: Formula | str, trace: Sequence[Iterable[str]]) -> bool:
 
     Direct dynamic programming from the last position backwards over the syntax tree: every
     subformula gets a boolean vector over the positions, computed from the definitions in the
-    module docstring (independent of the automaton construction in :mod:`robust_imdp.dfa`).
+    module docstring (independent of the automaton construction in :mod:`robust_imdp.spec.dfa`).
 
     Parameters
     ----------

@@ -7,13 +7,13 @@ Problem file contract (keys in ``[brackets]`` are tables; ``?`` marks optional k
     [spec]          formula, threshold, horizon?     (horizon: int for k-step, absent = unbounded)
     [data]          path                             (.csv or .npz, relative to the problem file)
     [modes.NAME]    A (n x n), b (n)                 (known affine part f_u(x) = A x + b), or
-                    f (n expressions in x1..xn)       (known nonlinear part, robust_imdp.known)
+                    f (n expressions in x1..xn)       (known nonlinear part, robust_imdp.models.known)
     [noise]         kind = "truncated_gaussian" (sigma, bound) | "gaussian" (sigma) | "uniform" (bound)
     [gp]            rkhs_bound, lengthscale?, error_bound? ("optimal" | "ridge" | "chowdhury"),
                     misspecification? (0), iid_noise? (false), local_points? (all points up to 1000
                     per mode, else 100), known? (n true/false: components not learned);
                     rkhs_bound, lengthscale, misspecification and known each take one value, a list
-                    per component or a table per mode (robust_imdp.assumptions; rkhs_bound = 0
+                    per component or a table per mode (robust_imdp.bounds.assumptions; rkhs_bound = 0
                     declares a component known);
                     only with error_bound = "chowdhury": signal_variance? (number, default 1.0, or
                     "tune": minutes, it bounds every candidate), optimize?, info_gain? ("data" |
@@ -22,7 +22,7 @@ Problem file contract (keys in ``[brackets]`` are tables; ``?`` marks optional k
     [refine]?       max_cells, max_rounds? (8), min_cell_size? (float or n floats), time_budget? (s),
                     split? ("longest" | "all"), growth? (0.35), focus? ("open" | "undecided"):
                     adaptive refinement of the undecided cells (on when the table is present;
-                    see robust_imdp.refine)
+                    see robust_imdp.synthesis.refine)
 
 Data files: ``.csv`` with header ``x_1..x_n,u,x_next_1..x_next_n`` (``u`` holds mode names), or
 ``.npz`` with arrays ``x`` (m, n), ``u`` (m,) and ``x_next`` (m, n). Every mode name in ``u``
@@ -52,7 +52,7 @@ import numpy as np
 
 from robust_imdp.errors import DimensionError, InvalidInputError, ProblemFileError
 from robust_imdp.jsonable import jsonable as _jsonable
-from robust_imdp.pipeline import ERROR_BOUNDS, GUARANTEES  # the one definition of these modes
+from robust_imdp.pipeline.run import ERROR_BOUNDS, GUARANTEES  # the one definition of these modes
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -307,7 +307,7 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
                                    f"{gp_in['rkhs_bound']!r}")
         if "lengthscale" in gp_in:
             gp["lengthscale"] = _positive_vector(gp_in["lengthscale"], "[gp].lengthscale", where, n)
-    else:  # per mode and component (robust_imdp.assumptions), with B = 0 where a component is known
+    else:  # per mode and component (robust_imdp.bounds.assumptions), with B = 0 where a component is known
         gp.update(_per_component_gp(gp_in, list(modes), n, where))
     if "signal_variance" in gp_in:
         if gp_in["signal_variance"] == "tune":
@@ -375,7 +375,7 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
             ab[key] = ab_in[key]
 
     refine = None
-    if "refine" in doc:  # issue 13: adaptive refinement (robust_imdp.refine.RefineOptions)
+    if "refine" in doc:  # issue 13: adaptive refinement (robust_imdp.synthesis.refine.RefineOptions)
         r_in = doc["refine"]
         refine = {"max_cells": _number(r_in["max_cells"], "[refine].max_cells", where, lo=1, integer=True)}
         if "max_rounds" in r_in:
@@ -413,7 +413,7 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
 def _known_dynamics(value, tname: str, where: str, n: int):
     """``[modes.NAME].f``: n expressions in x1..xn as a ``known.KnownDynamics`` (errors name the file,
     the table and the component)."""
-    from robust_imdp.known import KnownDynamics
+    from robust_imdp.models.known import KnownDynamics
 
     if not isinstance(value, list) or len(value) != n or not all(isinstance(e, str) for e in value):
         got = f"{len(value)} entries: {value!r}" if isinstance(value, list) else repr(value)
@@ -436,7 +436,7 @@ def _is_plain_setting(value, key: str) -> bool:
 def _per_component_gp(gp_in: dict, mode_names: list, n: int, where: str) -> dict:
     """[gp].rkhs_bound / lengthscale / misspecification / known per mode and component, checked by
     ``assumptions.resolve``; the returned values are what the Problem takes (known folded into rkhs_bound)."""
-    from robust_imdp.assumptions import resolve
+    from robust_imdp.bounds.assumptions import resolve
 
     known = gp_in.get("known")
     try:
@@ -490,7 +490,7 @@ def parse_problem_file(path) -> dict[str, Any]:
 
 def make_noise(noise: dict):
     """The noise model object for a parsed ``[noise]`` table."""
-    from robust_imdp import noise as nz
+    from robust_imdp.models import noise as nz
 
     if noise["kind"] == "truncated_gaussian":
         return nz.TruncatedGaussianNoise(noise["sigma"], noise["bound"])
@@ -500,7 +500,7 @@ def make_noise(noise: dict):
 
 
 def load_problem(path):
-    """Read a problem file and its data file into a :class:`robust_imdp.pipeline.Problem`.
+    """Read a problem file and its data file into a :class:`robust_imdp.pipeline.run.Problem`.
 
     Checks at load time, before any long work:
 
@@ -523,8 +523,8 @@ def load_problem(path):
     AssumptionError
         A sample is impossible under ``[gp].rkhs_bound``, ``misspecification`` and the noise bound.
     """
-    from robust_imdp.pipeline import Problem
-    from robust_imdp.system import AffineMap, Dataset
+    from robust_imdp.pipeline.run import Problem
+    from robust_imdp.models.system import AffineMap, Dataset
 
     spec = parse_problem_file(path)
     names = list(spec["modes"])
@@ -571,7 +571,7 @@ def _check_known_domains(spec) -> None:
     nonlinear = [m for m in spec["modes"].values() if not isinstance(m, tuple)]
     if not nonlinear:
         return
-    from robust_imdp.geometry import Box, Partition, Region
+    from robust_imdp.models.geometry import Box, Partition, Region
 
     regions = [Region(name, [Box(lo, up) for lo, up in boxes]) for name, boxes in spec["regions"].items()]
     part = Partition(Box(spec["lower"], spec["upper"]), spec["cell_size"], regions)
@@ -600,10 +600,10 @@ def _check_samples_possible(spec, noise, x, u, x_next, rows) -> None:
     refuses the same samples, and adds where they are in the data file.
     """
     from robust_imdp.errors import AssumptionError
-    from robust_imdp.pipeline import CHECK_DELTA
-    from robust_imdp.rkhs import min_rkhs_norm, noise_bound_at_confidence
+    from robust_imdp.pipeline.run import CHECK_DELTA
+    from robust_imdp.bounds.rkhs import min_rkhs_norm, noise_bound_at_confidence
 
-    from robust_imdp.assumptions import resolve
+    from robust_imdp.bounds.assumptions import resolve
 
     names = list(spec["modes"])
     st = resolve(spec["gp"]["rkhs_bound"], spec["gp"].get("lengthscale"), spec["gp"]["misspecification"], names,
@@ -616,7 +616,7 @@ def _check_samples_possible(spec, noise, x, u, x_next, rows) -> None:
         sel = np.flatnonzero(u == m)
         nb_m = nb
         if isinstance(part, tuple):
-            from robust_imdp.system import AffineMap
+            from robust_imdp.models.system import AffineMap
 
             r_all = AffineMap(*part).residuals(x[sel], x_next[sel])
             res = r_all.y
@@ -685,7 +685,7 @@ def _warn_refined_grid(spec, where: str) -> None:
     import warnings
 
     from robust_imdp.errors import RobustImdpWarning
-    from robust_imdp.geometry import Box, Partition, Region, dimension_text
+    from robust_imdp.models.geometry import Box, Partition, Region, dimension_text
 
     lower, upper, h = spec["lower"], spec["upper"], spec["cell_size"]
     uniform, refined, notes = [], [], []
@@ -1107,7 +1107,7 @@ def load_result(path):
 # --------------------------------------------------------------------------- result tables (read back)
 @dataclass(frozen=True, eq=False)
 class ResultFile:
-    """The ``result.json`` contract as arrays (see :func:`robust_imdp.io.result_to_dict`).
+    """The ``result.json`` contract as arrays (see :func:`robust_imdp.io.files.result_to_dict`).
 
     Attributes
     ----------

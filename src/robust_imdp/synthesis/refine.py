@@ -1,7 +1,7 @@
 """Adaptive refinement of undecided cells (issue 13): split, re-bound the new cells, re-abstract, re-solve.
 
 Refining a uniform grid everywhere spends almost all of its cells where nothing is undecided.
-:func:`refine` starts from an abstraction on a :class:`~robust_imdp.geometry.BoxPartition` (an
+:func:`refine` starts from an abstraction on a :class:`~robust_imdp.models.geometry.BoxPartition` (an
 unsplit one is the rectilinear grid, bit for bit) and repeats, round by round:
 
 1. **select** the cells whose splitting can most change the class of an open cell -- one that
@@ -21,7 +21,7 @@ unsplit one is the rectilinear grid, bit for bit) and repeats, round by round:
    depend only on its own image box and on the boxes of the cells it lists, none of which
    changed, and the children of an unlisted cell are separated from ``Im ⊕ e_f`` like their
    parent, so they are covered by the same floor. The assembled IMDP is therefore exactly the
-   one :func:`~robust_imdp.abstraction.abstract` builds from scratch (tested);
+   one :func:`~robust_imdp.abstraction.rows.abstract` builds from scratch (tested);
 5. **re-solve** the product (``synthesis.synthesize``; the solver takes no initial values, so
    there is no warm start: the state space changes every round anyway).
 
@@ -43,10 +43,10 @@ from typing import Callable
 
 import numpy as np
 
-from robust_imdp.abstraction import AbstractionRows, CellBounds, abstract_rows, assemble_abstraction, join_rows, \
+from robust_imdp.abstraction.rows import AbstractionRows, CellBounds, abstract_rows, assemble_abstraction, join_rows, \
     select_rows
 from robust_imdp.errors import DimensionError, InvalidInputError
-from robust_imdp.geometry import BoxPartition, Partition
+from robust_imdp.models.geometry import BoxPartition, Partition
 
 __all__ = ["RefineOptions", "RefineRound", "RefineResult", "refine", "select_cells", "focus_cells", "class_shares"]
 
@@ -338,7 +338,7 @@ def refine(partition, cell_bounds: CellBounds, bound_cells: Callable, noise, dfa
     horizon : int or None
     options : RefineOptions
     abstraction_options : dict, optional
-        ``eta``, ``eps_rule``, ``combine``, ``floor_tol`` of :func:`~robust_imdp.abstraction.abstract_rows`.
+        ``eta``, ``eps_rule``, ``combine``, ``floor_tol`` of :func:`~robust_imdp.abstraction.rows.abstract_rows`.
     synthesize : callable ``(abstraction, partition) -> SynthesisResult``, optional
         Default: ``synthesis.synthesize(imdp, partition.labels, partition.atoms, dfa, threshold=...,
         horizon=..., outside_state=partition.outside_state)``.
@@ -353,7 +353,7 @@ def refine(partition, cell_bounds: CellBounds, bound_cells: Callable, noise, dfa
     -------
     RefineResult
     """
-    from robust_imdp.synthesis import synthesize as _synthesize
+    from robust_imdp.synthesis.core import synthesize as _synthesize
 
     t_start = time.perf_counter()
     options = RefineOptions.from_dict(options) if isinstance(options, dict) else options

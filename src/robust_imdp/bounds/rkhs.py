@@ -1221,7 +1221,7 @@ def min_rkhs_norm(X, y, lengthscale, noise_bound: float, misspecification: float
     """Certified lower bound of ``min { ||h|| : |h(x_i) - y_i| <= noise_bound + tau }`` (section 4).
 
     Two certificates, the larger is the minimum: single points (``||h|| >= |h(x_i)| >=
-    |y_i| - dbar'``) and the dual weights of the SOCP of :func:`robust_imdp.lp.rkhs_min_norm_socp`
+    |y_i| - dbar'``) and the dual weights of the SOCP of :func:`robust_imdp.solvers.lp.rkhs_min_norm_socp`
     (``||h|| >= (w.y - dbar' ||w||_1) / sqrt(w.K w)`` for every such h). Both are evaluated with
     outward rounding, and divided by the lengthscale-rounding factor of :func:`_inv_l2`.
 
@@ -1256,7 +1256,7 @@ def min_rkhs_norm(X, y, lengthscale, noise_bound: float, misspecification: float
         if max_points is not None and X.shape[0] > int(max_points):
             idx = np.sort(np.random.default_rng(rng).choice(X.shape[0], int(max_points), replace=False))
         model = KernelModel(X[idx], y[idx], lengthscale)
-        from robust_imdp.lp import rkhs_min_norm_socp
+        from robust_imdp.solvers.lp import rkhs_min_norm_socp
 
         w, _ = rkhs_min_norm_socp(model.K, model.y, dbar)
         m = idx.size

@@ -121,7 +121,7 @@ class Problem:
     refine : refine.RefineOptions, dict or None
         Adaptive refinement of the undecided cells after the first solve (the problem file's
         ``[refine]`` table: ``max_cells``, ``max_rounds``, ``min_cell_size``, ``time_budget``,
-        ``split``, ``growth``; see :mod:`robust_imdp.refine`). None: the uniform grid only.
+        ``split``, ``growth``; see :mod:`robust_imdp.synthesis.refine`). None: the uniform grid only.
     dim_names : tuple of n str, or None
         Names of the dimensions (the problem file's ``[space].names``): figure axes, messages and
         ``result.json``'s ``space.names``. None: ``x_1 .. x_n``.
@@ -204,7 +204,7 @@ class Problem:
                     f"{self.error_bound!r} uses the unit-amplitude kernel with the given lengthscale only")
         self._check_known_parts()
         if self.refine is not None:
-            from robust_imdp.refine import RefineOptions
+            from robust_imdp.synthesis.refine import RefineOptions
 
             object.__setattr__(self, "refine", RefineOptions.from_dict(self.refine))
             if self.error_bound == "chowdhury" or self.iid_noise:
@@ -278,7 +278,7 @@ class Problem:
         noise : noise model (``TruncatedGaussianNoise``, ``GaussianNoise``, ``UniformNoise``)
         rkhs_bound : float, list of n floats or dict mode -> either
             The assumption B (``[gp].rkhs_bound``), per mode and component where given so; 0 marks a
-            known component (``robust_imdp.assumptions``).
+            known component (``robust_imdp.bounds.assumptions``).
         horizon : int or None
         lengthscale : float, (n,) float array (per input dimension), per-component list or dict per mode
             The kernel lengthscale (``[gp].lengthscale``, kept in ``gp_options``).
@@ -315,7 +315,7 @@ class Problem:
         >>> result = synthesize_from_data(problem, progress=False)  # doctest: +SKIP
         """
         from robust_imdp.errors import DimensionError
-        from robust_imdp.system import AffineMap, Dataset
+        from robust_imdp.models.system import AffineMap, Dataset
 
         lo = np.asarray(lower, dtype=float).reshape(-1)
         up = np.asarray(upper, dtype=float).reshape(-1)
@@ -384,8 +384,8 @@ def _is_affine(m) -> bool:
 
 def _known_part(m, name):
     """A mode's known part from the forms :meth:`Problem.from_arrays` accepts."""
-    from robust_imdp.known import KnownDynamics, _is_casadi
-    from robust_imdp.system import AffineMap
+    from robust_imdp.models.known import KnownDynamics, _is_casadi
+    from robust_imdp.models.system import AffineMap
 
     if isinstance(m, (AffineMap, KnownDynamics)):
         return m
@@ -404,7 +404,7 @@ def _known_part(m, name):
 
 def _settings(problem):
     """The assumption per mode and component (``assumptions.Settings``)."""
-    from robust_imdp.assumptions import resolve
+    from robust_imdp.bounds.assumptions import resolve
 
     return resolve(problem.rkhs_bound, problem.gp_options.get("lengthscale"), problem.misspecification,
                    problem.mode_names, int(np.size(problem.space_lower)))
@@ -600,7 +600,7 @@ class Result:
         if why:
             lines.append(why)
         if self.advice:
-            from robust_imdp.advice import advice_line
+            from robust_imdp.synthesis.advice import advice_line
 
             lines.append(advice_line(self.advice))
         lines.append(f"stage times: {times}")
@@ -667,7 +667,7 @@ class _Run:
         self.sched = None
 
     def scheduler(self, log: "_Log"):
-        from robust_imdp.parallel import open_scheduler
+        from robust_imdp.pipeline.parallel import open_scheduler
 
         if self.sched is None:
             self.sched = open_scheduler(workers=self.workers, scheduler=self.scheduler_address, client=self.client)
@@ -878,8 +878,8 @@ def _load_npz(path: Path) -> dict:
 
 
 def _load_bounds(path: Path):
-    from robust_imdp.abstraction import CellBounds
-    from robust_imdp.gp import RKHSErrorBound
+    from robust_imdp.abstraction.rows import CellBounds
+    from robust_imdp.bounds.gp import RKHSErrorBound
 
     with np.load(path, allow_pickle=False) as z:
         cb = CellBounds(z["image_lower"], z["image_upper"], z["std_upper"] if "std_upper" in z else None)
@@ -929,7 +929,7 @@ def _parameters(problem: Problem, abstraction) -> dict:
 
 
 def _region_objects(problem: Problem):
-    from robust_imdp.geometry import Box, Region
+    from robust_imdp.models.geometry import Box, Region
 
     return [Region(name, [Box(lo, up) for lo, up in boxes]) for name, boxes in problem.regions.items()]
 
@@ -943,7 +943,7 @@ def _warn_overlaps(problem: Problem, dfa) -> None:
     import warnings
 
     from robust_imdp.errors import RegionOverlapWarning
-    from robust_imdp.geometry import region_overlaps
+    from robust_imdp.models.geometry import region_overlaps
 
     used = [r for r in _region_objects(problem) if r.name in dfa.atoms]
     found = region_overlaps(used)
@@ -969,14 +969,14 @@ def _check_atoms(dfa, problem: Problem) -> None:
 
 def _abstract_task(partition, cell_bounds, noise, *, threads=1, **options):
     """One chunk of the abstraction stage (a module-level function, so that workers can import it)."""
-    from robust_imdp.abstraction import abstract_rows
+    from robust_imdp.abstraction.rows import abstract_rows
 
     return abstract_rows(partition, cell_bounds, noise, None, **options)
 
 
 def _chunked_abstract(problem: Problem, partition, cell_bounds, log: _Log, run: _Run, chunk: int):
     """``abstraction.abstract`` for known image boxes, chunk by chunk on the run's scheduler."""
-    from robust_imdp.abstraction import CellBounds, assemble_abstraction
+    from robust_imdp.abstraction.rows import CellBounds, assemble_abstraction
 
     N = partition.n_cells
     starts = list(range(0, N, chunk))
@@ -998,7 +998,7 @@ def _chunked_abstract(problem: Problem, partition, cell_bounds, log: _Log, run: 
 
 
 def _serial():
-    from robust_imdp.parallel import InProcess
+    from robust_imdp.pipeline.parallel import InProcess
 
     return InProcess(threads=1)
 
@@ -1009,7 +1009,7 @@ def _build_abstraction(problem: Problem, partition, log: _Log, cache_dir=None, r
     Returns (abstraction, diagnostics, image boxes abstracted or None when the GP error enters
     the probabilities).
     """
-    from robust_imdp.abstraction import abstract, confidence_cell_bounds
+    from robust_imdp.abstraction.rows import abstract, confidence_cell_bounds
 
     run = run if run is not None else _Run()
 
@@ -1037,7 +1037,7 @@ def _build_abstraction(problem: Problem, partition, log: _Log, cache_dir=None, r
         if error_models is None:
             # at most 4096 cells per task, and at least two tasks per worker on a cluster
             # (the rows do not depend on the chunk size: tests/test_chunks.py)
-            from robust_imdp.parallel import DaskScheduler
+            from robust_imdp.pipeline.parallel import DaskScheduler
 
             workers = run.sched.n_workers if isinstance(run.sched, DaskScheduler) else 1
             per_task = 4096 if workers <= 1 else min(4096, -(-partition.n_cells // (2 * workers)))
@@ -1110,7 +1110,7 @@ def _known_ranges(problem: Problem, cells_lower, cells_upper) -> list:
 def _add_known_range(lower, upper, ranges) -> None:
     """``g``'s certified range plus ``f``'s, in place: the image of ``f_u + g_u`` over each cell is in the
     Minkowski sum of the two ranges; the sum is rounded outward (``assumptions.add_ranges``)."""
-    from robust_imdp.assumptions import add_ranges
+    from robust_imdp.bounds.assumptions import add_ranges
 
     lower[...], upper[...] = add_ranges(lower, upper, ranges.lower, ranges.upper)
 
@@ -1131,7 +1131,7 @@ def _mode_extras(problem: Problem, data, partition, allowance, local) -> list:
     """Per mode: None (the original path) or the dict of ``assumptions.bound_mode_chunk``."""
     if _one_setting(problem):
         return [None] * len(problem.mode_names)
-    from robust_imdp.rkhs import local_lambda
+    from robust_imdp.bounds.rkhs import local_lambda
 
     st = _settings(problem)
     out = []
@@ -1166,7 +1166,7 @@ def _known_gap(problem: Problem, partition, ranges, n_cells: int = 8) -> list:
     for u, (m, r) in enumerate(zip(problem.maps, ranges)):
         if r is None:
             continue
-        from robust_imdp.known import ImageBounds
+        from robust_imdp.models.known import ImageBounds
 
         sub = ImageBounds(r.lower[pick], r.upper[pick], r.leaves[pick])
         gap = m.achieved_range(lo, up).gap_to(sub)
@@ -1207,7 +1207,7 @@ def check_key(problem: Problem) -> str:
 
 def _read_checks(path: Path):
     """The NormChecks and noise bound of a saved assumption check (ValueError/KeyError if malformed)."""
-    from robust_imdp.rkhs import NormCheck
+    from robust_imdp.bounds.rkhs import NormCheck
 
     doc = _read_json(path)
     checks = tuple(NormCheck(**c) for c in doc["checks"])
@@ -1217,7 +1217,7 @@ def _read_checks(path: Path):
 
 
 def _check_assumption(problem: Problem, data, log: _Log, cache_dir=None):
-    from robust_imdp.rkhs import check_assumption, noise_bound_at_confidence
+    from robust_imdp.bounds.rkhs import check_assumption, noise_bound_at_confidence
 
     m_total = sum(x.shape[0] for x, _, _ in data)
     nb, _ = noise_bound_at_confidence(problem.noise, m_total, CHECK_DELTA)
@@ -1236,7 +1236,7 @@ def _check_assumption(problem: Problem, data, log: _Log, cache_dir=None):
                                           misspecification=problem.misspecification, mode_names=problem.mode_names,
                                           sample_index=[idx for _, _, idx in data])
             else:  # per mode and component, with the residuals' rounding in the noise allowance
-                from robust_imdp.assumptions import check_modes
+                from robust_imdp.bounds.assumptions import check_modes
 
                 checks = check_modes([(x, y) for x, y, _ in data], _settings(problem), _noise_allowance(problem, nb),
                                      mode_names=problem.mode_names, sample_index=[idx for _, _, idx in data])
@@ -1251,11 +1251,11 @@ def _check_assumption(problem: Problem, data, log: _Log, cache_dir=None):
 
 def _fitted(problem: Problem, data):
     """The data-fitted function of every mode (``advice.fit_modes``): known part plus a kernel-ridge fit."""
-    from robust_imdp.advice import fit_modes
+    from robust_imdp.synthesis.advice import fit_modes
 
     sigma = np.asarray(problem.noise.sub_gaussian_parameter(), float)
     if not _settings(problem).uniform:
-        from robust_imdp.assumptions import fit_components
+        from robust_imdp.bounds.assumptions import fit_components
 
         return fit_components([(x, y) for x, y, _ in data], problem.maps, _settings(problem), sigma)
     # ridge parameter sigma^2 / B^2: the GP posterior mean with prior variance B^2 (kept >= 1e-6)
@@ -1265,7 +1265,7 @@ def _fitted(problem: Problem, data):
 
 def _diagnostics(problem: Problem, partition, cell_bounds, data, checks, check_noise, confidence: float,
                  statement: str) -> dict:
-    from robust_imdp.advice import excess_radius
+    from robust_imdp.synthesis.advice import excess_radius
 
     half = 0.5 * np.asarray(problem.cell_size, float)
     # The error radius is the excess of each learned image box over the range of the data-fitted
@@ -1329,7 +1329,7 @@ def diagnostics_line(diag: dict) -> str:
 
 def _chunk_cells(run: "_Run", n_cells: int, default: int) -> int:
     """Cells per task: a multiple of rkhs.CELL_BLOCK (so the result does not depend on it)."""
-    from robust_imdp.rkhs import CELL_BLOCK
+    from robust_imdp.bounds.rkhs import CELL_BLOCK
 
     c = default if run.chunk_cells is None else int(run.chunk_cells)
     if c < 1:
@@ -1340,10 +1340,15 @@ def _chunk_cells(run: "_Run", n_cells: int, default: int) -> int:
 def _bound_task(X, Y, A, b, lower, upper, local, mode=None, *, threads=1, **settings):
     """One chunk of the bound stage; ``local`` = (points, ridge lambda) of the mode or None; ``mode``: None
     (the problem-wide settings) or the mode's own (``assumptions.bound_mode_chunk``)."""
-    from robust_imdp.rkhs import bound_chunk
+    return _bound_work(X, Y, A, b, lower, upper, local, mode, threads=threads, **settings)
+
+
+def _bound_work(X, Y, A, b, lower, upper, local, mode=None, *, threads=1, **settings):
+    """The work of :func:`_bound_task` and :func:`_pilot_task`."""
+    from robust_imdp.bounds.rkhs import bound_chunk
 
     if mode is not None:
-        from robust_imdp.assumptions import bound_mode_chunk
+        from robust_imdp.bounds.assumptions import bound_mode_chunk
 
         t0 = time.perf_counter()
         out = bound_mode_chunk(X, Y, A, b, lower, upper, local, mode, threads=threads, **settings)
@@ -1357,7 +1362,7 @@ def _bound_task(X, Y, A, b, lower, upper, local, mode=None, *, threads=1, **sett
 
 def _local_settings(problem: Problem, data, partition, noise_bound):
     """Per mode: None (all points) or (points, ridge lambda) of the local weights."""
-    from robust_imdp.rkhs import local_lambda
+    from robust_imdp.bounds.rkhs import local_lambda
 
     out = []
     for x, _, _ in data:
@@ -1389,7 +1394,7 @@ def _check_part(part: dict, k: int, n: int) -> dict:
 
 
 def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" = None, cache_dir=None):
-    from robust_imdp.abstraction import CellBounds
+    from robust_imdp.abstraction.rows import CellBounds
 
     run = run if run is not None else _Run()
     data = _residual_data(problem)
@@ -1399,7 +1404,7 @@ def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" 
     checks, check_noise = _check_assumption(problem, data, log, cache_dir)
     if problem.error_bound == "chowdhury":
         return _learn_and_bound_gp(problem, partition, log, checks, check_noise)
-    from robust_imdp.rkhs import CELL_BLOCK, check_ranges, hoeffding_factor, noise_bound_at_confidence
+    from robust_imdp.bounds.rkhs import CELL_BLOCK, check_ranges, hoeffding_factor, noise_bound_at_confidence
 
     data_fail, iid_delta = _failure_budget(problem)
     m_total = sum(x.shape[0] for x, _, _ in data)
@@ -1434,7 +1439,7 @@ def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" 
         work = None
         if missing:
             # Pre-flight: time a few blocks of cells in this process and extrapolate.
-            from robust_imdp import rkhs
+            from robust_imdp.bounds import rkhs
 
             x0, y0, _ = data[0]
             A0, b0 = _affine_part(problem, 0)
@@ -1509,9 +1514,9 @@ def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" 
 
 
 def _learn_and_bound_gp(problem: Problem, partition, log: _Log, checks, check_noise):
-    from robust_imdp.abstraction import CellBounds
-    from robust_imdp.bounds import bound_image
-    from robust_imdp.gp import learn
+    from robust_imdp.abstraction.rows import CellBounds
+    from robust_imdp.bounds.gp_cells import bound_image
+    from robust_imdp.bounds.gp import learn
 
     theta = problem.noise.sub_gaussian_parameter()
     with log.stage("learn"):
@@ -1532,7 +1537,7 @@ def _learn_and_bound_gp(problem: Problem, partition, log: _Log, checks, check_no
     )
     boxes = cell_bounds  # the error radius is measured on the boxes that are abstracted
     if problem.guarantee == "confidence":
-        from robust_imdp.abstraction import confidence_cell_bounds
+        from robust_imdp.abstraction.rows import confidence_cell_bounds
 
         boxes = confidence_cell_bounds(cell_bounds, learned.error_bounds, problem.confidence)
     if problem.guarantee == "confidence":
@@ -1551,7 +1556,7 @@ def _learn_and_bound_gp(problem: Problem, partition, log: _Log, checks, check_no
 
 
 def _synthesize(problem: Problem, partition, abstraction, dfa, log: _Log):
-    from robust_imdp.synthesis import synthesize
+    from robust_imdp.synthesis.core import synthesize
 
     with log.stage("synthesize"):
         syn = synthesize(abstraction.imdp, partition.labels, partition.atoms, dfa,
@@ -1659,7 +1664,7 @@ def synthesize_from_data(problem: Problem, *, progress: bool = True, abstraction
         Refuse (``ResourceError``) when the pre-flight memory estimate exceeds the memory free.
     advice : {"auto", True, False}
         After the solve, estimate which lever (a 2x finer grid, more data, a smaller B) would move
-        most of X into Q_yes (:func:`robust_imdp.advice.advise`; ``result.advice``, the summary's
+        most of X into Q_yes (:func:`robust_imdp.synthesis.advice.advise`; ``result.advice``, the summary's
         ``advice:`` line and ``result.json``'s ``diagnostics.advice``). ``"auto"``: when the
         finer grid has at most ``advice.MAX_CELLS`` cells and about
         ``advice.MAX_AUTO_TRANSITIONS`` listed transitions (cells x modes x 3^d); it then costs
@@ -1670,7 +1675,7 @@ def synthesize_from_data(problem: Problem, *, progress: bool = True, abstraction
     -------
     Result
     """
-    from robust_imdp.dfa import ltlf_to_dfa
+    from robust_imdp.spec.dfa import ltlf_to_dfa
 
     if advice not in ("auto", True, False):
         raise InvalidInputError(f"advice must be 'auto', True or False; got {advice!r}")
@@ -1691,7 +1696,7 @@ def synthesize_from_data(problem: Problem, *, progress: bool = True, abstraction
 
 
 def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cache) -> Result:
-    from robust_imdp.geometry import Box, Partition
+    from robust_imdp.models.geometry import Box, Partition
 
     with log.stage("partition"):
         partition = Partition(Box(problem.space_lower, problem.space_upper), problem.cell_size,
@@ -1733,7 +1738,7 @@ def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cac
 
 def _load_abstraction_entry(cache_file: Path):
     """(abstraction, the JSON document saved beside it) from the cache, or None (absent or damaged)."""
-    from robust_imdp.abstraction import Abstraction
+    from robust_imdp.abstraction.rows import Abstraction
 
     doc = read_cache_entry(cache_file.with_suffix(".json"), _read_json)
     if doc is None:
@@ -1750,8 +1755,8 @@ def _save_abstraction_entry(cache_file: Path, abstraction, doc: dict) -> None:
 
 def _advice(problem: Problem, partition, cell_bounds, dfa, classes, log: _Log, run: _Run, cache_dir,
             diagnostics: dict) -> dict:
-    """:func:`robust_imdp.advice.advise` as a JSON-able dict when the run asks for it, else ``{}``."""
-    from robust_imdp.advice import MAX_AUTO_TRANSITIONS, MAX_CELLS, advice_line, advise
+    """:func:`robust_imdp.synthesis.advice.advise` as a JSON-able dict when the run asks for it, else ``{}``."""
+    from robust_imdp.synthesis.advice import MAX_AUTO_TRANSITIONS, MAX_CELLS, advice_line, advise
 
     want = getattr(run, "advice", "auto")
     if not _settings(problem).uniform:
@@ -1768,7 +1773,7 @@ def _advice(problem: Problem, partition, cell_bounds, dfa, classes, log: _Log, r
             cell_bounds = loaded[0]
     if cell_bounds is None:
         return {}
-    from robust_imdp.rkhs import noise_bound_at_confidence
+    from robust_imdp.bounds.rkhs import noise_bound_at_confidence
 
     data = _residual_data(problem)
     data_fail, _ = _failure_budget(problem)
@@ -1804,7 +1809,7 @@ def _advice(problem: Problem, partition, cell_bounds, dfa, classes, log: _Log, r
 def _pilot_task(*args, threads=1, **settings):
     """The advice's pilot cells: the work of :func:`_bound_task` (same arguments, including a mode's own
     settings) under its own name, so that progress does not count them as bound-stage chunks."""
-    return _bound_task(*args, threads=threads, **settings)
+    return _bound_work(*args, threads=threads, **settings)
 
 
 def _cell_bounder(problem: Problem, partition, log: _Log, run: _Run, task=None):
@@ -1813,7 +1818,7 @@ def _cell_bounder(problem: Problem, partition, log: _Log, run: _Run, task=None):
     The same data, noise bound (one event over the data, whatever the cells), weights and local
     pools as :func:`_learn_and_bound`, so a new cell's box holds on the same event as the grid's.
     """
-    from robust_imdp.rkhs import check_ranges, noise_bound_at_confidence
+    from robust_imdp.bounds.rkhs import check_ranges, noise_bound_at_confidence
 
     data = _residual_data(problem)
     data_fail, _ = _failure_budget(problem)
@@ -1858,9 +1863,9 @@ def refined_key(problem: Problem) -> str:
 def _refine(problem: Problem, partition, abstraction, syn, cell_bounds, dfa, log: _Log, run: _Run, cache_dir,
             diagnostics):
     """Refinement rounds from the grid's result (``refine.refine``); cached under :func:`refined_key`."""
-    from robust_imdp.geometry import BoxPartition
+    from robust_imdp.models.geometry import BoxPartition
     from robust_imdp.jsonable import jsonable as _jsonable
-    from robust_imdp.refine import refine
+    from robust_imdp.synthesis.refine import refine
 
     key = refined_key(problem)
     diagnostics = dict(diagnostics)
@@ -1897,7 +1902,7 @@ def _refine(problem: Problem, partition, abstraction, syn, cell_bounds, dfa, log
 def resynthesize(result: Result, *, formula: str | None = None, threshold: float | None = None,
                  horizon="keep", progress: bool = True) -> Result:
     """Solve a new formula / threshold / horizon on ``result``'s abstraction (no re-learning)."""
-    from robust_imdp.dfa import ltlf_to_dfa
+    from robust_imdp.spec.dfa import ltlf_to_dfa
 
     changes = {}
     if formula is not None:

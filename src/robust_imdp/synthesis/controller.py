@@ -35,7 +35,7 @@ in any language needs nothing else:
 Locating a point x: outside X (any coordinate outside ``[space_lower, space_upper]``) means
 leaving X. Otherwise ``i_j = min(searchsorted(breakpoints_j, x_j, side="right") - 1,
 shape[j] - 1)`` (half-open intervals, the last one closed at the upper end of X) and the cell is
-``ravel_multi_index(i, shape)`` (C order), as :meth:`robust_imdp.geometry.Partition.locate`.
+``ravel_multi_index(i, shape)`` (C order), as :meth:`robust_imdp.models.geometry.Partition.locate`.
 Cells of different sizes (a refined ``geometry.BoxPartition``): the breakpoints are every cell
 face and the ``.npz`` also holds ``cell_map`` int64 (shape): the cell is ``cell_map[i]``.
 
@@ -254,7 +254,7 @@ class Controller:
     # ------------------------------------------------------------------ construction
     @classmethod
     def from_result(cls, result: Any, partition: Any, mode_names: Sequence[str] | None = None) -> "Controller":
-        """Controller of a :class:`~robust_imdp.synthesis.SynthesisResult` on ``partition``.
+        """Controller of a :class:`~robust_imdp.synthesis.core.SynthesisResult` on ``partition``.
 
         Raises
         ------

@@ -12,7 +12,7 @@ default Gauss-Seidel engine, per layer and sweep in the Jacobi one), so no produ
 materialised, memory stays that of the base IMDP plus O(S n) values (and the solver's row
 orders, S bytes per base entry), and a floor row stays a floor row: its unlisted base states
 are exactly the unlisted product successors reachable from layer s.  The soundness argument of
-:mod:`robust_imdp.solve` applies verbatim to the layered operator (it is the Bellman operator of
+:mod:`robust_imdp.solvers.api` applies verbatim to the layered operator (it is the Bellman operator of
 the materialised product); its strongly connected components may span layers and are solved
 in reverse topological order.
 
@@ -31,8 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from robust_imdp.errors import DimensionError, InvalidInputError, InvalidModelError
-from robust_imdp.imdp import IMDP
-from robust_imdp.solve import Adversary, _as_mask, _check_method, _enum, check_strategy, solve_layered
+from robust_imdp.models.imdp import IMDP
+from robust_imdp.solvers.api import Adversary, _as_mask, _check_method, _enum, check_strategy, solve_layered
 
 
 @dataclass(frozen=True)
@@ -160,13 +160,13 @@ def solve_product(imdp: IMDP, letters, dfa, *, avoid=None, adversary="pessimisti
         k-step bounded satisfaction; the strategy is then (k, S, n).
     precision : float
     method : {"vi", "interval"}
-        As in :func:`robust_imdp.solve.solve_reachability` (the product's components across
+        As in :func:`robust_imdp.solvers.api.solve_reachability` (the product's components across
         DFA layers are solved in reverse topological order by default).
     tie_break : ProductResult, optional
         The ``adversary="optimistic"`` solve of the same product (same horizon).  Rows tied in
         the lower value are then chosen by their optimistic value, and nodes where every row
         has lower value 0 take the optimistic strategy's row (lexicographic choice, see
-        "Strategy extraction" in :mod:`robust_imdp.solve`).  Without it ties go to the first
+        "Strategy extraction" in :mod:`robust_imdp.solvers.api`).  Without it ties go to the first
         row.
 
     Returns

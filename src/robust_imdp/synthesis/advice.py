@@ -304,8 +304,8 @@ def _share(partition, yes) -> float:
 
 def _q_yes(partition, lower, upper, noise, dfa, threshold, horizon, options) -> float:
     """Q_yes share (volume) of the abstraction of these boxes (Thm 1) after the robust solve."""
-    from robust_imdp.abstraction import CellBounds, abstract
-    from robust_imdp.synthesis import synthesize
+    from robust_imdp.abstraction.rows import CellBounds, abstract
+    from robust_imdp.synthesis.core import synthesize
 
     ab = abstract(partition, CellBounds(lower, upper, None), noise, None, **options)
     syn = synthesize(ab.imdp, partition.labels, partition.atoms, dfa, threshold=threshold, horizon=horizon,
@@ -375,7 +375,7 @@ def advise(partition, cell_bounds, fits: FittedModes, noise, dfa, *, threshold: 
     -------
     Advice
     """
-    from robust_imdp.geometry import Partition
+    from robust_imdp.models.geometry import Partition
 
     t_all = time.perf_counter()
     opts = dict(abstraction_options or {})

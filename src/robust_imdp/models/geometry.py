@@ -640,7 +640,7 @@ class BoxPartition:
         query, cell : (E,) int64 arrays
             The pairs (query box, cell) whose closed boxes share a point, sorted by query, then
             cell index. Closed boxes meet iff they overlap on every axis, as in
-            :mod:`robust_imdp.abstraction`.
+            :mod:`robust_imdp.abstraction.rows`.
         """
         lo = np.atleast_2d(np.asarray(lower, dtype=float))
         hi = np.atleast_2d(np.asarray(upper, dtype=float))

@@ -75,9 +75,9 @@ from pathlib import Path
 import numpy as np
 
 from robust_imdp.errors import DimensionError, InvalidInputError, SoundnessError
-from robust_imdp.geometry import BoxPartition, Partition, partition_from_dict
-from robust_imdp.imdp import IMDP
-from robust_imdp.noise import NoiseModel
+from robust_imdp.models.geometry import BoxPartition, Partition, partition_from_dict
+from robust_imdp.models.imdp import IMDP
+from robust_imdp.models.noise import NoiseModel
 
 __all__ = ["CellBounds", "Abstraction", "AbstractionRows", "abstract", "abstract_rows", "assemble_abstraction",
            "select_rows", "join_rows",
@@ -740,7 +740,7 @@ def abstract_rows(partition: Partition, cell_bounds: CellBounds, noise: NoiseMod
 
 def _box_rows(partition: BoxPartition, cell_bounds: CellBounds, modes, combine, block_size, eps_rule, eta_fixed,
               floor_tol) -> AbstractionRows:
-    """:func:`abstract_rows` on a :class:`~robust_imdp.geometry.BoxPartition` (cells of different sizes).
+    """:func:`abstract_rows` on a :class:`~robust_imdp.models.geometry.BoxPartition` (cells of different sizes).
 
     The same Thm 1 bounds as the rectilinear path, entry by entry: the targets of a row are the
     cells whose closed box meets ``Im ⊕ e_f`` (found through the partition's spatial index,

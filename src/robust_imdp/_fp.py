@@ -1,0 +1,61 @@
+"""Outward rounding: the one home of the helpers that turn a float result into a sound bound.
+
+Every bound the library prints is a float computed in round-to-nearest arithmetic. The helpers
+below move such a float outward by an explicit bound on its error, and then one more ulp with
+``np.nextafter``, so that the returned float is on the safe side of the real value:
+
+* ``up(x, err)`` >= every real within ``err`` of ``x``; ``down(x, err)`` <= every such real;
+* ``outward(x, err, up)`` does the same but leaves ``x`` unchanged where ``err == 0`` (the value
+  was computed exactly);
+* ``gamma(n)`` is Higham's ``gamma_n = n u / (1 - n u)`` (ASNA, Lemma 3.1): ``n`` roundings of a
+  product or of a sum of ``n + 1`` terms have relative error at most ``gamma_n``;
+* ``up_rounded(x, n)`` bounds a non-negative expression evaluated with ``n`` roundings.
+
+Where a module needs a different rule (the relative margin of the noise probabilities, the
+8-ulp margins of transcendental functions in ``models.known``), it says why next to its own code.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Unit round-off of float64 (half the machine epsilon).
+U = 2.0 ** -53
+
+
+def gamma(n: float) -> float:
+    """``gamma_n = n u / (1 - n u)``: relative error bound of ``n`` roundings (Higham, ASNA, Lemma 3.1)."""
+    return n * U / (1.0 - n * U)
+
+
+def up(x, err=0.0):
+    """Upper bound of a real known to lie within ``err`` of the float ``x`` (one more ulp up)."""
+    return np.nextafter(np.asarray(x, float) + err, np.inf)
+
+
+def down(x, err=0.0):
+    """Lower bound of a real known to lie within ``err`` of the float ``x`` (one more ulp down)."""
+    return np.nextafter(np.asarray(x, float) - err, -np.inf)
+
+
+def outward(x, err, upward: bool):
+    """Move ``x`` by the error bound ``err`` (>= 0) and one ulp outward, except where ``err == 0``
+    (the value was computed exactly and is returned unchanged)."""
+    x = np.asarray(x, dtype=float)
+    err = np.broadcast_to(np.asarray(err, dtype=float), x.shape)
+    if upward:
+        moved = np.nextafter(x + err, np.inf)
+    else:
+        moved = np.nextafter(x - err, -np.inf)
+    return np.where(err > 0, moved, x)
+
+
+def up_rounded(x, n_ops: int):
+    """Upper bound of the exact value of a NON-NEGATIVE expression evaluated in floats as ``x``.
+
+    If the evaluation took at most ``n_ops`` roundings of non-negative intermediates, the exact
+    value is ``<= x (1 + gamma_n) <= x (1 + 2 n u)`` (n u << 1). The product
+    ``x * (1 + 2 (n + 1) u)`` (the factor is exact) is itself rounded, by at most ``(1 - u)``, and
+    ``(1 + 2 (n + 1) u)(1 - u) >= 1 + 2 n u``; one more ulp up with ``nextafter`` for good measure.
+    """
+    return np.nextafter(np.asarray(x, float) * (1.0 + 2.0 * (n_ops + 1) * U), np.inf)

@@ -1,0 +1,5 @@
+"""Cell bounds to an interval MDP (the paper's Thm 1, corrected, with an outside-X state)."""
+
+from robust_imdp._lazy import exports
+
+__getattr__, __dir__ = exports(__name__, ["rows"])

@@ -1,0 +1,5 @@
+"""Certified ranges of f_u + g_u over cells: RKHS bounds (optimal, ridge, local weights), the GP route, per-component assumptions."""
+
+from robust_imdp._lazy import exports
+
+__getattr__, __dir__ = exports(__name__, ["rkhs", "gp", "gp_cells", "assumptions"])

@@ -1,0 +1,5 @@
+"""Files: problem files (TOML), data files, result files, model exchange (Storm DRN, PRISM)."""
+
+from robust_imdp._lazy import exports
+
+__getattr__, __dir__ = exports(__name__, ["files", "formats"])

@@ -1,0 +1,5 @@
+"""The whole run: Problem, Result, synthesize_from_data, caches, schedulers."""
+
+from robust_imdp._lazy import exports
+
+__getattr__, __dir__ = exports(__name__, ["run", "parallel"])

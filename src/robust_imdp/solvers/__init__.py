@@ -1,0 +1,5 @@
+"""Interval value iteration (robust and optimistic), strategies, LP cross-checks, products with a DFA."""
+
+from robust_imdp._lazy import exports
+
+__getattr__, __dir__ = exports(__name__, ["api", "lp", "product"])
