@@ -24,8 +24,8 @@ import mpmath
 import numpy as np
 import pytest
 
-from robust_imdp.casestudies.systems import (CASE_STUDIES, assumption_certificate, certify_expansion, get_case_study,
-                                     rkhs_norm_upper)
+from robust_imdp.casestudies.certificate import assumption_certificate, certify_expansion, rkhs_norm_upper
+from robust_imdp.casestudies.systems import CASE_STUDIES, get_case_study
 from robust_imdp.errors import DimensionError, InvalidInputError
 
 # The paper's 2-D case studies (the certificate's check grid is 2-D; unicycle_3d is not certified).
