@@ -463,7 +463,8 @@ def startup() -> dict:
 
 def pipeline_run(c: dict, seed: int, ours_yes: int) -> dict:
     """``synthesize_from_data`` on configuration ``c`` (same data): stage timings and Q_yes."""
-    from robust_imdp.pipeline.run import Problem, synthesize_from_data
+    from robust_imdp.pipeline.problem import Problem
+    from robust_imdp.pipeline.run import synthesize_from_data
 
     sy = system(c, seed)
     x = np.concatenate([X for X, _, _ in sy["data"]])

@@ -97,7 +97,8 @@ def speedup(repeat: int = 3) -> dict:
 def three_d(cells_per_axis: int) -> dict:
     from robust_imdp.casestudies.systems import write_problem_files
     from robust_imdp.io.files import load_problem
-    from robust_imdp.pipeline.run import estimate_resources, synthesize_from_data
+    from robust_imdp.pipeline.preflight import estimate_resources
+    from robust_imdp.pipeline.run import synthesize_from_data
 
     with tempfile.TemporaryDirectory() as d:
         problem = load_problem(write_problem_files("unicycle_3d", d))

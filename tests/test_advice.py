@@ -19,7 +19,8 @@ from robust_imdp.spec.dfa import ltlf_to_dfa
 from robust_imdp.errors import DimensionError, InvalidInputError
 from robust_imdp.models.geometry import Box, Partition, Region
 from robust_imdp.models.noise import TruncatedGaussianNoise
-from robust_imdp.pipeline.run import Problem, synthesize_from_data
+from robust_imdp.pipeline.problem import Problem
+from robust_imdp.pipeline.run import synthesize_from_data
 from robust_imdp.models.system import AffineMap, Dataset
 
 

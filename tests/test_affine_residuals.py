@@ -32,7 +32,7 @@ def test_affine_residual_bound_covers_the_exact_error():
 
 
 def test_pipeline_allowance_includes_the_affine_rounding():
-    from robust_imdp.pipeline.run import _noise_allowance
+    from robust_imdp.pipeline.bound_stage import _noise_allowance
     from robust_imdp.casestudies.systems import write_problem_files
     from robust_imdp.io.files import load_problem
     import tempfile

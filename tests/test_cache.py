@@ -7,6 +7,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from robust_imdp.pipeline import bound_stage as pl_bound_stage
+from robust_imdp.pipeline import cache as pl_cache
+from robust_imdp.pipeline import preflight as pl_preflight
+from robust_imdp.pipeline import runtime as pl_runtime
 import robust_imdp.pipeline.run as pipeline
 import robust_imdp.bounds.rkhs as rkhs
 from robust_imdp.errors import RobustImdpWarning
@@ -70,10 +74,10 @@ def test_the_assumption_check_is_cached_under_the_data_and_assumption_key(proble
 
 
 def test_check_key_ignores_the_grid_and_formula_but_not_the_assumption(problem):
-    k = pipeline.check_key(problem)
-    assert pipeline.check_key(problem.replace(cell_size=np.array([0.5]), formula="G des", threshold=0.5)) == k
+    k = pl_cache.check_key(problem)
+    assert pl_cache.check_key(problem.replace(cell_size=np.array([0.5]), formula="G des", threshold=0.5)) == k
     for change in ({"rkhs_bound": 1.5}, {"misspecification": 0.01}, {"gp_options": {"lengthscale": 0.5}}):
-        assert pipeline.check_key(problem.replace(**change)) != k, change
+        assert pl_cache.check_key(problem.replace(**change)) != k, change
 
 
 # --------------------------------------------------------------------------- damaged entries
@@ -119,7 +123,7 @@ def test_a_damaged_cache_entry_gives_one_warning_and_is_computed_again(problem, 
     assert str(target) in str(ours[0].message) and "computing it again" in str(ours[0].message)
     np.testing.assert_array_equal(again.synthesis.p_low, first.synthesis.p_low)
     np.testing.assert_array_equal(again.synthesis.p_up, first.synthesis.p_up)
-    assert pipeline.cache_entry_problem(target) is None  # rewritten, with its checksum
+    assert pl_cache.cache_entry_problem(target) is None  # rewritten, with its checksum
     with warnings.catch_warnings(record=True) as seen:  # and the next run is quiet
         warnings.simplefilter("always")
         _run(problem, cache)
@@ -131,7 +135,7 @@ def test_an_entry_without_its_checksum_is_not_trusted(problem, tmp_path):
     _run(problem, cache)
     (f,) = list(cache.glob("abstraction-*.npz"))
     os.unlink(str(f) + ".sha256")
-    assert "no readable checksum file" in pipeline.cache_entry_problem(f)
+    assert "no readable checksum file" in pl_cache.cache_entry_problem(f)
     with pytest.warns(RobustImdpWarning, match="no readable checksum file"):
         res = _run(problem, cache)
     assert not res.from_cache
@@ -166,10 +170,10 @@ def test_fsync_only_cannot_leave_an_empty_complete_looking_entry(tmp_path):
     # A crash after the rename but before the data reach the disk could leave an empty file
     # under the final name; here the checksum file says how many bytes must be there.
     f = tmp_path / "e.npz"
-    pipeline.write_cache_entry(f, lambda tmp: np.savez(tmp, a=np.arange(5)))
-    assert pipeline.cache_entry_problem(f) is None
+    pl_cache.write_cache_entry(f, lambda tmp: np.savez(tmp, a=np.arange(5)))
+    assert pl_cache.cache_entry_problem(f) is None
     f.write_bytes(b"")
-    assert "0 bytes" in pipeline.cache_entry_problem(f)
+    assert "0 bytes" in pl_cache.cache_entry_problem(f)
     assert not list(tmp_path.glob(".*part*"))  # no temporary files left
 
 
@@ -182,8 +186,9 @@ def test_the_eta_after_a_resume_uses_the_rate_of_this_process(problem, tmp_path,
     p = problem.replace(cell_size=np.array([4.0 / 256]))
     cache = tmp_path / "cache"
     clock = [0.0]
-    monkeypatch.setattr(pipeline, "time", SimpleNamespace(perf_counter=lambda: clock[0]))
-    monkeypatch.setattr(pipeline, "_check_assumption",
+    for module in (pl_runtime, pl_bound_stage):  # the stage's clock and the progress line's
+        monkeypatch.setattr(module, "time", SimpleNamespace(perf_counter=lambda: clock[0]))
+    monkeypatch.setattr(pl_bound_stage, "_check_assumption",
                         lambda problem, data, log, cache_dir=None: ((rkhs.NormCheck(0, 0, 0.1, 30),), np.array([0.01])))
 
     def fake_task(X, Y, A, b, lower, upper, local, *, threads=1, **settings):
@@ -192,20 +197,20 @@ def test_the_eta_after_a_resume_uses_the_rate_of_this_process(problem, tmp_path,
         return {"lower": np.full((k, 1), 1.0), "upper": np.full((k, 1), 3.0), "eps": np.zeros((k, 1)),
                 "support": np.zeros((k, 1), dtype=np.int64), "n_unconverged": 0, "seconds": 10.0}
 
-    monkeypatch.setattr(pipeline, "_bound_task", fake_task)
-    part = pipeline._Run(workers=1, chunk_cells=16)
+    monkeypatch.setattr(pl_bound_stage, "_bound_task", fake_task)
+    part = pl_runtime._Run(workers=1, chunk_cells=16)
     from robust_imdp.models.geometry import Box, Partition
 
-    partition = Partition(Box(p.space_lower, p.space_upper), p.cell_size, pipeline._region_objects(p))
+    partition = Partition(Box(p.space_lower, p.space_upper), p.cell_size, pl_preflight._region_objects(p))
     assert partition.n_cells == 256
-    pipeline._learn_and_bound(p, partition, pipeline._Log(False), part, cache)
+    pl_bound_stage._learn_and_bound(p, partition, pl_runtime._Log(False), part, cache)
     parts = sorted(cache.glob("bounds-*.parts/m0-c*-16.npz"), key=lambda f: int(f.name.split("-c")[1].split("-")[0]))
     assert len(parts) == 16
     for f in parts[12:]:  # an interrupted run: 12 of 16 chunks were saved
         f.unlink()
     clock[0] = 1000.0
     capsys.readouterr()
-    pipeline._learn_and_bound(p, partition, pipeline._Log(True), pipeline._Run(workers=1, chunk_cells=16), cache)
+    pl_bound_stage._learn_and_bound(p, partition, pl_runtime._Log(True), pl_runtime._Run(workers=1, chunk_cells=16), cache)
     err = capsys.readouterr().err
     assert "resumed: 12 of 16 bound chunks" in err
     assert "bound: 13/16 (81 %), 10.0 s, about 30 s left" in err, err

@@ -9,6 +9,7 @@ import json
 import numpy as np
 import pytest
 
+from robust_imdp.pipeline import bound_stage as pl_bound_stage
 from robust_imdp.pipeline import parallel
 from robust_imdp.abstraction.rows import CellBounds, abstract, abstract_rows, assemble_abstraction
 from robust_imdp.casestudies.systems import get_case_study
@@ -17,7 +18,9 @@ from robust_imdp.errors import ResourceError
 from robust_imdp.models.geometry import Box, Partition
 from robust_imdp.io.files import result_to_dict
 from robust_imdp.models.noise import TruncatedGaussianNoise
-from robust_imdp.pipeline.run import Problem, estimate_resources, synthesize_from_data
+from robust_imdp.pipeline.preflight import estimate_resources
+from robust_imdp.pipeline.problem import Problem
+from robust_imdp.pipeline.run import synthesize_from_data
 from robust_imdp.models.system import AffineMap, Dataset
 
 CASE = get_case_study("three_mode_linear")
@@ -92,7 +95,7 @@ def test_resume_computes_only_the_missing_chunks(tmp_path, monkeypatch):
     calls = []
     import robust_imdp.pipeline.run as pl
 
-    real = pl._bound_task
+    real = pl_bound_stage._bound_task
 
     def counted(*args, **kwargs):  # call 1 is the pre-flight pilot block, then the chunks
         calls.append(1)
@@ -100,12 +103,12 @@ def test_resume_computes_only_the_missing_chunks(tmp_path, monkeypatch):
             raise KeyboardInterrupt
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(pl, "_bound_task", counted)
+    monkeypatch.setattr(pl_bound_stage, "_bound_task", counted)
     with pytest.raises(KeyboardInterrupt):  # a Ctrl-C during the third chunk
         synthesize_from_data(p, progress=False, abstraction_cache=tmp_path, chunk_cells=16, workers=1)
     assert len(list(tmp_path.glob("bounds-*.parts/m*.npz"))) == 2
     calls.clear()
-    monkeypatch.setattr(pl, "_bound_task", lambda *a, **k: (calls.append(1), real(*a, **k))[1])
+    monkeypatch.setattr(pl_bound_stage, "_bound_task", lambda *a, **k: (calls.append(1), real(*a, **k))[1])
     res = synthesize_from_data(p, progress=False, abstraction_cache=tmp_path, chunk_cells=16, workers=1)
     assert len(calls) == 1 + 3 * 4 - 2  # the pilot + 3 modes x 4 chunks of 16 cells, 2 already saved
     monkeypatch.undo()

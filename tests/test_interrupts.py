@@ -101,7 +101,7 @@ def test_interrupt_in_follows_cause_and_context():
 
 @pytest.mark.parametrize("stage", ["check", "bound", "abstract", "synthesize", "refine"])
 def test_every_pipeline_stage_turns_an_interrupt_in_compiled_code_into_keyboardinterrupt(stage):
-    from robust_imdp.pipeline.run import _Log
+    from robust_imdp.pipeline.runtime import _Log
 
     log = _Log(False)
     with pytest.raises(KeyboardInterrupt, match=f"during the {stage} stage") as info:

@@ -12,6 +12,9 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
+from robust_imdp.pipeline import bound_stage as pl_bound_stage
+from robust_imdp.pipeline import preflight as pl_preflight
+from robust_imdp.pipeline import runtime as pl_runtime
 from robust_imdp import Problem, TruncatedGaussianNoise, UniformNoise
 from robust_imdp.pipeline import run as pipeline
 from robust_imdp.bounds.assumptions import add_ranges, resolve
@@ -58,8 +61,8 @@ def _problem(rkhs_bound=0.1, modes=None, cell=0.5, **kw):
 
 def _bounds(problem):
     part = Partition(Box(problem.space_lower, problem.space_upper), problem.cell_size,
-                     pipeline._region_objects(problem))
-    cb, _, diag = pipeline._learn_and_bound(problem, part, pipeline._Log(False), pipeline._Run(workers=1))
+                     pl_preflight._region_objects(problem))
+    cb, _, diag = pl_bound_stage._learn_and_bound(problem, part, pl_runtime._Log(False), pl_runtime._Run(workers=1))
     return part, cb, diag
 
 
@@ -115,7 +118,7 @@ def test_image_is_the_outward_sum_of_the_f_range_and_the_g_range():
 
 def test_rounding_allowance_covers_the_residual_rounding_exactly():
     p = _problem()
-    allowance = pipeline._noise_allowance(p, np.array([BOUND, BOUND]))
+    allowance = pl_bound_stage._noise_allowance(p, np.array([BOUND, BOUND]))
     for u, mode in enumerate(("a", "b")):
         x, xn = p.data.by_mode(u)
         rb = KnownDynamics(F[mode]).residuals(x, xn).bound.max(axis=0)

@@ -7,9 +7,9 @@ from robust_imdp.casestudies.systems import get_case_study
 from robust_imdp.errors import InvalidInputError, UnknownAtomError
 from robust_imdp.io.files import load_result, save_result
 from robust_imdp.models.noise import TruncatedGaussianNoise
-from robust_imdp.pipeline.run import (
-    Problem, abstraction_key, bounds_key, resynthesize, synthesize_from_data,
-)
+from robust_imdp.pipeline.cache import abstraction_key, bounds_key
+from robust_imdp.pipeline.problem import Problem
+from robust_imdp.pipeline.run import resynthesize, synthesize_from_data
 from robust_imdp.models.system import AffineMap, Dataset
 from robust_imdp.validate import validate
 

@@ -231,7 +231,7 @@ def test_result_npz_json_and_read_back(tmp_path):
 
 
 def test_pipeline_summary_splits_q_no():
-    from robust_imdp.pipeline.run import Result
+    from robust_imdp.pipeline.result import Result
 
     syn = SimpleNamespace(p_low=np.array([1.0, 0.0, 0.0]), p_up=np.array([1.0, 0.0, 0.5]),
                           p_up_star=np.array([1.0, 0.95, 0.5]), error=np.array([0.0, 0.95, 0.5]))

@@ -14,7 +14,8 @@ from robust_imdp.cli import main
 from robust_imdp.errors import AssumptionError
 from robust_imdp.io.files import write_data_file
 from robust_imdp.models.noise import GaussianNoise, UniformNoise
-from robust_imdp.pipeline.run import Problem, synthesize_from_data
+from robust_imdp.pipeline.problem import Problem
+from robust_imdp.pipeline.run import synthesize_from_data
 from robust_imdp.models.system import AffineMap, Dataset
 from robust_imdp.validate import validate
 

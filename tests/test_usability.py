@@ -28,7 +28,8 @@ from robust_imdp.errors import (  # noqa: E402
 from robust_imdp.models.geometry import Box, Partition, Region, region_overlaps  # noqa: E402
 from robust_imdp.io.files import ResultFile, load_problem, load_result, parse_problem_file, save_result  # noqa: E402
 from robust_imdp.models.noise import TruncatedGaussianNoise  # noqa: E402
-from robust_imdp.pipeline.run import Problem, Result  # noqa: E402
+from robust_imdp.pipeline.problem import Problem
+from robust_imdp.pipeline.result import Result  # noqa: E402
 from robust_imdp.models.system import AffineMap, Dataset  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).parent))

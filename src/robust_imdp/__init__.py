@@ -35,7 +35,9 @@ from robust_imdp.bounds.gp_cells import ImageBounds, PosteriorBounds, bound_imag
 from robust_imdp.abstraction.rows import Abstraction, CellBounds, abstract, confidence_cell_bounds
 from robust_imdp.synthesis.core import SynthesisResult, synthesize
 from robust_imdp.synthesis.controller import Controller
-from robust_imdp.pipeline.run import Problem, Result, synthesize_from_data
+from robust_imdp.pipeline.problem import Problem
+from robust_imdp.pipeline.result import Result
+from robust_imdp.pipeline.run import synthesize_from_data
 from robust_imdp.io.files import load_problem, load_result, save_result
 
 __version__ = "0.1.0"

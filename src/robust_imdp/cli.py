@@ -406,7 +406,7 @@ def _cmd_export(args) -> int:
             f"export needs the abstraction of this result, abstraction-{key}.npz in the run's cache {cache}; "
             f"it is not there: pass the run's --cache, or run `robust-imdp run PROBLEM --out {args.result}` again")
     from robust_imdp.abstraction.rows import Abstraction
-    from robust_imdp.pipeline.run import cache_entry_problem
+    from robust_imdp.pipeline.cache import cache_entry_problem
 
     why = cache_entry_problem(file)
     if why is None:

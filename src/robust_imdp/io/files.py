@@ -52,7 +52,7 @@ import numpy as np
 
 from robust_imdp.errors import DimensionError, InvalidInputError, ProblemFileError
 from robust_imdp.jsonable import jsonable as _jsonable
-from robust_imdp.pipeline.run import ERROR_BOUNDS, GUARANTEES  # the one definition of these modes
+from robust_imdp.pipeline.problem import ERROR_BOUNDS, GUARANTEES  # the one definition of these modes
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -523,7 +523,7 @@ def load_problem(path):
     AssumptionError
         A sample is impossible under ``[gp].rkhs_bound``, ``misspecification`` and the noise bound.
     """
-    from robust_imdp.pipeline.run import Problem
+    from robust_imdp.pipeline.problem import Problem
     from robust_imdp.models.system import AffineMap, Dataset
 
     spec = parse_problem_file(path)
@@ -600,7 +600,7 @@ def _check_samples_possible(spec, noise, x, u, x_next, rows) -> None:
     refuses the same samples, and adds where they are in the data file.
     """
     from robust_imdp.errors import AssumptionError
-    from robust_imdp.pipeline.run import CHECK_DELTA
+    from robust_imdp.pipeline.problem import CHECK_DELTA
     from robust_imdp.bounds.rkhs import min_rkhs_norm, noise_bound_at_confidence
 
     from robust_imdp.bounds.assumptions import resolve

@@ -2,4 +2,4 @@
 
 from robust_imdp._lazy import exports
 
-__getattr__, __dir__ = exports(__name__, ["run", "parallel"])
+__getattr__, __dir__ = exports(__name__, ["run", "problem", "result", "runtime", "cache", "preflight", "bound_stage", "parallel"])

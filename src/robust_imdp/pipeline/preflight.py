@@ -1,0 +1,108 @@
+"""Before the long stages: resource estimates, the memory pre-flight, region-overlap and atom checks.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from robust_imdp.errors import UnknownAtomError
+
+from robust_imdp.pipeline.problem import Problem
+from robust_imdp.pipeline.runtime import _Log, _Run
+
+
+def _region_objects(problem: Problem):
+    from robust_imdp.models.geometry import Box, Region
+
+    return [Region(name, [Box(lo, up) for lo, up in boxes]) for name, boxes in problem.regions.items()]
+
+
+def _warn_overlaps(problem: Problem, dfa) -> None:
+    """Warn when two regions the formula names overlap: the cells there carry both labels.
+
+    Regions the formula does not name are left alone (the paper's case study defines ``d2``
+    equal to ``des`` on purpose). Boxes that share only a face do not overlap.
+    """
+    import warnings
+
+    from robust_imdp.errors import RegionOverlapWarning
+    from robust_imdp.models.geometry import region_overlaps
+
+    used = [r for r in _region_objects(problem) if r.name in dfa.atoms]
+    found = region_overlaps(used)
+    pairs = list(dict.fromkeys((a, b) for a, b, _ in found))
+    for a, b in pairs:
+        boxes = [box for x, y, box in found if (x, y) == (a, b)]
+        where = " x ".join(f"[{lo:g}, {hi:g}]" for lo, hi in zip(boxes[0].lower, boxes[0].upper))
+        more = f" (and {len(boxes) - 1} more boxes)" if len(boxes) > 1 else ""
+        warnings.warn(
+            f"regions {a!r} and {b!r} overlap in the box {where}{more}: cells there are labelled with both, "
+            f"and the formula {problem.formula!r} reads both labels there; check the regions' boxes "
+            "([[regions.NAME]] lower / upper)", RegionOverlapWarning, stacklevel=3)
+
+
+def _check_atoms(dfa, problem: Problem) -> None:
+    unknown = sorted(set(dfa.atoms) - set(problem.regions))
+    if unknown:
+        raise UnknownAtomError(
+            f"formula {problem.formula!r} names regions {unknown} that are not defined; "
+            f"known regions: {sorted(problem.regions)}"
+        )
+
+
+# --------------------------------------------------------------------------- entry points
+def estimate_resources(problem: Problem, n_dfa_states: int = 4) -> dict:
+    """Pre-flight estimate of a run's size and peak memory, before any heavy work.
+
+    The cell count is that of the plain grid (regions that do not fit it add a few cells).
+    Memory: IMDP rows of ``~3^n`` listed successors (24 bytes each: column, lower, upper) held
+    about three times during assembly, the image boxes and their error radii, the partition, and
+    the product solver's value arrays. Calibrated on the case studies and the 3-D study
+    (``benchmarks/scale.py``) to over-estimate.
+
+    Returns
+    -------
+    dict with ``n_cells``, ``n_modes``, ``n_outputs``, ``bytes`` (estimated peak) and
+    ``available`` (bytes the machine has free now, or None if unknown).
+    """
+    lo, up, cs = (np.asarray(a, float) for a in (problem.space_lower, problem.space_upper, problem.cell_size))
+    n = lo.size
+    N = int(np.prod(np.ceil((up - lo) / cs - 1e-9)))
+    M = len(problem.mode_names)
+    succ = 3 ** n + 1
+    imdp = N * M * (succ * 24 + 48)
+    boxes = N * M * n * 8 * 8
+    part = N * n * 8 * 6
+    solver = N * M * max(int(n_dfa_states), 1) * 8 * 6
+    return {"n_cells": N, "n_modes": M, "n_outputs": n, "bytes": int(3 * imdp + boxes + part + solver + 2e8),
+            "available": _available_memory()}
+
+
+def _available_memory() -> int | None:
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:  # pragma: no cover - non-Linux
+        pass
+    return None
+
+
+def _preflight(problem: Problem, dfa, log: _Log, run: _Run) -> None:
+    from robust_imdp.errors import ResourceError
+
+    est = estimate_resources(problem, dfa.n_states)
+    gb = est["bytes"] / 1e9
+    avail = est["available"]
+    log.info(f"pre-flight: {est['n_cells']:,} cells x {est['n_modes']} modes x {est['n_outputs']} outputs, "
+             f"peak memory about {gb:.2f} GB" + (f" of {avail / 1e9:.1f} GB available" if avail else ""))
+    if run.check_resources and avail is not None and est["bytes"] > 0.9 * avail:
+        coarser = np.round(np.asarray(problem.cell_size, float) * 2, 6).tolist()
+        raise ResourceError(
+            f"pre-flight: {est['n_cells']:,} cells x {est['n_modes']} modes need about {gb:.1f} GB, more than the "
+            f"{avail / 1e9:.1f} GB available: use a coarser [space].cell_size (e.g. {coarser}, which divides the "
+            f"cells by {2 ** est['n_outputs']}); --scheduler moves the bound stage to a Dask cluster but not the "
+            "abstraction; --yes runs anyway")

@@ -1,0 +1,402 @@
+"""The problem of a run: :class:`Problem` (data, modes, noise, grid, regions, specification, bound and
+abstraction options) and the per-mode settings it resolves to.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import numpy as np
+
+from robust_imdp.errors import InvalidInputError
+
+
+CLASS_NAMES = ("yes", "no", "maybe")
+GUARANTEES = ("confidence", "paper")
+#: How the unknown part is bounded over a cell (see :class:`Problem`).
+ERROR_BOUNDS = ("optimal", "ridge", "chowdhury")
+#: Failure probability allowed to the assumption check's noise bound when the noise is unbounded.
+CHECK_DELTA = 1e-6
+#: With ``local_points=None``: modes with more data points than this use local weights (100 points).
+LOCAL_AUTO = 1000
+LOCAL_DEFAULT = 100
+
+
+@dataclass(frozen=True, eq=False)
+class Problem:
+    """Everything the pipeline needs, as plain values.
+
+    Attributes
+    ----------
+    space_lower, space_upper, cell_size : (n,) float arrays
+        The compact set X and the grid size.
+    regions : dict str -> list of (lower (n,), upper (n,)) pairs
+        Named regions (the formula's atoms), each a union of boxes.
+    formula : str
+        LTLf formula over the region names.
+    threshold : float in [0, 1]
+    horizon : int or None
+        k-step horizon; None for the unbounded problem.
+    data : system.Dataset
+        ``x``, ``u`` (mode indices), ``x_next``.
+    mode_names : tuple of str
+    maps : tuple of system.AffineMap
+        Known part ``f_u(x) = A x + b`` per mode, in ``mode_names`` order.
+    noise : noise model (``noise.TruncatedGaussianNoise`` etc.)
+    rkhs_bound : float
+        The user's assumption B on the RKHS norm of every unknown component (unit-amplitude SE
+        kernel; see ``gp.RKHSErrorBound``).
+    gp_options : dict
+        Passed to ``gp.learn`` (e.g. ``lengthscale``, ``signal_variance``, ``optimize``,
+        ``info_gain``).
+    bound_tol : float
+        Target certified gap of the image / std bounds.
+    bound_max_boxes : int
+        Branch-and-bound budget per cell and problem (bounds stay sound, only looser).
+    eta : (n,) float array or None
+        Noise threshold of Thm 1; None = the noise model's default.
+    guarantee : {"confidence", "paper"}
+        How the GP error enters the abstraction. ``"confidence"`` (default, sound for the one
+        fixed system that produced the data): the error bound of every GP is taken at one
+        data-confidence level and folded into the image boxes
+        (``abstraction.confidence_cell_bounds``); every printed bound then holds with
+        probability >= ``confidence`` over the data. ``"paper"``: Thm 1 as printed (with the
+        corrected complements), where the GP error probability multiplies each transition
+        bound; that mixes a probability over the data into the transition probabilities and is
+        kept to reproduce the paper (see docs/soundness_audit.md, finding F2).
+    confidence : float in (0, 1)
+        Data-confidence level of ``guarantee="confidence"`` and of the probabilistic events of
+        the other error bounds (unbounded noise, ``iid_noise``); bounded noise without
+        ``iid_noise`` needs none (the bounds then hold with probability 1).
+    eps_rule : {"optimized", "paper"}
+    combine : {"product", "union"}
+    error_bound : {"optimal", "ridge", "chowdhury"}
+        ``"optimal"`` (default): the tightest cell bounds consistent with ``||g|| <= B`` and the
+        data under bounded noise (``rkhs.py``); ``"ridge"``: the same certificate with kernel-ridge
+        weights (cheaper, looser); ``"chowdhury"``: GP posterior and the Chowdhury-Gopalan
+        error bound (for reproducing the paper).
+    misspecification : float >= 0
+        tau: each unknown component is within tau (sup norm on X) of a function of RKHS norm
+        <= B. Widens the bounds by about tau; makes constants and linear parts honest.
+    iid_noise : bool
+        The data noise is independent across samples, zero-mean and sub-Gaussian, and the
+        inputs were chosen independently of it: intersect with the sub-Gaussian bound (holds
+        with probability ``confidence`` over the data).
+    local_points : int or None
+        Let only the ``local_points`` data points nearest to each cell carry certificate weight
+        (``rkhs.local_pools``): the cost per cell no longer grows with the data, and no m x m
+        kernel matrix is built. None: all points up to ``LOCAL_AUTO`` points per mode, else 100.
+    refine : refine.RefineOptions, dict or None
+        Adaptive refinement of the undecided cells after the first solve (the problem file's
+        ``[refine]`` table: ``max_cells``, ``max_rounds``, ``min_cell_size``, ``time_budget``,
+        ``split``, ``growth``; see :mod:`robust_imdp.synthesis.refine`). None: the uniform grid only.
+    dim_names : tuple of n str, or None
+        Names of the dimensions (the problem file's ``[space].names``): figure axes, messages and
+        ``result.json``'s ``space.names``. None: ``x_1 .. x_n``.
+
+    :meth:`from_arrays` builds a Problem from numpy arrays (the Python counterpart of a problem
+    file).
+    """
+
+    space_lower: np.ndarray
+    space_upper: np.ndarray
+    cell_size: np.ndarray
+    regions: dict
+    formula: str
+    threshold: float
+    horizon: int | None
+    data: Any
+    mode_names: tuple
+    maps: tuple
+    noise: Any
+    rkhs_bound: float
+    gp_options: dict = field(default_factory=dict)
+    bound_tol: float = 1e-3
+    bound_max_boxes: int = 2000
+    eta: Any = None
+    eps_rule: str = "optimized"
+    combine: str = "product"
+    guarantee: str = "confidence"
+    confidence: float = 0.99
+    error_bound: str = "optimal"
+    misspecification: float = 0.0
+    iid_noise: bool = False
+    local_points: int | None = None
+    refine: Any = None
+    dim_names: tuple | None = None
+
+    def __post_init__(self):
+        if self.dim_names is not None:
+            n = int(np.size(self.space_lower))
+            names = self.dim_names
+            if (isinstance(names, str) or len(names) != n or not all(isinstance(v, str) and v for v in names)
+                    or len(set(names)) != len(names)):
+                raise InvalidInputError(
+                    f"dim_names must be {n} distinct non-empty names (one per dimension) or None; got {names!r}")
+            object.__setattr__(self, "dim_names", tuple(names))
+        if self.guarantee not in GUARANTEES:
+            raise InvalidInputError(f"guarantee must be one of {GUARANTEES}; got {self.guarantee!r}")
+        c = float(self.confidence)
+        if not 0.0 < c < 1.0:
+            raise InvalidInputError(f"confidence must lie in (0, 1); got {self.confidence!r}")
+        try:  # checked here, not only in synthesize: a bad threshold must fail before the long stages
+            t_ok = not isinstance(self.threshold, bool) and 0.0 <= float(self.threshold) <= 1.0
+        except (TypeError, ValueError):
+            t_ok = False
+        if not t_ok:
+            raise InvalidInputError(f"threshold must be a probability in [0, 1]; got {self.threshold!r}")
+        h = self.horizon
+        if h is not None and (isinstance(h, bool) or not isinstance(h, (int, np.integer)) or h < 1):
+            raise InvalidInputError(f"horizon must be None (unbounded) or an integer >= 1; got {h!r}")
+        if self.error_bound not in ERROR_BOUNDS:
+            raise InvalidInputError(f"error_bound must be one of {ERROR_BOUNDS}; got {self.error_bound!r}")
+        if self.guarantee == "paper" and self.error_bound != "chowdhury":
+            raise InvalidInputError(
+                f"guarantee 'paper' (Thm 1 as printed) needs error_bound 'chowdhury'; got {self.error_bound!r}")
+        # one number (checked here as before), or per mode and component (checked by _check_known_parts)
+        tau = float(self.misspecification) if np.ndim(self.misspecification) == 0 and not isinstance(
+            self.misspecification, dict) else float(_settings(self).misspecification.max())
+        if not (np.isfinite(tau) and tau >= 0):
+            raise InvalidInputError(f"misspecification must be a finite float >= 0; got {self.misspecification!r}")
+        if self.local_points is not None and (int(self.local_points) != self.local_points or self.local_points < 1):
+            raise InvalidInputError(f"local_points must be a positive integer or None; got {self.local_points!r}")
+        if self.error_bound == "chowdhury" and (tau > 0 or self.iid_noise):
+            raise InvalidInputError(
+                "misspecification and iid_noise apply to error_bound 'optimal' or 'ridge' only; the GP route "
+                f"(error_bound 'chowdhury') has neither; got misspecification={tau!r}, iid_noise={self.iid_noise!r}")
+        if self.error_bound != "chowdhury":
+            extra = sorted(set(self.gp_options) - {"lengthscale"})
+            if extra:
+                raise InvalidInputError(
+                    f"gp_options {extra} apply only to error_bound 'chowdhury' (a GP posterior); error_bound "
+                    f"{self.error_bound!r} uses the unit-amplitude kernel with the given lengthscale only")
+        self._check_known_parts()
+        if self.refine is not None:
+            from robust_imdp.synthesis.refine import RefineOptions
+
+            object.__setattr__(self, "refine", RefineOptions.from_dict(self.refine))
+            if self.error_bound == "chowdhury" or self.iid_noise:
+                # new cells need bounds of the same statement: the GP route folds the error in at
+                # the end, and iid_noise's union bound counts the cells of the grid
+                raise InvalidInputError(
+                    "[refine] needs error_bound 'optimal' or 'ridge' without iid_noise (the bounds of new cells "
+                    f"must hold on the same event); got error_bound={self.error_bound!r}, iid_noise={self.iid_noise!r}")
+
+    def _check_known_parts(self) -> None:
+        """Every mode's known part has the known-part interface; the assumption resolves per mode and component."""
+        n = int(np.size(self.space_lower))
+        maps = tuple(self.maps)
+        if len(maps) != len(self.mode_names):
+            raise InvalidInputError(f"maps must give one known part per mode ({len(self.mode_names)}: "
+                                    f"{list(self.mode_names)}); got {len(maps)}")
+        for name, m in zip(self.mode_names, maps):
+            missing = [a for a in ("dim", "image_bounds", "fingerprint") if not hasattr(m, a)] + \
+                ([] if callable(m) else ["__call__"])
+            if missing:
+                raise InvalidInputError(
+                    f"maps: the known part of mode {name!r} must be a system.AffineMap or a known.KnownDynamics "
+                    f"(it needs {missing}); got {type(m).__name__} {m!r}")
+            if int(m.dim) != n:
+                raise InvalidInputError(f"maps: the known part of mode {name!r} must act on {n} dimensions like "
+                                        f"space_lower; got dimension {m.dim}")
+        settings = _settings(self)  # raises on a wrong form, naming rkhs_bound / lengthscale / misspecification
+        if self.error_bound == "chowdhury":
+            nonlinear = [name for name, m in zip(self.mode_names, maps) if not _is_affine(m)]
+            if nonlinear:
+                raise InvalidInputError(
+                    f"error_bound 'chowdhury' (the GP route, bounds.bound_image) bounds f_u + mu jointly for an affine "
+                    f"f_u = A x + b only; modes {nonlinear} have a nonlinear known part f: use error_bound 'optimal' "
+                    "or 'ridge'")
+            if not settings.uniform:
+                raise InvalidInputError(
+                    "error_bound 'chowdhury' (the GP route) takes one rkhs_bound, one lengthscale and no known "
+                    "components; per-mode or per-component values need error_bound 'optimal' or 'ridge'; got "
+                    f"rkhs_bound={self.rkhs_bound!r}, lengthscale={self.gp_options.get('lengthscale')!r}")
+
+    def replace(self, **changes) -> "Problem":
+        """A copy with some attributes changed (e.g. ``formula=...``)."""
+        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        unknown = set(changes) - set(values)
+        if unknown:
+            raise InvalidInputError(f"Problem has no attributes {sorted(unknown)}")
+        values.update(changes)
+        return Problem(**values)
+
+    @classmethod
+    def from_arrays(cls, x, u, x_next, *, lower, upper, cell_size, regions, formula, threshold, modes, noise,
+                    rkhs_bound, horizon=None, lengthscale=None, names=None, **options) -> "Problem":
+        """A Problem from numpy arrays: the Python counterpart of a problem file.
+
+        Parameters
+        ----------
+        x, x_next : (m, n) float arrays
+            The sampled states and their successors (``[data]``).
+        u : (m,) array of mode names (str), or of mode indices into ``modes``
+        lower, upper : (n,) float arrays
+            The compact set X (``[space]``).
+        cell_size : float or (n,) float array
+        regions : dict str -> box or list of boxes
+            A box is a pair ``(lower (n,), upper (n,))`` (``[[regions.NAME]]``).
+        formula : str
+            LTLf over the region names (``[spec]``).
+        threshold : float in [0, 1]
+        modes : dict str -> (A (n, n), b (n,)), system.AffineMap, known.KnownDynamics, a list of n
+            expression strings in ``x1..xn`` or a pair (casadi expression (n, 1), casadi symbol (n, 1))
+            The known part ``f_u`` of each mode, in mode order (``[modes.NAME]``: ``A``/``b`` or ``f``).
+        noise : noise model (``TruncatedGaussianNoise``, ``GaussianNoise``, ``UniformNoise``)
+        rkhs_bound : float, list of n floats or dict mode -> either
+            The assumption B (``[gp].rkhs_bound``), per mode and component where given so; 0 marks a
+            known component (``robust_imdp.bounds.assumptions``).
+        horizon : int or None
+        lengthscale : float, (n,) float array (per input dimension), per-component list or dict per mode
+            The kernel lengthscale (``[gp].lengthscale``, kept in ``gp_options``).
+        names : sequence of n str, optional
+            Dimension names (``[space].names``).
+        **options
+            Any other attribute of :class:`Problem` (``error_bound``, ``misspecification``,
+            ``local_points``, ``eta``, ``confidence``, ``refine``, ...).
+
+        Returns
+        -------
+        Problem
+
+        Example
+        -------
+        A robot that moves 0.3 east or north per step, to reach ``goal`` without touching
+        ``obstacle`` (the data here are exact: ``x_next - f_u(x) = 0``):
+
+        >>> import numpy as np
+        >>> from robust_imdp import Problem, TruncatedGaussianNoise, synthesize_from_data
+        >>> rng = np.random.default_rng(0)
+        >>> x = rng.uniform(0, 4, (200, 2))
+        >>> u = np.where(np.arange(200) < 100, "east", "north")
+        >>> x_next = x + np.where(u[:, None] == "east", [0.3, 0.0], [0.0, 0.3])
+        >>> problem = Problem.from_arrays(
+        ...     x, u, x_next, lower=[0, 0], upper=[4, 4], cell_size=0.5,
+        ...     regions={"goal": ([3, 3], [4, 4]), "obstacle": ([1.5, 1], [2.5, 3])},
+        ...     formula="G !obstacle & F goal", threshold=0.9,
+        ...     modes={"east": (np.eye(2), [0.3, 0]), "north": (np.eye(2), [0, 0.3])},
+        ...     noise=TruncatedGaussianNoise([0.01, 0.01], [0.02, 0.02]), rkhs_bound=0.2,
+        ...     lengthscale=1.0, names=("x", "y"))
+        >>> problem.mode_names, problem.dim_names
+        (('east', 'north'), ('x', 'y'))
+        >>> result = synthesize_from_data(problem, progress=False)  # doctest: +SKIP
+        """
+        from robust_imdp.errors import DimensionError
+        from robust_imdp.models.system import AffineMap, Dataset
+
+        lo = np.asarray(lower, dtype=float).reshape(-1)
+        up = np.asarray(upper, dtype=float).reshape(-1)
+        n = lo.size
+        if up.shape != (n,):
+            raise DimensionError(f"upper must have {n} entries like lower; got {np.shape(upper)}")
+        h = np.asarray(cell_size, dtype=float)
+        h = np.full(n, float(h)) if h.ndim == 0 else h.reshape(-1)
+        if not isinstance(modes, dict) or not modes:
+            raise InvalidInputError(f"modes must be a dict name -> (A, b) or AffineMap, with at least one mode; "
+                                    f"got {modes!r}")
+        maps = []
+        for name, m in modes.items():
+            m = _known_part(m, name)
+            if m.dim != n:
+                raise DimensionError(f"modes[{name!r}] must act on {n} dimensions like lower; got "
+                                     + (f"A of shape {m.A.shape}" if _is_affine(m) else f"{m.dim} components"))
+            maps.append(m)
+        if not isinstance(regions, dict):
+            raise InvalidInputError(f"regions must be a dict name -> box or list of boxes; got {regions!r}")
+        boxes = {}
+        for name, value in regions.items():
+            try:
+                arr = np.asarray(value, dtype=float)
+            except (TypeError, ValueError):
+                arr = None
+            if arr is not None and arr.shape == (2, n):
+                arr = arr[None]
+            if arr is None or arr.ndim != 3 or arr.shape[1:] != (2, n) or arr.shape[0] == 0:
+                raise InvalidInputError(f"regions[{name!r}] must be a box (lower, upper) or a list of boxes of "
+                                        f"{n} numbers each; got {value!r}")
+            boxes[str(name)] = [(a[0], a[1]) for a in arr]
+        unknown = sorted(set(options) - {f.name for f in fields(cls)})
+        if unknown:
+            raise InvalidInputError(f"Problem.from_arrays got unknown options {unknown}; the other arguments "
+                                    f"are attributes of Problem: {[f.name for f in fields(cls)]}")
+        gp_options = dict(options.pop("gp_options", None) or {})
+        if lengthscale is not None:
+            gp_options["lengthscale"] = lengthscale
+        data = Dataset(x, u, x_next, modes=tuple(modes))
+        if data.dim != n:
+            raise DimensionError(f"x must have {n} columns like lower; got shape {np.shape(x)}")
+        return cls(space_lower=lo, space_upper=up, cell_size=h, regions=boxes, formula=formula,
+                   threshold=threshold, horizon=horizon, data=data, mode_names=tuple(modes), maps=tuple(maps),
+                   noise=noise, rkhs_bound=rkhs_bound, gp_options=gp_options,
+                   dim_names=None if names is None else tuple(names), **options)
+
+    def __repr__(self) -> str:  # a few lines: the dataclass default prints every data array
+        lo, up = np.asarray(self.space_lower, float), np.asarray(self.space_upper, float)
+        h = np.broadcast_to(np.asarray(self.cell_size, float), lo.shape)
+        shape = [int(round(v)) for v in (up - lo) / h]
+        names = self.dim_names or tuple(f"x_{j + 1}" for j in range(lo.size))
+        box = ", ".join(f"{v} in [{a:g}, {b:g}]" for v, a, b in zip(names, lo, up))
+        m = int(np.asarray(getattr(self.data, "u", ())).shape[0])
+        return (f"Problem({lo.size}-D, {int(np.prod(shape))} cells ({' x '.join(map(str, shape))}); {box}\n"
+                f"  formula {self.formula!r}, threshold {float(self.threshold):g}"
+                f"{'' if self.horizon is None else f', horizon {self.horizon}'}; regions {list(self.regions)}\n"
+                f"  modes {list(self.mode_names)}, {m} samples, {type(self.noise).__name__}, "
+                f"rkhs_bound {_setting_text(self.rkhs_bound)}, error_bound {self.error_bound!r})")
+
+
+def _is_affine(m) -> bool:
+    """The affine fast path: ``f_u(x) = A x + b`` bounded jointly with ``g_u`` at the cell vertices (eq. C)."""
+    return hasattr(m, "A") and hasattr(m, "b")
+
+
+def _known_part(m, name):
+    """A mode's known part from the forms :meth:`Problem.from_arrays` accepts."""
+    from robust_imdp.models.known import KnownDynamics, _is_casadi
+    from robust_imdp.models.system import AffineMap
+
+    if isinstance(m, (AffineMap, KnownDynamics)):
+        return m
+    if isinstance(m, (list, tuple)) and m and all(isinstance(e, str) for e in m):
+        return KnownDynamics(list(m), name=f"modes[{name!r}]")
+    if isinstance(m, (list, tuple)) and len(m) == 2 and _is_casadi(m[0]):
+        return KnownDynamics(m[0], m[1], name=f"modes[{name!r}]")
+    try:
+        A, b = m
+    except (TypeError, ValueError):
+        raise InvalidInputError(
+            f"modes must give (A, b) or an AffineMap for mode {name!r}; got {m!r} (a nonlinear known part: a "
+            "KnownDynamics, a list of expressions in x1..xn or a pair (casadi expression, casadi symbol))") from None
+    return AffineMap(A, b)
+
+
+def _settings(problem):
+    """The assumption per mode and component (``assumptions.Settings``)."""
+    from robust_imdp.bounds.assumptions import resolve
+
+    return resolve(problem.rkhs_bound, problem.gp_options.get("lengthscale"), problem.misspecification,
+                   problem.mode_names, int(np.size(problem.space_lower)))
+
+
+def _setting_text(value) -> str:
+    try:
+        return f"{float(value):g}"
+    except (TypeError, ValueError):
+        return repr(value)
+
+
+def _setting_value(value):
+    """A setting as the cache keys and result files carry it: a float when it is one number (as before)."""
+    if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool):
+        return float(value)
+    if isinstance(value, dict):
+        return {str(k): _setting_value(v) for k, v in value.items()}
+    return np.asarray(value, dtype=float).tolist()
+
+
+def _map_key(m):
+    """What the cache keys fingerprint of a known part: (A, b) for an affine one (as before), else its digest."""
+    if _is_affine(m):
+        return (np.asarray(m.A, float), np.asarray(m.b, float))
+    return ("known", m.fingerprint())

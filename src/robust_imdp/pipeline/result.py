@@ -1,0 +1,205 @@
+"""The result of a run: :class:`Result` (partition, abstraction, synthesis, classes, diagnostics, its shortcuts)
+and the one-line summary of the bound diagnostics.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from robust_imdp.pipeline.problem import CLASS_NAMES, Problem
+
+
+@dataclass(frozen=True, eq=False)
+class Result:
+    """Output of :func:`synthesize_from_data`.
+
+    Attributes
+    ----------
+    problem : Problem
+    partition : geometry.Partition
+    abstraction : abstraction.Abstraction
+    dfa : dfa.DFA
+    synthesis : synthesis.SynthesisResult
+        ``strategy (n_cells, S)``, ``p_low``, ``p_up``, ``p_up_star``, ``error``, ``classes``.
+    class_names : (n_cells,) str array
+        ``"yes"`` / ``"no"`` / ``"maybe"`` per cell.
+    timings : dict str -> float
+        Seconds per stage (``specify``, ``partition``, ``learn``, ``bound``, ``abstract``,
+        ``synthesize``, ``total``; ``load_abstraction`` when the cache was used).
+    parameters : dict
+        The settings that produced the result (JSON-able).
+    from_cache : bool
+        Whether the abstraction was reused.
+    advice : dict
+        Which lever (finer grid, more data, smaller B) would move most of X into Q_yes, estimated
+        after the solve (``advice.Advice.to_dict()``; empty when not estimated, and after
+        :func:`resynthesize`).
+    diagnostics : dict
+        Why cells are undecided (JSON-able): the stated confidence, the error radius ``eps``
+        per mode and output (median, max, against the cell half-width), the mean number of
+        successors per IMDP row and the assumption check (data-implied minimum RKHS norms).
+    """
+
+    problem: Problem
+    partition: Any
+    abstraction: Any
+    dfa: Any
+    synthesis: Any
+    class_names: np.ndarray
+    timings: dict
+    parameters: dict
+    from_cache: bool = False
+    diagnostics: dict = field(default_factory=dict)
+    advice: dict = field(default_factory=dict)
+
+    # Convenience views used by io.result_to_dict and plotting.
+    @property
+    def mode_names(self) -> tuple:
+        return tuple(self.problem.mode_names)
+
+    @property
+    def space_lower(self) -> np.ndarray:
+        return np.asarray(self.problem.space_lower, float)
+
+    @property
+    def space_upper(self) -> np.ndarray:
+        return np.asarray(self.problem.space_upper, float)
+
+    @property
+    def formula(self) -> str:
+        return self.problem.formula
+
+    @property
+    def threshold(self) -> float:
+        return float(self.problem.threshold)
+
+    @property
+    def horizon(self):
+        return self.problem.horizon
+
+    # Shortcuts to the synthesis and partition arrays (per cell, in the cells' index order).
+    @property
+    def p_low(self) -> np.ndarray:
+        """(n_cells,) guaranteed lower bound of P(formula) under the strategy (``synthesis.p_low``)."""
+        return self.synthesis.p_low
+
+    @property
+    def p_up(self) -> np.ndarray:
+        """(n_cells,) upper bound of P(formula) under the strategy (``synthesis.p_up``)."""
+        return self.synthesis.p_up
+
+    @property
+    def p_up_star(self) -> np.ndarray:
+        """(n_cells,) upper bound of P(formula) over all strategies (``synthesis.p_up_star``)."""
+        return self.synthesis.p_up_star
+
+    @property
+    def error(self) -> np.ndarray:
+        """(n_cells,) ``p_up_star - p_low`` rounded up (``synthesis.error``)."""
+        return self.synthesis.error
+
+    @property
+    def strategy(self) -> np.ndarray:
+        """(n_cells, S) mode indices into ``mode_names`` ((k, n_cells, S) for a k-step horizon)."""
+        return self.synthesis.strategy
+
+    @property
+    def classes(self) -> np.ndarray:
+        """(n_cells,) ``"yes"`` / ``"no"`` / ``"maybe"`` (the same array as ``class_names``)."""
+        return self.class_names
+
+    @property
+    def n_cells(self) -> int:
+        return int(self.partition.n_cells)
+
+    @property
+    def cells_lower(self) -> np.ndarray:
+        """(n_cells, n) lower corners of the cells (``partition.cells_lower``)."""
+        return self.partition.cells_lower
+
+    @property
+    def cells_upper(self) -> np.ndarray:
+        """(n_cells, n) upper corners of the cells (``partition.cells_upper``)."""
+        return self.partition.cells_upper
+
+    @property
+    def dim_names(self):
+        """The dimension names (``[space].names``), or None."""
+        return getattr(self.problem, "dim_names", None)
+
+    def __repr__(self) -> str:  # a few lines: the dataclass default prints every array (tens of KB)
+        c = self.counts()
+        return (f"Result({len(self.class_names)} cells: Q_yes {c['yes']}, Q_no {c['no']}, Q_? {c['maybe']}; "
+                f"formula {self.formula!r}, threshold {self.threshold:g}\n"
+                f"  mean p_low {float(np.mean(self.synthesis.p_low)):.4f}, mean error "
+                f"{float(np.mean(self.synthesis.error)):.4f}; modes {list(self.mode_names)}; abstraction "
+                f"{'reused from cache' if self.from_cache else 'built'}\n"
+                f"  arrays: p_low, p_up, p_up_star, error, classes, strategy; summary() for the details)")
+
+    def counts(self) -> dict:
+        """Number of cells per class: ``{"yes": .., "no": .., "maybe": ..}``."""
+        return {c: int(np.sum(self.class_names == c)) for c in CLASS_NAMES}
+
+    def controller(self):
+        """The refined switching controller (``controller.Controller``)."""
+        return self.synthesis.controller(self.partition, self.mode_names)
+
+    @property
+    def no_strategy_can(self) -> np.ndarray:
+        """(n_cells,) bool: ``p_up_star < threshold``: no controller at all meets the threshold."""
+        return np.asarray(self.synthesis.p_up_star) < self.threshold
+
+    def _no_line(self) -> str:
+        """Q_no split into cells where no controller can meet the threshold (``p_up_star <
+        threshold``) and cells that are "no" under this controller only."""
+        no = self.class_names == "no"
+        cannot = int(np.count_nonzero(no & self.no_strategy_can))
+        return (f"Q_no: {cannot} where no controller can meet the threshold (p_up_star < "
+                f"{self.threshold:g}), {int(np.count_nonzero(no)) - cannot} under this controller only")
+
+    def summary(self) -> str:
+        """Class counts (Q_no split by whether any controller could do better), mean error and
+        stage times as text."""
+        c = self.counts()
+        n = len(self.class_names)
+        times = ", ".join(f"{k} {v:.2f} s" for k, v in self.timings.items())
+        lines = [
+            f"formula {self.formula!r}, threshold {self.threshold:g}"
+            + (f", horizon {self.horizon}" if self.horizon is not None else ""),
+            f"cells: {n}  Q_yes {c['yes']}  Q_no {c['no']}  Q_? {c['maybe']}",
+            self._no_line(),
+            f"mean p_low {np.mean(self.synthesis.p_low):.4f}  mean error "
+            f"{np.mean(self.synthesis.error):.4f}  (abstraction "
+            f"{'reused from cache' if self.from_cache else 'built'})",
+        ]
+        why = diagnostics_line(self.diagnostics)
+        if why:
+            lines.append(why)
+        if self.advice:
+            from robust_imdp.synthesis.advice import advice_line
+
+            lines.append(advice_line(self.advice))
+        lines.append(f"stage times: {times}")
+        return "\n".join(lines)
+
+
+def diagnostics_line(diag: dict) -> str:
+    """One line saying why cells may be undecided (error radius, successors, assumption margin)."""
+    if not diag or "eps" not in diag:
+        return ""
+    med = max(r["median"] for r in diag["eps"])
+    mx = max(r["max"] for r in diag["eps"])
+    half = min(diag["cell_half_width"])
+    text = (f"error radius eps: median {med:.3g}, max {mx:.3g} (cell half-width {half:.3g})")
+    if "successors_per_row" in diag:
+        text += f"; {diag['successors_per_row']:.1f} successors per row"
+    mins = [r["minimum"] for r in diag["assumption"]["min_norm"]]
+    if mins:
+        text += f"; data need ||g|| >= {max(mins):.3g} of B = {diag['assumption']['rkhs_bound']:g}"
+    conf = diag.get("confidence")
+    if conf is not None:
+        text += "; holds with probability 1" if conf >= 1.0 else f"; holds with confidence {conf:g} over the data"
+    return text
