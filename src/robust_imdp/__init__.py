@@ -5,12 +5,45 @@ Pipeline (one module per stage, plain data between stages)::
     learn (gp) -> bound (bounds) -> abstract (abstraction) -> specify (ltlf, dfa)
     -> product -> solve -> synthesize (synthesis) -> controller / validate -> plot (plotting)
 
-The most used names are re-exported here. Heavy optional back-ends stay out of the import:
-cvxpy/clarabel (``robust_imdp.solvers.lp``), stormpy (``robust_imdp.io.formats``) and matplotlib
-(``robust_imdp.plotting``) are imported only when those modules are used.
+The most used names are re-exported here (``__all__``; ``docs/api.md`` lists every module's).
+Heavy optional back-ends stay out of the import: cvxpy/clarabel (``robust_imdp.solvers.lp``),
+stormpy (``robust_imdp.io.formats``) and matplotlib (``robust_imdp.plotting``) are imported only
+when those modules are used. The default (RKHS) bound route (``robust_imdp.bounds.rkhs``) and the
+validation names (``robust_imdp.validate``, which imports scipy.stats) load on first use.
+``robust_imdp.validate`` is the validation module, and calling it calls its ``validate`` function.
+
+Example
+-------
+A 1-D system that moves 0.75 right or left per step, to reach ``goal`` without touching ``pit``
+(the data are exact: ``x_next - f_u(x) = 0``, the noise is at most 0.01):
+
+>>> import numpy as np
+>>> from robust_imdp import Problem, UniformNoise, synthesize_from_data
+>>> rng = np.random.default_rng(0)
+>>> x = rng.uniform(0, 4, (40, 1))
+>>> u = np.where(np.arange(40) < 20, "right", "left")
+>>> x_next = x + np.where(u[:, None] == "right", 0.75, -0.75)
+>>> problem = Problem.from_arrays(
+...     x, u, x_next, lower=[0], upper=[4], cell_size=0.5,
+...     regions={"goal": ([3], [4]), "pit": ([1.5], [2])}, formula="G !pit & F goal",
+...     threshold=0.9, modes={"right": ([[1.0]], [0.75]), "left": ([[1.0]], [-0.75])},
+...     noise=UniformNoise(0.01), rkhs_bound=0.1, lengthscale=1.0)
+>>> result = synthesize_from_data(problem, progress=False)
+
+Every cell right of the pit is guaranteed (``yes``: p_low >= 0.9), the pit itself is ``no``,
+and left of it the controller may still cross the pit's edge (``maybe``):
+
+>>> result.classes.tolist()
+['maybe', 'maybe', 'maybe', 'no', 'yes', 'yes', 'yes', 'yes']
+>>> result.p_low.tolist()
+[0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 1.0]
+>>> result.controller().reset([2.2]).act([2.2])
+'right'
 """
 
+from robust_imdp._lazy import lazy_names
 from robust_imdp.errors import *  # noqa: F401,F403
+from robust_imdp.errors import __all__ as _errors
 from robust_imdp.models.imdp import IMDP
 from robust_imdp.solvers.api import (
     Adversary,
@@ -37,7 +70,36 @@ from robust_imdp.synthesis.core import SynthesisResult, synthesize
 from robust_imdp.synthesis.controller import Controller
 from robust_imdp.pipeline.problem import Problem
 from robust_imdp.pipeline.result import Result
-from robust_imdp.pipeline.run import synthesize_from_data
+from robust_imdp.pipeline.run import resynthesize, synthesize_from_data
 from robust_imdp.io.files import load_problem, load_result, save_result
 
 __version__ = "0.1.0"
+
+#: Names imported on first use, with their modules: the default (RKHS) bound route and validation.
+#: ``validate`` is the module ``robust_imdp.validate`` (callable: it runs its ``validate`` function).
+_LAZY = {
+    **{name: "robust_imdp.bounds.rkhs" for name in (
+        "KernelModel", "CellRange", "ImageRanges", "NormCheck",
+        "cell_ranges", "image_ranges", "min_rkhs_norm", "check_assumption")},
+    **{name: "robust_imdp.validate" for name in ("validate", "simulate", "ValidationReport")},
+}
+
+__getattr__, __dir__ = lazy_names(__name__, _LAZY)
+
+__all__ = [
+    *_errors,
+    "IMDP",
+    "Adversary", "Objective", "ReachabilityResult", "evaluate_strategy", "solve_reachability",
+    "ProductResult", "evaluate_product_strategy", "materialize_product", "solve_product",
+    "atoms_of", "holds", "parse", "DFA", "ltlf_to_dfa",
+    "Box", "Partition", "Region",
+    "GaussianNoise", "NoiseModel", "TruncatedGaussianNoise", "UniformNoise",
+    "AffineMap", "Dataset", "SwitchedSystem", "residuals",
+    "GaussianProcess", "LearnedModel", "RKHSErrorBound", "learn",
+    "ImageBounds", "PosteriorBounds", "bound_image", "bound_posterior",
+    "Abstraction", "CellBounds", "abstract", "confidence_cell_bounds",
+    "SynthesisResult", "synthesize", "Controller",
+    "Problem", "Result", "resynthesize", "synthesize_from_data",
+    "load_problem", "load_result", "save_result",
+    *_LAZY,
+]

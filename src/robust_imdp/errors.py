@@ -5,6 +5,16 @@ callers can catch it without importing this module, and every message names the
 argument, the expected form and what was received, e.g.::
 
     DimensionError("x_next must have shape (m, 2) like x; got (m, 3)")
+
+For example, an interval MDP row whose lower bounds sum to more than 1 is refused, and the
+error is both an :class:`InvalidIntervalError` and a ``ValueError``:
+
+>>> from robust_imdp import IMDP, InvalidIntervalError
+>>> try:
+...     IMDP.from_dense(lower=[[[0.6, 0.6]], [[0.0, 1.0]]], upper=[[[0.7, 0.7]], [[0.0, 1.0]]])
+... except ValueError as exc:
+...     print(type(exc).__name__, isinstance(exc, InvalidIntervalError), "|", exc)
+InvalidIntervalError True | row 0 (state 0, action 0): sum of lower bounds 1.2 > 1 (excess 0.2)
 """
 
 from __future__ import annotations

@@ -20,6 +20,8 @@ the new cell's label. Leaving X is a violation (the abstraction's absorbing outs
 
 from __future__ import annotations
 
+import sys
+import types
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,6 +39,7 @@ __all__ = [
     "allowed_outside",
     "simulate",
     "validate",
+    "MAX_STEPS",
 ]
 
 RUNNING, SATISFIED, VIOLATED = 0, 1, 2
@@ -59,6 +62,16 @@ def wilson_interval(successes, trials, confidence: float = 0.999):
     lower, upper : float arrays
         ``(k + z^2/2)/(n + z^2) -/+ z/(n + z^2) sqrt(k (n-k)/n + z^2/4)`` with
         ``z = Phi^-1(1 - (1 - confidence)/2)`` (Wilson 1927).
+
+    Example
+    -------
+    5 successes in 10 trials, at 95 %; all 10 of 10 reaches 1 exactly:
+
+    >>> lo, up = wilson_interval(5, 10, confidence=0.95)
+    >>> round(float(lo), 4), round(float(up), 4)
+    (0.2366, 0.7634)
+    >>> float(wilson_interval(10, 10, confidence=0.95)[1])
+    1.0
     """
     if not 0.0 < confidence < 1.0:
         raise InvalidInputError(f"confidence must lie in (0, 1); got {confidence!r}")
@@ -415,3 +428,18 @@ def validate(result_or_controller, true_system, *, n_per_cell: int = 100, max_st
         outside=outside, containment_rate=1.0 - len(outside) / max(len(cells), 1),
         expected_outside=float(np.sum(chance)), allowed_outside=allowed_outside(chance, confidence),
     )
+
+
+class _CallableModule(types.ModuleType):
+    """This module, callable: ``robust_imdp.validate(result, true_system, ...)`` is :func:`validate`.
+
+    The package exports the function under this module's name, and ``robust_imdp.validate`` must
+    stay the module too (``robust_imdp.validate.MAX_STEPS``, ``from robust_imdp import validate``).
+    The call looks ``validate`` up at call time, so a replaced (monkeypatched) function is the one called.
+    """
+
+    def __call__(self, *args, **kwargs) -> ValidationReport:
+        return self.validate(*args, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallableModule

@@ -108,6 +108,21 @@ class IMDP:
         State owning each row.
     n_unlisted : (R,) int64
         ``n_states - (number of entries of the row)``.
+
+    Example
+    -------
+    Two states with one choice each: state 0 stays with probability in [0.5, 0.7] and moves to
+    state 1 with probability in [0.3, 0.5]; state 1 is absorbing:
+
+    >>> m = IMDP.from_dense(lower=[[[0.5, 0.3]], [[0.0, 1.0]]], upper=[[[0.7, 0.5]], [[0.0, 1.0]]])
+    >>> m.n_states, m.n_choices, m.nnz
+    (2, 2, 3)
+    >>> m.col.tolist(), m.lower.tolist(), m.upper.tolist()
+    ([0, 1, 1], [0.5, 0.3, 1.0], [0.7, 0.5, 1.0])
+    >>> m.upper[0] = 1.0
+    Traceback (most recent call last):
+    ...
+    ValueError: assignment destination is read-only
     """
 
     __slots__ = (

@@ -22,6 +22,8 @@ import numpy as np
 
 from robust_imdp.errors import DimensionError, InvalidInputError, InvalidModelError
 
+__all__ = ["Dataset", "AffineMap", "ModeResiduals", "residuals", "SwitchedSystem"]
+
 
 def _finite_matrix(name: str, a: Any) -> np.ndarray:
     arr = np.asarray(a, dtype=np.float64)
@@ -168,6 +170,18 @@ class AffineMap:
     ----------
     A : (n, n) float array
     b : (n,) float array
+
+    Example
+    -------
+    >>> f = AffineMap(A=[[1.0, 0.5], [0.0, 1.0]], b=[0.1, 0.0])
+    >>> f.dim, f([[1.0, 2.0]]).tolist()
+    (2, [[2.1, 2.0]])
+
+    The range over the unit box, rounded outward (it contains the exact ``[0.1, 1.6] x [0, 1]``):
+
+    >>> image = f.image_bounds([[0.0, 0.0]], [[1.0, 1.0]])
+    >>> bool(image.lower[0, 0] < 0.1 < 1.6 < image.upper[0, 0]), bool(image.upper[0, 1] > 1.0)
+    (True, True)
     """
 
     A: np.ndarray
