@@ -10,6 +10,10 @@ and the test suite runs on the copy::
 
     PYTHONPATH=<scratch>/src python -m pytest -x -q -p no:cacheprovider     (cwd = <scratch>)
 
+(first on the test files most likely to catch the mutation — the previous run's first failing
+file, those of ``_LIKELY`` for the mutated file, an entry's own ``tests`` — and, when those pass,
+on the whole suite: a mutation counts as not caught only when the whole suite passes.)
+
 after checking, in the same environment, that ``import robust_imdp`` resolves to the scratch
 copy. A mutation is *caught* when pytest fails (exit 1); the first failing test is recorded.
 A baseline run of the unmutated copy (whole suite, no ``-x``) comes first: tests that already
@@ -55,6 +59,8 @@ _RKHS = "src/robust_imdp/bounds/rkhs.py"
 _SOLVE = "src/robust_imdp/solvers/api.py"
 _SYN = "src/robust_imdp/synthesis/core.py"
 _KNOWN = "src/robust_imdp/models/known.py"
+_INTERVALS = "src/robust_imdp/models/intervals.py"
+_EXPRESSIONS = "src/robust_imdp/models/expressions.py"
 _PIPE = "src/robust_imdp/pipeline/run.py"
 _ASSUME = "src/robust_imdp/bounds/assumptions.py"
 
@@ -273,48 +279,48 @@ MUTATIONS = [
          original="        modes = table[q[run], s[run]]",
          replacement="        modes = (table[q[run], s[run]] + 1) % len(res.modes)",
          description="Monte-Carlo validation simulates the next mode (cyclically) instead of the strategy's"),
-    # ------------------------------------------------------------------ known nonlinear dynamics (known.py)
-    dict(name="known-outward-off", file=_KNOWN,
+    # ------------------------------------------------------------------ known nonlinear dynamics (known.py, intervals.py, expressions.py)
+    dict(name="known-outward-off", file=_INTERVALS,
          original='    """Round-to-nearest result moved one ulp towards -inf (a sound lower bound)."""\n    return np.nextafter(x, -np.inf)',
          replacement='    """Round-to-nearest result moved one ulp towards -inf (a sound lower bound)."""\n    return x',
          description="known: lower ends of interval operations not rounded down (round-to-nearest only)"),
-    dict(name="known-margin-off", file=_KNOWN,
+    dict(name="known-margin-off", file=_INTERVALS,
          original="    s = MARGIN_ULP * np.spacing(np.abs(r))",
          replacement="    s = 0.0 * np.spacing(np.abs(r))",
          description="known: no margin on transcendental results (only one nextafter)"),
-    dict(name="known-add-shrink-1e-3", file=_KNOWN,
+    dict(name="known-add-shrink-1e-3", file=_INTERVALS,
          original="    return _dn(al + bl), _up(ah + bh), None",
          replacement="    return _dn(al + bl) + 1e-3 * (ah + bh - al - bl), _up(ah + bh), None",
          description="known: interval sum's lower end raised by 1e-3 of its width"),
-    dict(name="known-mul-shrink-1e-3", file=_KNOWN,
+    dict(name="known-mul-shrink-1e-3", file=_INTERVALS,
          original="        _up(np.maximum(np.maximum(p[0], p[1]), np.maximum(p[2], p[3]))), None",
          replacement="        _up(np.maximum(np.maximum(p[0], p[1]), np.maximum(p[2], p[3]))) * (1 - 1e-3), None",
          description="known: interval product's upper end x (1 - 1e-3)"),
-    dict(name="known-div-shrink-1e-3", file=_KNOWN,
+    dict(name="known-div-shrink-1e-3", file=_INTERVALS,
          original="    return _dn(np.minimum(np.minimum(q[0], q[1]), np.minimum(q[2], q[3]))), \\",
          replacement="    return _dn(np.minimum(np.minimum(q[0], q[1]), np.minimum(q[2], q[3]))) * (1 - 1e-3), \\",
          description="known: interval quotient's lower end x (1 - 1e-3)"),
-    dict(name="known-monotone-shrink-1e-3", file=_KNOWN,
+    dict(name="known-monotone-shrink-1e-3", file=_INTERVALS,
          original="    lo, _ = _widen(fun(al))",
          replacement="    lo, _ = _widen(fun(al) + 1e-3 * (fun(ah) - fun(al)))",
          description="known: exp/log/tanh/tan lower end raised by 1e-3 of the range"),
-    dict(name="known-trig-max-missed", file=_KNOWN,
+    dict(name="known-trig-max-missed", file=_INTERVALS,
          original="    hi = np.where(full | _grid_hit(al, ah, phase_max, _TWO_PI), 1.0, hi)",
          replacement="    hi = np.where(full, 1.0, hi)",
          description="known: sin/cos maximum inside the interval ignored (endpoint values only)"),
-    dict(name="known-even-power-min-missed", file=_KNOWN,
+    dict(name="known-even-power-min-missed", file=_INTERVALS,
          original="    lo = np.where(inside, 0.0, np.minimum(l1, l2))",
          replacement="    lo = np.minimum(l1, l2)",
          description="known: x^(2k) over an interval holding 0 has its minimum at an end (not 0)"),
-    dict(name="known-square-min-missed", file=_KNOWN,
+    dict(name="known-square-min-missed", file=_INTERVALS,
          original="    lo = np.where(inside, 0.0, _dn(np.minimum(lo2, hi2)))",
          replacement="    lo = _dn(np.minimum(lo2, hi2))",
          description="known: x*x over an interval holding 0 has its minimum at an end (not 0)"),
-    dict(name="known-pow-corner-missed", file=_KNOWN,
+    dict(name="known-pow-corner-missed", file=_INTERVALS,
          original="        for y in (bl, bh):",
          replacement="        for y in (bl,):",
          description="known: x^y (non-integer y) from two of the four corners only"),
-    dict(name="known-constant-as-double", file=_KNOWN,
+    dict(name="known-constant-as-double", file=_EXPRESSIONS,
          original="    if got == exact:",
          replacement="    if True:",
          description="known: decimal constants taken as their nearest double (0.1 is not enclosed)"),
@@ -330,7 +336,7 @@ MUTATIONS = [
          original="        return ImageBounds(lower=out_lo, upper=out_hi, leaves=leaves)",
          replacement="        return ImageBounds(lower=out_lo + 1e-3 * (out_hi - out_lo), upper=out_hi - 1e-3 * (out_hi - out_lo), leaves=leaves)",
          description="known: every certified image range moved inward by 1e-3 of its width on each side"),
-    dict(name="known-tan-pole-missed", file=_KNOWN,
+    dict(name="known-tan-pole-missed", file=_INTERVALS,
          original="    bad = ((ah - al) >= 3.14) | _grid_hit(al, ah, 0.5 * math.pi, math.pi)",
          replacement="    bad = (ah - al) >= 3.14",
          description="known: a tan pole inside a short interval not detected"),
@@ -459,6 +465,47 @@ def _first_failure(output: str) -> str | None:
     return f[0] if f else None
 
 
+#: Test files tried first for a mutation of a file under these paths (then the whole suite).
+_LIKELY = {
+    "src/robust_imdp/abstraction/": ["tests/test_abstraction.py", "tests/test_rounding.py", "tests/test_sensitivity.py",
+                                     "tests/test_confidence_mode.py"],
+    "src/robust_imdp/bounds/rkhs": ["tests/test_rkhs.py", "tests/test_rkhs_local.py"],
+    "src/robust_imdp/bounds/gp": ["tests/test_gp.py", "tests/test_bounds.py"],
+    "src/robust_imdp/bounds/assumptions": ["tests/test_known_pipeline.py"],
+    "src/robust_imdp/models/known": ["tests/test_known.py", "tests/test_known_pipeline.py"],
+    "src/robust_imdp/models/system": ["tests/test_affine_residuals.py"],
+    "src/robust_imdp/pipeline/": ["tests/test_known_pipeline.py", "tests/test_affine_residuals.py"],
+    "src/robust_imdp/solvers/": ["tests/test_solve.py", "tests/test_sensitivity.py"],
+    "src/robust_imdp/synthesis/": ["tests/test_synthesis.py", "tests/test_controller.py"],
+}
+
+
+def _likely_tests(m: dict) -> list:
+    """The previous run's first failing test file for ``m`` (benchmarks/results/mutations.json), then
+    the files of ``_LIKELY`` for its source file, then the entry's own ``tests``."""
+    out = list(m.get("tests", ()))
+    try:
+        prev = {r["name"]: r for r in json.loads(RAW.read_text()).get("results", [])}
+    except (OSError, ValueError):
+        prev = {}
+    ff = (prev.get(m["name"]) or {}).get("first_failure")
+    if ff:
+        out.append(ff.split("::")[0])
+    for prefix, tests in _LIKELY.items():
+        if m["file"].startswith(prefix):
+            out += tests
+    return list(dict.fromkeys(out))
+
+
+def _pytest(cmd, cwd, env, timeout):
+    """(exit code or None on timeout, output) of one pytest run."""
+    try:
+        proc = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
+        return proc.returncode, proc.stdout + proc.stderr
+    except subprocess.TimeoutExpired as exc:
+        return None, (exc.stdout or b"").decode() if isinstance(exc.stdout, bytes) else (exc.stdout or "")
+
+
 def run_one(m: dict | None, snapshot: Path, timeout: float, deselect=()) -> dict:
     """Copy the snapshot, mutate (``m`` None: baseline), check the import path, run pytest."""
     name = "baseline" if m is None else m["name"]
@@ -475,16 +522,16 @@ def run_one(m: dict | None, snapshot: Path, timeout: float, deselect=()) -> dict
         if probe.returncode != 0 or not Path(where).resolve().is_relative_to(dest.resolve()):
             raise RuntimeError(f"{name}: robust_imdp imports from {where or probe.stderr.strip()!r}, "
                                f"not from the scratch copy {dest}")
-        try:
-            cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider"]
-            cmd += [] if m is None else ["-x"]  # baseline: every failure, to deselect them below
-            for test_id in deselect:
-                cmd += ["--deselect", test_id]
-            proc = subprocess.run(cmd, cwd=dest, env=env, capture_output=True, text=True, timeout=timeout)
-            rc, out = proc.returncode, proc.stdout + proc.stderr
-        except subprocess.TimeoutExpired as exc:
-            rc = None
-            out = (exc.stdout or b"").decode() if isinstance(exc.stdout, bytes) else (exc.stdout or "")
+        cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider"]
+        cmd += [] if m is None else ["-x"]  # baseline: every failure, to deselect them below
+        for test_id in deselect:
+            cmd += ["--deselect", test_id]
+        rc, out = None, ""
+        first = [] if m is None else [t for t in _likely_tests(m) if (dest / t).exists()]
+        if first:  # the test files most likely to catch it first: a failure there is a catch
+            rc, out = _pytest(cmd + first, dest, env, timeout)
+        if rc != 1:  # not caught there (or no likely tests): the whole suite decides
+            rc, out = _pytest(cmd, dest, env, timeout)
     last = [line for line in out.splitlines() if line.strip()][-1:] if out else []
     if rc == 0:
         status = "not caught"
