@@ -473,6 +473,8 @@ _LIKELY = {
     "src/robust_imdp/bounds/gp": ["tests/test_gp.py", "tests/test_bounds.py"],
     "src/robust_imdp/bounds/assumptions": ["tests/test_known_pipeline.py"],
     "src/robust_imdp/models/known": ["tests/test_known.py", "tests/test_known_pipeline.py"],
+    "src/robust_imdp/models/intervals": ["tests/test_known.py", "tests/test_known_pipeline.py"],
+    "src/robust_imdp/models/expressions": ["tests/test_known.py", "tests/test_known_pipeline.py"],
     "src/robust_imdp/models/system": ["tests/test_affine_residuals.py"],
     "src/robust_imdp/pipeline/": ["tests/test_known_pipeline.py", "tests/test_affine_residuals.py"],
     "src/robust_imdp/solvers/": ["tests/test_solve.py", "tests/test_sensitivity.py"],

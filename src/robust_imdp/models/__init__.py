@@ -2,4 +2,4 @@
 
 from robust_imdp._lazy import exports
 
-__getattr__, __dir__ = exports(__name__, ["imdp", "geometry", "system", "noise", "known"])
+__getattr__, __dir__ = exports(__name__, ["imdp", "geometry", "system", "noise", "known", "intervals", "expressions"])
