@@ -1,0 +1,216 @@
+"""Where to collect data next: sample requests ``(x, mode)`` that shrink the error radii that hold
+undecided cells back.
+
+A cell's image box is the known part's range plus the error radius of the learned part. That
+radius has a noise term (a floor no amount of data removes) and an RKHS term that more data near
+the cell shrinks. For the SE kernel, the RKHS term at a point ``x`` scales with ``B sqrt(P(x))``,
+where ``P`` is the *power function* (the posterior variance of a GP with prior ``k`` and noise
+variance ``lambda = (floor / B)^2``) of the mode's data: the optimal and ridge certificates of
+``bounds.rkhs`` are ``B ||phi_x - Phi* w||`` plus noise terms, and ``min_w ||phi_x - Phi* w||^2 +
+lambda ||w||^2 = P(x)``. One more sample at ``c`` lowers the power function everywhere by the
+rank-one update
+
+    P+(x) = P(x) - Sigma(x, c)^2 / (P(c) + lambda),       Sigma = posterior covariance      (eq. S1)
+
+so the expected change of the RKHS term at ``x`` is ``B (sqrt(P(x)) - sqrt(P+(x)))`` (eq. S2).
+
+Requests are chosen greedily: each maximises the weighted sum of (S2) over the candidate cells,
+then the covariance is updated by (S1), so the next request sees the data the previous ones will
+add. Candidates are the undecided cells (Q_?; weight 1 for the mode their strategy uses, 1/2 for the
+others) and the cells their strategy reaches in one step (weight = the largest upper transition
+probability into them from an undecided cell, halved). This is a ranking, not a bound: nothing
+here changes a guarantee. New data change the certificates only after a new run.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from robust_imdp.errors import InvalidInputError
+
+__all__ = ["SampleRequest", "suggest_samples", "write_requests"]
+
+#: Largest number of data points of a mode used for the power function (an evenly spaced subset
+#: beyond it: fewer points only make the power function larger, i.e. the gains look larger).
+MAX_POINTS = 2000
+#: Largest number of candidate cells (those with the largest weights are kept).
+MAX_CANDIDATES = 3000
+#: Weight of a mode other than the strategy's in an undecided cell, and of a reached cell.
+OTHER_MODE_WEIGHT = 0.5
+REACHED_WEIGHT = 0.5
+
+
+@dataclass(frozen=True)
+class SampleRequest:
+    """One suggested sample: apply ``mode`` at ``x`` and record the next state.
+
+    Attributes
+    ----------
+    x : (d,) float array
+        The state (the centre of ``cell``).
+    mode : str
+    cell : int
+        The cell the request is for.
+    reason : str
+        Why: the cell's class and role (undecided / reached from an undecided cell).
+    radius_change : float
+        Expected decrease of the RKHS term of the error radius at the cell centre (eq. S2), in
+        state units, for the component with the largest RKHS bound.
+    gain : float
+        The weighted sum of (S2) over all candidate cells that the greedy choice maximised.
+    """
+
+    x: np.ndarray
+    mode: str
+    cell: int
+    reason: str
+    radius_change: float
+    gain: float
+
+
+def _kernel(a: np.ndarray, b: np.ndarray, inv_l2: np.ndarray) -> np.ndarray:
+    d2 = np.sum((a[:, None, :] - b[None, :, :]) ** 2 * inv_l2, axis=2)
+    return np.exp(-0.5 * d2)
+
+
+def _posterior_cov(points: np.ndarray, data: np.ndarray, inv_l2: np.ndarray, lam: float) -> np.ndarray:
+    """``Sigma(c_i, c_j) = k(c_i, c_j) - k_i^T (K + lam I)^-1 k_j`` over the candidate points."""
+    K_cc = _kernel(points, points, inv_l2)
+    if data.shape[0] == 0:
+        return K_cc
+    K_xx = _kernel(data, data, inv_l2)
+    K_xc = _kernel(data, points, inv_l2)
+    L = np.linalg.cholesky(K_xx + lam * np.eye(data.shape[0]))
+    V = np.linalg.solve(L, K_xc)
+    return K_cc - V.T @ V
+
+
+def _candidates(result):
+    """(cells, weight per (mode, cell), reason per cell) of the undecided cells and those they reach."""
+    syn = result.synthesis
+    n_cells = result.partition.n_cells
+    n_modes = len(result.problem.mode_names)
+    classes = np.asarray(result.class_names)
+    undecided = np.flatnonzero(classes == "maybe")
+    weights = np.zeros((n_modes, n_cells))
+    reason = {}
+    strategy = np.asarray(syn.strategy)
+    if strategy.ndim == 3:  # k-step: the first step's choice
+        strategy = strategy[0]
+    init = np.asarray(syn.initial_dfa_state)
+    chosen = strategy[np.arange(n_cells), init]
+    imdp = result.abstraction.imdp
+    for q in undecided:
+        weights[:, q] = OTHER_MODE_WEIGHT
+        weights[chosen[q], q] = 1.0
+        reason[int(q)] = "undecided (Q_?)"
+        row = int(imdp.state_ptr[q]) + int(chosen[q])  # one choice per mode, in mode order
+        lo, hi = int(imdp.row_ptr[row]), int(imdp.row_ptr[row + 1])
+        for t, p in zip(imdp.col[lo:hi], imdp.upper[lo:hi]):
+            t = int(t)
+            if t >= n_cells or classes[t] == "maybe" or p <= 0:
+                continue
+            w = REACHED_WEIGHT * float(p)
+            if w > weights[chosen[t], t]:
+                weights[chosen[t], t] = w
+                reason[t] = f"reached from undecided cell {int(q)} (upper probability {float(p):.2f})"
+    cells = np.flatnonzero(weights.max(axis=0) > 0)
+    if cells.size > MAX_CANDIDATES:
+        cells = cells[np.argsort(-weights[:, cells].max(axis=0), kind="stable")[:MAX_CANDIDATES]]
+        cells.sort()
+    return cells, weights[:, cells], reason
+
+
+def _assumption(problem):
+    """(B per mode, inverse squared lengthscale per input dimension, noise floor per mode) of the
+    problem's assumption, the most pessimistic over components where they differ."""
+    from robust_imdp.pipeline.problem import _settings
+
+    st = _settings(problem)
+    B = st.rkhs_bound.max(axis=1)  # (n_modes,): the largest over the components
+    ls = st.lengthscale.min(axis=1)  # (n_modes, d): the shortest (the most local data influence)
+    noise = np.asarray(problem.noise.bound if getattr(problem.noise, "bound", None) is not None
+                       else problem.noise.sigma, float).reshape(-1)
+    tau = st.misspecification.max(axis=1)
+    floor = float(np.max(noise)) + tau
+    return B, 1.0 / (ls * ls), floor
+
+
+def suggest_samples(result, n: int, *, data_points=None) -> list:
+    """The ``n`` sample requests that shrink the error radii of undecided cells most (see the module).
+
+    Parameters
+    ----------
+    result : pipeline.Result
+        A run's result (needs its problem's data, partition, abstraction and strategy).
+    n : int
+        Number of requests (>= 1).
+    data_points : sequence (n_modes) of (m_u, d) arrays, optional
+        The inputs of each mode's data (default: the problem's data set).
+
+    Returns
+    -------
+    list of SampleRequest
+        At most ``n`` requests, best first; empty when no cell is undecided.
+    """
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise InvalidInputError(f"n (the number of sample requests) must be an integer >= 1; got {n!r}")
+    problem = result.problem
+    cells, weights, reason = _candidates(result)
+    if cells.size == 0:
+        return []
+    part = result.partition
+    centres = 0.5 * (np.asarray(part.cells_lower)[cells] + np.asarray(part.cells_upper)[cells])
+    B, inv_l2, floor = _assumption(problem)
+    modes = problem.mode_names
+    sig, lam = [], []
+    for u in range(len(modes)):
+        x = np.asarray(problem.data.by_mode(u)[0], float)
+        if x.shape[0] > MAX_POINTS:
+            x = x[np.unique(np.linspace(0, x.shape[0] - 1, MAX_POINTS).round().astype(int))]
+        lam.append(max((floor[u] / B[u]) ** 2, 1e-10) if B[u] > 0 else 1.0)
+        sig.append(_posterior_cov(centres, x, inv_l2[u], lam[-1]))
+    out = []
+    for _ in range(int(n)):
+        best = None
+        for u in range(len(modes)):
+            if B[u] <= 0 or not np.any(weights[u] > 0):
+                continue
+            S = sig[u]
+            p = np.maximum(np.diag(S), 0.0)
+            drop = S * S / (p[None, :] + lam[u])  # drop[q, c]: decrease of P(q) from a sample at c (eq. S1)
+            change = B[u] * (np.sqrt(p)[:, None] - np.sqrt(np.maximum(p[:, None] - drop, 0.0)))  # (eq. S2)
+            gain = weights[u] @ change
+            c = int(np.argmax(gain))
+            if best is None or gain[c] > best[0]:
+                best = (float(gain[c]), u, c, float(change[c, c]))
+        if best is None or best[0] <= 0:
+            break
+        g, u, c, own = best
+        q = int(cells[c])
+        out.append(SampleRequest(x=centres[c].copy(), mode=str(modes[u]), cell=q,
+                                 reason=reason.get(q, "undecided (Q_?)"), radius_change=own, gain=g))
+        S = sig[u]
+        col = S[:, c].copy()
+        sig[u] = S - np.outer(col, col) / (col[c] + lam[u])  # the request's sample joins the data (eq. S1)
+    return out
+
+
+def write_requests(requests, path, dim_names) -> None:
+    """Write the requests as CSV: ``x_1..x_d`` (or the dimension names), mode, cell, radius change,
+    gain, reason; written under a temporary name and renamed, so a file is never half-written."""
+    import csv
+    import os
+    from pathlib import Path
+
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow([*dim_names, "mode", "cell", "radius_change", "gain", "reason"])
+        for r in requests:
+            w.writerow([*(repr(float(v)) for v in r.x), r.mode, r.cell, f"{r.radius_change:.6g}", f"{r.gain:.6g}",
+                        r.reason])
+    os.replace(tmp, path)
