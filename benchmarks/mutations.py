@@ -54,7 +54,7 @@ RAW = ROOT / "benchmarks" / "results" / "mutations.json"
 
 _ABS = "src/robust_imdp/abstraction/rows.py"
 _BOUNDS = "src/robust_imdp/bounds/gp_cells.py"
-_GP = "src/robust_imdp/bounds/gp.py"
+_GP_ERROR = "src/robust_imdp/bounds/gp_error.py"
 _RKHS = "src/robust_imdp/bounds/rkhs.py"
 _SOLVE = "src/robust_imdp/solvers/api.py"
 _SYN = "src/robust_imdp/synthesis/core.py"
@@ -118,7 +118,7 @@ MUTATIONS = [
          original="    delta_each = _down1(_down1(1.0 - confidence) / (M * d))",
          replacement="    delta_each = _down1(1.0 - confidence)",
          description="confidence mode: each GP gets all of 1 - confidence (union bound over GPs dropped)"),
-    # ------------------------------------------------------------------ GP bounds (bounds.py, gp.py)
+    # ------------------------------------------------------------------ GP bounds (gp_cells.py, gp_error.py)
     dict(name="gp-mean-lower-shrink-1e-3", file=_BOUNDS,
          original="        mean_lower=mean_lower,",
          replacement="        mean_lower=mean_lower + 1e-3 * (mean_upper - mean_lower),",
@@ -131,9 +131,9 @@ MUTATIONS = [
          original="        std_upper=std_upper,",
          replacement="        std_upper=std_upper * (1 - 1e-3),",
          description="certified upper bound of the posterior std over a box x (1 - 1e-3)"),
-    dict(name="beta-shrink-1e-3", file=_GP,
-         original="        return _round_up(beta * (1 + 16 * _EPS))",
-         replacement="        return _round_up(beta * (1 - 1e-3))",
+    dict(name="beta-shrink-1e-3", file=_GP_ERROR,
+         original="        return _fp.up(beta * (1 + 16 * _EPS))",
+         replacement="        return _fp.up(beta * (1 - 1e-3))",
          description="Chowdhury-Gopalan beta(delta) x (1 - 1e-3)"),
     # ------------------------------------------------------------------ RKHS cell bounds (rkhs.py, issue 9)
     dict(name="rkhs-taylor-shrink-1e-3", file=_RKHS,

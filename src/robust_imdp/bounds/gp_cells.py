@@ -42,7 +42,7 @@ Floating point
     sum of the absolute values of every term that enters it (the standard bound on the error
     of a sum of ``m`` terms, ``|err| <= (m - 1) u sum|t_i|``, ``u = eps/2``, plus a few ulps per
     term for exp, products and the expanded quadratic), then moved one more ulp outward with
-    ``np.nextafter`` through :func:`_round_down` / :func:`_round_up`.
+    ``np.nextafter`` through ``robust_imdp._fp``'s ``down`` / ``up``.
 """
 
 from __future__ import annotations
@@ -54,6 +54,8 @@ import numba
 import numpy as np
 from scipy.linalg import cho_solve, solve_triangular
 
+from robust_imdp._fp import down as _round_down  # x - abs_err, one more ulp down
+from robust_imdp._fp import up as _round_up  # x + abs_err, one more ulp up
 from robust_imdp.errors import DimensionError, InvalidInputError
 
 _EPS = np.finfo(float).eps
@@ -130,18 +132,6 @@ class ImageBounds:
 
 
 # --------------------------------------------------------------------------- rounding
-
-
-def _round_down(x: np.ndarray, abs_err: np.ndarray | float = 0.0) -> np.ndarray:
-    """``x - abs_err`` moved one more ulp towards ``-inf`` (sound lower bound)."""
-    return np.nextafter(np.asarray(x, float) - abs_err, -np.inf)
-
-
-def _round_up(x: np.ndarray, abs_err: np.ndarray | float = 0.0) -> np.ndarray:
-    """``x + abs_err`` moved one more ulp towards ``+inf`` (sound upper bound)."""
-    return np.nextafter(np.asarray(x, float) + abs_err, np.inf)
-
-
 def _pad(m: int, d: int, mag: np.ndarray) -> np.ndarray:
     """Stated bound on the float error of a relaxation value of ``m`` terms in ``d`` dims.
 
