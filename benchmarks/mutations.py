@@ -53,6 +53,7 @@ DOC = ROOT / "docs" / "mutations.md"
 RAW = ROOT / "benchmarks" / "results" / "mutations.json"
 
 _ABS = "src/robust_imdp/abstraction/rows.py"
+_ABS_CELLS = "src/robust_imdp/abstraction/cell_bounds.py"
 _BOUNDS = "src/robust_imdp/bounds/gp_cells.py"
 _GP_ERROR = "src/robust_imdp/bounds/gp_error.py"
 _RKHS = "src/robust_imdp/bounds/rkhs.py"
@@ -81,10 +82,11 @@ _LOCAL_COMBINE = "        lo_i, up_i, taylor = _combine_vertices(lin_v, lin_err,
 #: The mutations, in the order they are run. Keep each ``original`` unique in its file.
 MUTATIONS = [
     # ------------------------------------------------------------------ abstraction (Thm 1)
-    dict(name="outward-off", file=_ABS,
+    dict(name="outward-off", file="src/robust_imdp/_fp.py",
          original="    return np.where(err > 0, moved, x)",
          replacement="    return x",
-         description="abstraction._outward returns x (outward rounding off)"),
+         description="_fp.outward (the abstraction's probabilities and complements) returns x (outward rounding off)",
+         tests=["tests/test_rounding.py", "tests/test_abstraction.py"]),
     dict(name="floor-x0.99", file=_ABS, original=_FLOOR,
          replacement="        floors[u] = _complement_up(_combine_down(md.floor_p, md.floor_pv, combine)) * 0.99",
          description="every row's floor (upper bound of unlisted targets) x 0.99"),
@@ -95,28 +97,28 @@ MUTATIONS = [
          replacement="        floors[u] = _complement_up(_combine_down(md.floor_p, md.floor_pv, combine)) * (1 - 1e-3)",
          description="every row's floor x (1 - 1e-3)"),
     dict(name="listed-upper-shrink-1e-3", file=_ABS,
-         original="            upper[dest] = _complement_up(G)",
-         replacement="            upper[dest] = np.maximum(_complement_up(G) * (1 - 1e-3), low)",
+         original="    out.upper[dest] = _complement_up(G)",
+         replacement="    out.upper[dest] = np.maximum(_complement_up(G) * (1 - 1e-3), low)",
          description="upper bounds of listed cell targets x (1 - 1e-3) (kept >= lower)"),
     dict(name="listed-lower-shrink-1e-3", file=_ABS,
-         original="            lower[dest] = low",
-         replacement="            lower[dest] = np.minimum(low * (1 + 1e-3), upper[dest])",
+         original="    out.lower[dest] = low",
+         replacement="    out.lower[dest] = np.minimum(low * (1 + 1e-3), out.upper[dest])",
          description="lower bounds of listed cell targets x (1 + 1e-3) (kept <= upper)"),
     dict(name="outside-upper-shrink-1e-3", file=_ABS,
-         original="            upper[dout] = up_out",
-         replacement="            upper[dout] = np.maximum(up_out * (1 - 1e-3), low_out)",
+         original="    out.upper[dout] = up_out",
+         replacement="    out.upper[dout] = np.maximum(up_out * (1 - 1e-3), low_out)",
          description="upper bound of the outside-X state x (1 - 1e-3) (kept >= lower)"),
     dict(name="outside-lower-shrink-1e-3", file=_ABS,
-         original="            lower[dout] = low_out",
-         replacement="            lower[dout] = np.minimum(low_out * (1 + 1e-3), upper[dout])",
+         original="    out.lower[dout] = low_out",
+         replacement="    out.lower[dout] = np.minimum(low_out * (1 + 1e-3), out.upper[dout])",
          description="lower bound of the outside-X state x (1 + 1e-3) (kept <= upper)"),
-    dict(name="confidence-eps-shrink-1e-3", file=_ABS,
+    dict(name="confidence-eps-shrink-1e-3", file=_ABS_CELLS,
          original="            eps[u, :, i] = models[u][i].eps_for_prob(p_each, cell_bounds.std_upper[u, :, i])",
          replacement="            eps[u, :, i] = models[u][i].eps_for_prob(p_each, cell_bounds.std_upper[u, :, i]) * (1 - 1e-3)",
          description="confidence mode: GP error radius folded into the image boxes x (1 - 1e-3)"),
-    dict(name="confidence-no-union-bound", file=_ABS,
-         original="    delta_each = _down1(_down1(1.0 - confidence) / (M * d))",
-         replacement="    delta_each = _down1(1.0 - confidence)",
+    dict(name="confidence-no-union-bound", file=_ABS_CELLS,
+         original="    delta_each = down(down(1.0 - confidence) / (M * d))",
+         replacement="    delta_each = down(1.0 - confidence)",
          description="confidence mode: each GP gets all of 1 - confidence (union bound over GPs dropped)"),
     # ------------------------------------------------------------------ GP bounds (gp_cells.py, gp_error.py)
     dict(name="gp-mean-lower-shrink-1e-3", file=_BOUNDS,

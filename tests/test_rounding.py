@@ -6,12 +6,12 @@ of values below 0.5, differences, a Bellman row summing 300 small probabilities 
 compared with exact rational arithmetic (``fractions.Fraction`` holds every float exactly) or
 mpmath at 40 digits. Each test counts violations of "lower bound <= exact" / "upper bound >=
 exact", asserts 0, and asserts that the same count is > 0 when the helper's outward step is
-switched off (``_outward`` returning its input, the plain float result): the inputs really are
+switched off (``_fp.outward`` returning its input, the plain float result): the inputs really are
 ones where rounding changes the answer.
 
 These checks are the only ones that see the rounding of the abstraction: end to end, the noise
 probabilities carry a relative margin of 1e-13 (``noise._round_down``) that hides a missing
-ulp of ``_outward`` from every closed-form comparison.
+ulp of ``_fp.outward`` from every closed-form comparison.
 """
 
 from __future__ import annotations
@@ -22,7 +22,8 @@ import mpmath
 import numpy as np
 import pytest
 
-from robust_imdp.abstraction import rows as abstraction
+from robust_imdp import _fp
+from robust_imdp.abstraction import probabilities as abstraction
 
 from robust_imdp.bounds import gp_cells as bounds
 
@@ -37,7 +38,7 @@ U = 2.0 ** -53
 F = np.vectorize(Fraction, otypes=[object])  # exact value of every float
 
 
-def no_outward(x, err, up):  # the mutation "abstraction._outward returns x"
+def no_outward(x, err, upward):  # the mutation "_fp.outward returns x"
     return np.asarray(x, dtype=float)
 
 
@@ -48,21 +49,21 @@ def near_one(rng, shape, bits=30):
 
 # --------------------------------------------------------------------------- abstraction helpers
 def test_outward_moves_past_the_error_bound(monkeypatch):
-    """_outward(x, err, up) >= x + err (exactly) and != x where err > 0; down likewise; exact
+    """outward(x, err, upward) >= x + err (exactly) and != x where err > 0; down likewise; exact
     values (err == 0) are returned unchanged. A helper returning x fails the check."""
     rng = np.random.default_rng(0)
     x = rng.uniform(0.0, 1.0, 2000)
     err = np.where(rng.uniform(size=2000) < 0.2, 0.0, rng.uniform(0, 8, 2000) * U)
 
     def violations():
-        up = abstraction._outward(x, err, up=True)
-        down = abstraction._outward(x, err, up=False)
+        up = _fp.outward(x, err, upward=True)
+        down = _fp.outward(x, err, upward=False)
         moved = err > 0
         return int(np.sum(F(up) < F(x) + F(err)) + np.sum(F(down) > F(x) - F(err))
                    + np.sum(moved & ((up == x) | (down == x))) + np.sum(~moved & ((up != x) | (down != x))))
 
     assert violations() == 0
-    monkeypatch.setattr(abstraction, "_outward", no_outward)
+    monkeypatch.setattr(_fp, "outward", no_outward)
     assert violations() > 0
 
 
@@ -81,7 +82,7 @@ def test_combine_down_product_is_below_the_exact_product(d, monkeypatch):
 
     assert violations() == 0
     assert abstraction._combine_down(np.ones((1, d)), np.ones((1, d)), "product")[0] == 1.0
-    monkeypatch.setattr(abstraction, "_outward", no_outward)
+    monkeypatch.setattr(abstraction, "outward", no_outward)
     assert violations() > 0  # round-to-nearest lands above the exact product about half the time
 
 
@@ -103,7 +104,7 @@ def test_combine_down_union_is_below_the_exact_union_bound(d, monkeypatch):
         return int(np.sum(F(g) > np.array(ex, dtype=object)))
 
     assert violations() == 0
-    monkeypatch.setattr(abstraction, "_outward", no_outward)
+    monkeypatch.setattr(abstraction, "outward", no_outward)
     assert violations() > 0
 
 
@@ -119,16 +120,16 @@ def test_complement_up_is_above_the_exact_complement(monkeypatch):
 
     assert violations() == 0
     np.testing.assert_array_equal(abstraction._complement_up(g[g >= 0.5]), 1.0 - g[g >= 0.5])  # exact there
-    monkeypatch.setattr(abstraction, "_outward", no_outward)
+    monkeypatch.setattr(abstraction, "outward", no_outward)
     assert violations() > 0
 
 
 def test_down1_up1_bracket_one_correctly_rounded_operation():
-    """_down1 / _up1 of a difference and a sum (the margins and expansions of abstract())."""
+    """_fp.down / _fp.up of a difference and a sum (the margins and expansions of abstract())."""
     rng = np.random.default_rng(4)
     a, b = rng.uniform(-2, 2, 5000), rng.uniform(-2, 2, 5000) * 10.0 ** rng.integers(-12, 0, 5000)
-    assert np.all(F(abstraction._down1(a - b)) <= F(a) - F(b))
-    assert np.all(F(abstraction._up1(a + b)) >= F(a) + F(b))
+    assert np.all(F(_fp.down(a - b)) <= F(a) - F(b))
+    assert np.all(F(_fp.up(a + b)) >= F(a) + F(b))
     assert np.sum(F(a - b) > F(a) - F(b)) > 0  # without the ulp: wrong side
 
 

@@ -22,7 +22,7 @@ Hence for every ``x in q``::
 
 Both right-hand sides are monotone in ``P(E_g)`` and ``P(E_v)`` in the safe direction, so
 the lower bounds ``P_g``, ``P_v`` may replace them. **Deviation from the printed paper**
-(issue 5): the paper weights the "bad" branches with ``prod_i P[|v_i| > eta_i]`` and
+(corrected complements): the paper weights the "bad" branches with ``prod_i P[|v_i| > eta_i]`` and
 ``prod_i (1 - p_i)``, the probability that *all* components fail; the complement of
 ``E_v`` (resp. ``E_g``) is that *some* component fails, ``1 - prod_i P[|v_i| <= eta_i]``.
 For ``d >= 2`` the printed upper bound is too small whenever ``P_v < 1`` (e.g. Gaussian
@@ -40,6 +40,10 @@ P_g P_v 1[Im ⊕ (eps+eta) ∩ X = ∅]`` and ``upper(q,u,out) = 1 - P_g P_v 1[I
 Cells and boundaries: cells are closed boxes sharing faces; since ``v`` has a density and
 is independent of ``x``, ``P[x' ∈ ∂q'] = 0``, so closed/half-open cell conventions give the
 same probabilities and the closed tests above are exact for :meth:`Partition.locate`'s cells.
+
+Modules: the input type and the confidence-mode converter are in ``abstraction.cell_bounds``,
+the eps/eta candidates and the combined probabilities in ``abstraction.probabilities``, the listed
+targets of each row (grid or box partition) in ``abstraction.targets``; this module builds the rows.
 
 Choosing eps and eta. The theorem holds for every ``eps, eta > 0`` and each bound may use
 its own values:
@@ -62,7 +66,7 @@ from ``Im ⊕ e_f`` along some axis, so ``1 - P_g(eps_f) P_v(eta_f)`` is a valid
 all of them: the row's ``floor``. The floor pair takes, per dimension, the smallest level
 ``>= 0.99`` with ``p_i P[|v_i| <= eta_i] >= 1 - floor_tol/d`` (else the best level).
 
-Rounding: all computed bounds go through :func:`_outward` (error bound + ``np.nextafter``):
+Rounding: all computed bounds go through :mod:`robust_imdp._fp` (error bound + ``np.nextafter``):
 probabilities of good events down, upper bounds up; margins/gaps down, expansions up.
 """
 
@@ -74,6 +78,10 @@ from pathlib import Path
 
 import numpy as np
 
+from robust_imdp._fp import U, down, up
+from robust_imdp.abstraction.cell_bounds import CellBounds, _check_models, confidence_cell_bounds
+from robust_imdp.abstraction.probabilities import EPS_LEVELS, _combine_down, _complement_up, _Mode, _separated_best
+from robust_imdp.abstraction.targets import targets_of
 from robust_imdp.errors import DimensionError, InvalidInputError, SoundnessError
 from robust_imdp.models.geometry import BoxPartition, Partition, partition_from_dict
 from robust_imdp.models.imdp import IMDP
@@ -82,122 +90,6 @@ from robust_imdp.models.noise import NoiseModel
 __all__ = ["CellBounds", "Abstraction", "AbstractionRows", "abstract", "abstract_rows", "assemble_abstraction",
            "select_rows", "join_rows",
            "confidence_cell_bounds", "EPS_LEVELS"]
-
-#: Probability levels at which candidate eps are proposed (``eps_for_prob(level, std)``).
-EPS_LEVELS = 1.0 - np.array(
-    [0.5, 0.3, 0.2, 0.1, 0.05, 0.02, 0.01, 5e-3, 2e-3, 1e-3, 5e-4, 2e-4, 1e-4, 3e-5, 1e-5,
-     3e-6, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-12]
-)
-_PAPER_LEVEL = 0.99
-_U = 2.0 ** -53  # unit round-off of float64
-_SHRINK = 1.0 - 2.0 ** -40  # makes eta = (t - eps) * _SHRINK strictly below t - eps in reals
-
-
-# ============================================================================ rounding
-def _outward(x, err, up: bool):
-    """The one rounding helper: move ``x`` by the error bound ``err`` (>= 0) and one ulp outward.
-
-    Where ``err == 0`` the value was computed exactly and is returned unchanged.
-    """
-    x = np.asarray(x, dtype=float)
-    err = np.broadcast_to(np.asarray(err, dtype=float), x.shape)
-    if up:
-        moved = np.nextafter(x + err, np.inf)
-    else:
-        moved = np.nextafter(x - err, -np.inf)
-    return np.where(err > 0, moved, x)
-
-
-def _down1(x):
-    """Lower bound of a real computed by one correctly rounded operation."""
-    return np.nextafter(x, -np.inf)
-
-
-def _up1(x):
-    """Upper bound of a real computed by one correctly rounded operation."""
-    return np.nextafter(x, np.inf)
-
-
-def _combine_down(p, pv, combine: str):
-    """Lower bound of ``P(E_g) P(E_v)`` from per-dimension lower bounds ``p, pv`` (..., d)."""
-    d = p.shape[-1]
-    if combine == "product":
-        g = np.prod(p, axis=-1) * np.prod(pv, axis=-1)
-        # product of 2d factors in [0,1]: relative error <= (2d - 1) u; g == 1 only if exact
-        err = np.where(g == 1.0, 0.0, (2 * d) * 2 * _U * g)
-    else:
-        g = np.maximum(1.0 - np.sum(1.0 - p, axis=-1), 0.0) * np.maximum(1.0 - np.sum(1.0 - pv, axis=-1), 0.0)
-        # each sum of d complements and the final difference: absolute error <= (2d + 2) u per
-        # factor; the clamp at 0 is safe (the union bound of a probability is >= 0 anyway)
-        err = np.where(g == 1.0, 0.0, (4 * d + 6) * _U)
-    return np.maximum(_outward(g, err, up=False), 0.0)  # clamp: a probability is >= 0
-
-
-def _complement_up(g):
-    """Upper bound of ``1 - g`` for a float ``g`` in [0, 1] (Sterbenz: exact when g >= 0.5)."""
-    val = 1.0 - g
-    # clamp at 1 is safe: every transition probability is <= 1
-    return np.minimum(_outward(val, np.where(g >= 0.5, 0.0, _U), up=True), 1.0)
-
-
-# ============================================================================ data types
-@dataclass(frozen=True, eq=False)
-class CellBounds:
-    """Certified per-cell bounds, the input of :func:`abstract`.
-
-    Parameters
-    ----------
-    image_lower, image_upper : (n_modes, n_cells, d) float arrays
-        A box containing ``{f_u(x) + mu_u(x) : x in cell}`` for each mode and cell.
-    std_upper : (n_modes, n_cells, d) float array or None
-        Upper bound of the posterior std over each cell; ``None`` means known dynamics
-        (``g = 0``: eps = 0 and error probability 1).
-    """
-
-    image_lower: np.ndarray
-    image_upper: np.ndarray
-    std_upper: np.ndarray | None = None
-
-    def __post_init__(self):
-        lo = np.array(self.image_lower, dtype=float)
-        hi = np.array(self.image_upper, dtype=float)
-        if lo.ndim != 3:
-            raise DimensionError(f"image_lower must have shape (n_modes, n_cells, d); got {lo.shape}")
-        if hi.shape != lo.shape:
-            raise DimensionError(f"image_upper must have shape {lo.shape} like image_lower; got {hi.shape}")
-        if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
-            raise InvalidInputError("image_lower and image_upper must be finite")
-        bad = np.argwhere(lo > hi)
-        if bad.size:
-            u, q, i = (int(v) for v in bad[0])
-            raise InvalidInputError(
-                f"image_lower must be <= image_upper; got [{lo[u, q, i]}, {hi[u, q, i]}] at mode {u}, cell {q}, dim {i}"
-            )
-        std = None
-        if self.std_upper is not None:
-            std = np.array(self.std_upper, dtype=float)
-            if std.shape != lo.shape:
-                raise DimensionError(f"std_upper must have shape {lo.shape} like image_lower; got {std.shape}")
-            if not np.all(np.isfinite(std)) or np.any(std < 0):
-                raise InvalidInputError("std_upper must be finite and >= 0")
-            std.setflags(write=False)
-        lo.setflags(write=False)
-        hi.setflags(write=False)
-        object.__setattr__(self, "image_lower", lo)
-        object.__setattr__(self, "image_upper", hi)
-        object.__setattr__(self, "std_upper", std)
-
-    @property
-    def n_modes(self) -> int:
-        return self.image_lower.shape[0]
-
-    @property
-    def n_cells(self) -> int:
-        return self.image_lower.shape[1]
-
-    @property
-    def dim(self) -> int:
-        return self.image_lower.shape[2]
 
 
 @dataclass(frozen=True, eq=False)
@@ -266,229 +158,6 @@ class Abstraction:
                        floor_eta=np.array(z["floor_eta"]), lower_eps=np.array(z["lower_eps"]),
                        lower_eta=np.array(z["lower_eta"]), containing_cell=np.array(z["containing_cell"]),
                        nnz_per_row=np.array(z["nnz_per_row"]))
-
-
-# ============================================================================ candidates
-class _Mode:
-    """Per-mode candidate (eps, p) arrays and the noise context (internal)."""
-
-    def __init__(self, u, bounds, models, noise, eta_fixed, rule, floor_tol, combine):
-        n, d = bounds.n_cells, bounds.dim
-        self.noise, self.combine, self.rule = noise, combine, rule
-        self.std = None if bounds.std_upper is None else bounds.std_upper[u]
-        self.models = None if models is None else models[u]
-        levels = np.array([_PAPER_LEVEL]) if rule == "paper" else EPS_LEVELS
-        k99 = int(np.flatnonzero(levels == _PAPER_LEVEL)[0])
-        K = levels.size
-        if self.std is None:  # known dynamics: eps = 0 with probability 1
-            self.eps = np.zeros((n, d, K))
-            self.p = np.ones((n, d, K))
-        else:
-            self.eps = np.empty((n, d, K))
-            self.p = np.empty((n, d, K))
-            for i in range(d):
-                e = np.stack([np.asarray(self.models[i].eps_for_prob(lv, self.std[:, i]), dtype=float)
-                              * np.ones(n) for lv in levels], axis=1)
-                bad = ~np.isfinite(e) | (e < 0)
-                e = np.where(bad, 0.0, e)
-                pr = self._prob(i, e, np.arange(n)[:, None])
-                self.eps[:, i, :] = np.where(bad, np.inf, e)  # unusable candidate
-                self.p[:, i, :] = np.where(bad, 0.0, pr)
-        # --- noise context: fixed eta (paper rule or given) or free eta (optimised)
-        self.fixed = eta_fixed is not None
-        self.eta_def = np.array(eta_fixed if self.fixed else noise.default_eta(), dtype=float)
-        self.pv_def = noise.prob_abs_le(self.eta_def)
-        if self.fixed:
-            eta_top = self.eta_def
-        elif noise.bounded:
-            eta_top = np.array(noise.bound, dtype=float)
-        else:
-            eta_top = noise.abs_quantile(1.0 - 1e-15)
-        self.eta_top = eta_top
-        self.pv_top = noise.prob_abs_le(eta_top)
-        # --- top candidate (unconstrained axes): the best p (eps) with the top eta
-        if rule == "paper":
-            self.p_top, self.eps_top = self.p[:, :, k99], self.eps[:, :, k99]
-        else:
-            kt = np.argmax(self.p, axis=2)
-            self.p_top = np.take_along_axis(self.p, kt[..., None], 2)[..., 0]
-            self.eps_top = np.take_along_axis(self.eps, kt[..., None], 2)[..., 0]
-        # --- floor pair per (cell, dim)
-        if rule == "paper":
-            self.floor_p, self.floor_eps = self.p[:, :, k99], self.eps[:, :, k99]
-            self.floor_pv = np.broadcast_to(self.pv_def, (n, d)).copy()
-            self.floor_eta = np.broadcast_to(self.eta_def, (n, d)).copy()
-        else:
-            lv = levels[k99:]
-            if self.fixed:
-                eta_l = np.broadcast_to(self.eta_def, (lv.size, d))
-            else:
-                q = np.minimum(lv, 1.0 - 1e-15)
-                eta_l = np.maximum(noise.abs_quantile(q), self.eta_def)  # (L, d), >= paper's eta
-            pv_l = noise.prob_abs_le(eta_l)  # (L, d)
-            pk = self.p[:, :, k99:]  # (n, d, L)
-            score = pk * pv_l.T[None]
-            good = score >= 1.0 - floor_tol / d
-            kf = np.where(good.any(axis=2), np.argmax(good, axis=2), np.argmax(score, axis=2))
-            self.floor_p = np.take_along_axis(pk, kf[..., None], 2)[..., 0]
-            self.floor_eps = np.take_along_axis(self.eps[:, :, k99:], kf[..., None], 2)[..., 0]
-            self.floor_pv = pv_l[kf, np.arange(d)[None, :]]
-            self.floor_eta = eta_l[kf, np.arange(d)[None, :]]
-
-    def _prob(self, i, eps, rows):
-        """Lower bound ``p_i(eps)`` of the GP-error event for cells ``rows`` (broadcast with eps)."""
-        if self.std is None:
-            return np.ones(np.shape(eps))
-        s = self.std[rows, i]
-        pr = np.asarray(self.models[i].prob_within(eps, s), dtype=float)
-        if pr.shape != np.broadcast(eps, s).shape or not np.all((pr >= 0) & (pr <= 1)):
-            raise InvalidInputError(
-                f"error_models[.][{i}].prob_within must return probabilities in [0, 1] of shape "
-                f"{np.broadcast(eps, s).shape}; got shape {pr.shape}"
-            )
-        return pr
-
-    def _score(self, p, pv):
-        return p * pv if self.combine == "product" else p + pv - 1.0
-
-    def split(self, t, rows, i, paper_candidate: bool):
-        """Best per-dimension pair with ``eps + eta < t`` (strict) for queries ``t`` (Q,).
-
-        Returns ``(p, pv, eps, eta)`` arrays of shape (Q,); ``p = pv = 0`` (and NaN eps/eta)
-        where no pair fits.
-        """
-        t = np.asarray(t, dtype=float)
-        cols = []
-        if self.rule != "paper" or not paper_candidate:
-            E = self.eps[rows, i, :]
-            P = self.p[rows, i, :]
-            tt = t[:, None]
-            if self.fixed:
-                ETA = np.broadcast_to(self.eta_def[i], E.shape)
-                ok = _up1(E + self.eta_def[i]) < tt
-                PV = np.where(ok, self.pv_def[i], 0.0)
-            else:
-                with np.errstate(invalid="ignore"):
-                    eta1 = (tt - E) * _SHRINK  # eps + eta1 < t in exact arithmetic (module doc)
-                eta1 = np.where(np.isfinite(eta1), eta1, -1.0)
-                pv1 = self.noise.marginal_prob_abs_le(eta1, i)
-                okd = _up1(E + self.eta_def[i]) < tt
-                use_def = okd & (self.pv_def[i] > pv1)
-                PV = np.where(use_def, self.pv_def[i], pv1)
-                ETA = np.where(use_def, self.eta_def[i], eta1)
-                ok = (eta1 > 0) | use_def
-            cols.append((P, PV, E, ETA, ok))
-        if paper_candidate:
-            # paper's rule for containment: eta fixed, eps_i = (t_i - eta_i) shrunk (largest eps)
-            with np.errstate(invalid="ignore"):
-                e = (t - self.eta_def[i]) * _SHRINK
-            okp = e > 0
-            e = np.where(okp, e, 0.0)
-            P = self._prob(i, e, rows)
-            cols.append((P[:, None], np.full((t.size, 1), self.pv_def[i]), e[:, None],
-                         np.full((t.size, 1), self.eta_def[i]), okp[:, None]))
-        P, PV, E, ETA, OK = (np.concatenate([c[k] for c in cols], axis=1) for k in range(5))
-        score = np.where(OK, self._score(P, PV), -np.inf)
-        k = np.argmax(score, axis=1)[:, None]
-        ok = np.take_along_axis(OK, k, 1)[:, 0]
-        pick = lambda A: np.take_along_axis(np.broadcast_to(A, OK.shape), k, 1)[:, 0]  # noqa: E731
-        return (np.where(ok, pick(P), 0.0), np.where(ok, pick(PV), 0.0),
-                np.where(ok, pick(E), np.nan), np.where(ok, pick(ETA), np.nan))
-
-    def top(self, rows):
-        """(p, pv) of the largest candidates for cells ``rows``: (Q, d) each."""
-        return self.p_top[rows], np.broadcast_to(self.pv_top, (len(rows), self.pv_top.size)).copy()
-
-
-def _separated_best(mode, gap_p, gap_pv, rows, j):
-    """``combine`` lower bound with axis ``j`` from a split and every other axis at the top."""
-    P, PV = mode.top(rows)
-    P[:, j] = gap_p
-    PV[:, j] = gap_pv
-    return _combine_down(P, PV, mode.combine)
-
-
-# ============================================================================ confidence mode
-def confidence_cell_bounds(cell_bounds: CellBounds, error_models, confidence: float = 0.99) -> CellBounds:
-    """Fold the GP error into the image boxes at one data-confidence level (the sound default).
-
-    Why. Thm 1 mixes two different probabilities: ``P[sup_q |g - mu| <= eps]`` is a probability
-    over the *training data* (g is a fixed unknown function), while ``T(q'|x)`` is a probability
-    over the process noise. For a fixed system and a fixed data set the printed product
-    ``P_g * P_v * 1[...]`` is therefore not a bound of ``T(q'|x)``: when the realised error is
-    large, the true ``T`` can be below the printed lower bound (``tests/test_soundness_audit.py``
-    shows 0.575 printed against 0.436 true). The statement that does hold is a confidence
-    statement: by Lemma 1 (Chowdhury & Gopalan 2017, Thm 2) applied with ``delta_ui`` to the GP of
-    mode u and output i, and a union bound over all ``n_modes * d`` GPs, with probability at least
-    ``confidence = 1 - sum delta_ui`` over the data,
-
-        for every mode u, output i and x in X:  |g_ui(x) - mu_ui(x)| <= beta_ui(delta_ui) sigma_ui(x).
-
-    On that event the true successor mean ``f_u(x) + g_u(x)`` of every x in cell q lies in the
-    image box expanded by ``eps_uqi = beta_ui(delta_ui) * std_upper[u, q, i]``, so the
-    known-dynamics abstraction of the expanded boxes (eps = 0, error probability 1) contains
-    the true transition probabilities of *every* row simultaneously, and every p_low/p_up
-    computed from it holds with that confidence. No independence between GPs is needed.
-
-    Parameters
-    ----------
-    cell_bounds : CellBounds
-        Image boxes of ``f_u + mu_u`` and std bounds (``std_upper`` must not be None).
-    error_models : sequence (n_modes) of sequences (d) of error models
-        Each with ``eps_for_prob(p, std_upper)`` returning ``beta(1 - p) * std_upper`` rounded up.
-    confidence : float in (0, 1)
-        Probability over the data with which the resulting abstraction is sound.
-
-    Returns
-    -------
-    CellBounds
-        Expanded image boxes (rounded outward) with ``std_upper=None``.
-    """
-    confidence = float(confidence)
-    if not 0.0 < confidence < 1.0:
-        raise InvalidInputError(f"confidence must lie in (0, 1); got {confidence}")
-    if cell_bounds.std_upper is None:
-        raise InvalidInputError("cell_bounds.std_upper is None (known dynamics): there is no GP error to fold in")
-    M, _, d = cell_bounds.image_lower.shape
-    models = _check_models(error_models, M, d)
-    # Union bound over the M*d GPs: each gets an equal share of 1 - confidence. 1 - confidence
-    # is rounded down (smaller delta -> larger beta -> larger eps: the safe side).
-    delta_each = _down1(_down1(1.0 - confidence) / (M * d))
-    # p one ulp above fl(1 - delta_each): then 1 - p (exact by Sterbenz) <= delta_each, so the
-    # per-GP failure probability used by eps_for_prob never exceeds its union-bound share.
-    p_each = _up1(1.0 - delta_each)
-    eps = np.empty_like(cell_bounds.std_upper)
-    for u in range(M):
-        for i in range(d):
-            eps[u, :, i] = models[u][i].eps_for_prob(p_each, cell_bounds.std_upper[u, :, i])
-    # Expansion by eps, rounded outward (one correctly rounded subtraction/addition each).
-    lo = _down1(cell_bounds.image_lower - eps)
-    hi = _up1(cell_bounds.image_upper + eps)
-    return CellBounds(lo, hi, None)
-
-
-# ============================================================================ main entry
-def _check_models(error_models, n_modes, d):
-    if error_models is None:
-        return None
-    try:
-        models = [list(m) for m in error_models]
-    except TypeError:
-        raise InvalidInputError(
-            f"error_models must be a sequence of {n_modes} sequences of {d} error models; got {type(error_models).__name__}"
-        ) from None
-    if len(models) != n_modes or any(len(m) != d for m in models):
-        raise DimensionError(
-            f"error_models must have shape ({n_modes} modes, {d} dims); got {[len(m) for m in models]}"
-        )
-    for u, row in enumerate(models):
-        for i, m in enumerate(row):
-            if not (callable(getattr(m, "prob_within", None)) and callable(getattr(m, "eps_for_prob", None))):
-                raise InvalidInputError(
-                    f"error_models[{u}][{i}] must have prob_within(eps, std_upper) and eps_for_prob(p, std_upper); "
-                    f"got {type(m).__name__}"
-                )
-    return models
 
 
 def abstract(partition: Partition, cell_bounds: CellBounds, noise: NoiseModel, error_models=None, *,
@@ -573,7 +242,34 @@ def abstract_rows(partition: Partition, cell_bounds: CellBounds, noise: NoiseMod
     partition), so computing the rows chunk by chunk and concatenating them in cell order
     (:func:`assemble_abstraction`) gives exactly :func:`abstract`'s IMDP. Parameters as in
     :func:`abstract`, except that ``cell_bounds`` may hold any number of cells.
+
+    Steps: check the arguments; per mode, the candidate (eps, p) pairs and noise context
+    (:class:`~robust_imdp.abstraction.probabilities._Mode`); pass 1 lists every row's targets and
+    its floor; pass 2 computes the bounds block by block (:func:`_block_rows`).
     """
+    models, eta_fixed = _check_arguments(partition, cell_bounds, noise, error_models, eta, eps_rule, combine,
+                                         floor_tol, _chunk)
+    modes = [_Mode(u, cell_bounds, models, noise, eta_fixed, eps_rule, floor_tol, combine)
+             for u in range(cell_bounds.n_modes)]
+    targets = targets_of(partition)
+    listings, n_listed, floors = _list_targets(targets, cell_bounds, modes, combine)
+    out = _RowArrays.allocate(n_listed, cell_bounds.dim)
+    for u, md in enumerate(modes):
+        for start in range(0, cell_bounds.n_cells, block_size):
+            rows = np.arange(start, min(start + block_size, cell_bounds.n_cells))
+            entries = targets.entries(listings[u], md, rows, cell_bounds.image_lower[u, rows],
+                                      cell_bounds.image_upper[u, rows], n_listed[u, rows])
+            _block_rows(out, u, md, rows, cell_bounds, entries, partition, combine)
+    return AbstractionRows(
+        row_len=out.row_len, col=out.col, lower=out.lower, upper=out.upper, floor=floors.T.ravel(),
+        lower_eps=out.lower_eps, lower_eta=out.lower_eta, containing=out.containing,
+        floor_eps=np.stack([md.floor_eps for md in modes]), floor_eta=np.stack([md.floor_eta for md in modes]),
+        n_modes=cell_bounds.n_modes, eps_rule=eps_rule, combine=combine,
+        eta=None if eta_fixed is None else np.array(eta_fixed), floor_tol=float(floor_tol))
+
+
+def _check_arguments(partition, cell_bounds, noise, error_models, eta, eps_rule, combine, floor_tol, chunk):
+    """Validate :func:`abstract_rows`' arguments; returns ``(models, eta_fixed)`` (either may be None)."""
     if not isinstance(partition, (Partition, BoxPartition)):
         raise InvalidInputError(f"partition must be a Partition or a BoxPartition; got {type(partition).__name__}")
     if not isinstance(cell_bounds, CellBounds):
@@ -587,7 +283,7 @@ def abstract_rows(partition: Partition, cell_bounds: CellBounds, noise: NoiseMod
     if not (0 < floor_tol < 1):
         raise InvalidInputError(f"floor_tol must lie in (0, 1); got {floor_tol!r}")
     M, N, d = cell_bounds.n_modes, cell_bounds.n_cells, cell_bounds.dim
-    if (N != partition.n_cells and not _chunk) or d != partition.dim:
+    if (N != partition.n_cells and not chunk) or d != partition.dim:
         raise DimensionError(
             f"cell_bounds must have shape (n_modes, {partition.n_cells}, {partition.dim}) for this partition; "
             f"got {cell_bounds.image_lower.shape}"
@@ -612,243 +308,134 @@ def abstract_rows(partition: Partition, cell_bounds: CellBounds, noise: NoiseMod
             raise InvalidInputError(f"eta must be finite and > 0 in every dimension; got {eta_fixed.tolist()}")
     elif eps_rule == "paper":
         eta_fixed = noise.default_eta()
-
-    modes = [_Mode(u, cell_bounds, models, noise, eta_fixed, eps_rule, floor_tol, combine) for u in range(M)]
-    if isinstance(partition, BoxPartition):
-        return _box_rows(partition, cell_bounds, modes, combine, block_size, eps_rule, eta_fixed, floor_tol)
-    bp = partition.breakpoints
-    shape = np.array(partition.shape)
-    Xlo, Xhi = partition.space.lower, partition.space.upper
-
-    # ---------------------------------------------------------------- pass 1: listed targets per row
-    klo = np.empty((M, N, d), dtype=np.int64)
-    cnt = np.empty((M, N, d), dtype=np.int64)
-    floors = np.empty((M, N))
-    for u, md in enumerate(modes):
-        a, b = cell_bounds.image_lower[u], cell_bounds.image_upper[u]
-        ef = _up1(md.floor_eps + md.floor_eta)
-        lo, hi = _down1(a - ef), _up1(b + ef)  # closed box ⊇ Im ⊕ e_f
-        for j in range(d):
-            klo[u, :, j] = np.searchsorted(bp[j][1:], lo[:, j], side="left")  # first k: b_{k+1} >= lo
-            khi = np.searchsorted(bp[j][:-1], hi[:, j], side="right") - 1  # last k: b_k <= hi
-            cnt[u, :, j] = np.maximum(khi - klo[u, :, j] + 1, 0)
-        floors[u] = _complement_up(_combine_down(md.floor_p, md.floor_pv, combine))
-    n_listed = np.prod(cnt, axis=2)  # (M, N); 0 when Im ⊕ e_f misses X
-    cnt[n_listed == 0] = 0
-    row_len = (n_listed + 1).T.ravel()  # rows q*M + u (the outside state's rows: assemble_abstraction)
-    row_ptr = np.zeros(row_len.size + 1, dtype=np.int64)
-    np.cumsum(row_len, out=row_ptr[1:])
-    nnz = int(row_ptr[-1])
-    col = np.empty(nnz, dtype=np.int64)
-    lower = np.zeros(nnz)
-    upper = np.empty(nnz)
-
-    lower_eps = np.full((M, N, d), np.nan)
-    lower_eta = np.full((M, N, d), np.nan)
-    containing = np.full((M, N), -1, dtype=np.int64)
-
-    # ---------------------------------------------------------------- pass 2: bounds, block by block
-    for u, md in enumerate(modes):
-        for start in range(0, N, block_size):
-            rows = np.arange(start, min(start + block_size, N))
-            B = rows.size
-            a = cell_bounds.image_lower[u, rows]
-            b = cell_bounds.image_upper[u, rows]
-            # -- cell containing Im(q) with positive margins (Thm 1, eq. lower-bound)
-            j0 = np.empty((B, d), dtype=np.int64)
-            m = np.empty((B, d))
-            inside = np.ones(B, dtype=bool)
-            for j in range(d):
-                k = np.searchsorted(bp[j], a[:, j], side="right") - 1
-                kk = np.clip(k, 0, shape[j] - 1)
-                ok = (k >= 0) & (k < shape[j]) & (b[:, j] <= bp[j][kk + 1])
-                j0[:, j] = kk
-                m[:, j] = np.where(ok, _down1(np.minimum(a[:, j] - bp[j][kk], bp[j][kk + 1] - b[:, j])), 0.0)
-                inside &= ok & (m[:, j] > 0)
-            Pc, PVc = np.zeros((B, d)), np.zeros((B, d))
-            for j in range(d):
-                p_, pv_, e_, h_ = md.split(m[:, j], rows, j, paper_candidate=True)
-                Pc[:, j], PVc[:, j] = p_, pv_
-                lower_eps[u, rows, j], lower_eta[u, rows, j] = e_, h_
-            low_c = np.where(inside, _combine_down(Pc, PVc, combine), 0.0)
-            cont = np.where(inside & (low_c > 0), np.ravel_multi_index(tuple(j0.T), partition.shape), -1)
-            containing[u, rows] = cont
-            lower_eps[u, rows[cont < 0]] = np.nan
-            lower_eta[u, rows[cont < 0]] = np.nan
-            # -- outside state (corollary)
-            PX, PVX = np.zeros((B, d)), np.zeros((B, d))
-            g_out = np.zeros(B)
-            for j in range(d):
-                mX = _down1(np.minimum(a[:, j] - Xlo[j], Xhi[j] - b[:, j]))
-                PX[:, j], PVX[:, j], _, _ = md.split(mX, rows, j, paper_candidate=True)
-                gX = _down1(np.maximum(Xlo[j] - b[:, j], a[:, j] - Xhi[j]))
-                sp, spv, _, _ = md.split(gX, rows, j, paper_candidate=False)
-                g_out = np.maximum(g_out, _separated_best(md, sp, spv, rows, j))
-            up_out = _complement_up(_combine_down(PX, PVX, combine))  # 1 - P_g P_v 1[Im ⊕ e ⊆ X]
-            low_out = g_out  # 1 - (1 - P_g P_v 1[Im ⊕ e ∩ X = ∅])
-            # -- listed cells: per-axis gaps of every listed interval, then entries
-            c = cnt[u, rows]  # (B, d)
-            nl = n_listed[u, rows]
-            per_axis = []
-            for j in range(d):
-                rr = np.repeat(np.arange(B), c[:, j])
-                off = np.zeros(B + 1, dtype=np.int64)
-                np.cumsum(c[:, j], out=off[1:])
-                ell = klo[u, rows, j][rr] + (np.arange(rr.size) - off[rr])
-                gap = _down1(np.maximum(bp[j][ell] - b[rr, j], a[rr, j] - bp[j][ell + 1]))
-                sp, spv, _, _ = md.split(gap, rows[rr], j, paper_candidate=False)
-                per_axis.append((off, ell, sp, spv))
-            E = int(nl.sum())
-            er = np.repeat(np.arange(B), nl)  # block-local row of each entry
-            eoff = np.zeros(B + 1, dtype=np.int64)
-            np.cumsum(nl, out=eoff[1:])
-            t = np.arange(E) - eoff[er]
-            loc = np.empty((E, d), dtype=np.int64)
-            for j in range(d - 1, -1, -1):  # C-order unravel of the local index
-                cj = c[er, j]
-                loc[:, j] = t % np.maximum(cj, 1)
-                t = t // np.maximum(cj, 1)
-            G = np.zeros(E)
-            P0, PV0 = md.top(rows)
-            multi = []
-            for j in range(d):
-                off, ell, sp, spv = per_axis[j]
-                idx = off[er] + loc[:, j]
-                multi.append(ell[idx])
-                P, PV = P0[er], PV0[er]
-                P[:, j], PV[:, j] = sp[idx], spv[idx]
-                G = np.maximum(G, _combine_down(P, PV, combine))
-            cols = np.ravel_multi_index(tuple(multi), partition.shape) if E else np.zeros(0, dtype=np.int64)
-            low = np.where(cols == cont[er], low_c[er], 0.0)
-            # -- scatter into the state-major CSR (row = q * M + u), outside state last
-            grow = rows * M + u
-            dest = row_ptr[grow][er] + np.arange(E) - eoff[er]
-            col[dest] = cols
-            upper[dest] = _complement_up(G)
-            lower[dest] = low
-            dout = row_ptr[grow + 1] - 1
-            col[dout] = partition.n_cells  # the outside state (global index)
-            upper[dout] = up_out
-            lower[dout] = low_out
-    return AbstractionRows(
-        row_len=(n_listed + 1).T.ravel(), col=col, lower=lower, upper=upper, floor=floors.T.ravel(),
-        lower_eps=lower_eps, lower_eta=lower_eta, containing=containing,
-        floor_eps=np.stack([md.floor_eps for md in modes]), floor_eta=np.stack([md.floor_eta for md in modes]),
-        n_modes=M, eps_rule=eps_rule, combine=combine, eta=None if eta_fixed is None else np.array(eta_fixed),
-        floor_tol=float(floor_tol))
+    return models, eta_fixed
 
 
-def _box_rows(partition: BoxPartition, cell_bounds: CellBounds, modes, combine, block_size, eps_rule, eta_fixed,
-              floor_tol) -> AbstractionRows:
-    """:func:`abstract_rows` on a :class:`~robust_imdp.models.geometry.BoxPartition` (cells of different sizes).
+def _list_targets(targets, cell_bounds, modes, combine):
+    """Pass 1: per mode, the targets each row lists and its floor.
 
-    The same Thm 1 bounds as the rectilinear path, entry by entry: the targets of a row are the
-    cells whose closed box meets ``Im ⊕ e_f`` (found through the partition's spatial index,
-    :meth:`BoxPartition.intersecting`), the gap to a target along axis j is
-    ``max(lo_j(q') - b_j, a_j - hi_j(q'))`` rounded down (the rectilinear path's per-interval gap),
-    the containing cell is the listed cell with positive margins ``min(a_j - lo_j(q'), hi_j(q') - b_j)``
-    on every axis (at most one: cells have disjoint interiors), and every other cell is
-    separated from ``Im ⊕ e_f`` along some axis, so the floor bounds it. Each entry is computed
-    by the same operations in the same order as there, so a ``BoxPartition`` whose cells are
-    a grid gives the same numbers as the ``Partition`` of that grid.
+    A row lists every cell meeting the closed box ``[a - e_f, b + e_f] ⊇ Im ⊕ e_f`` (``e_f`` the
+    row's floor pair ``eps_f + eta_f`` rounded up); every other cell is separated from it along
+    some axis, so the floor ``1 - P_g(eps_f) P_v(eta_f)`` bounds them all.
+    Returns ``(listings, n_listed (M, N), floors (M, N))``.
     """
-    M, N, d = cell_bounds.n_modes, cell_bounds.n_cells, cell_bounds.dim
-    Xlo, Xhi = partition.space.lower, partition.space.upper
-    tlo, thi = partition.cells_lower, partition.cells_upper
-    # ---------------------------------------------------------------- pass 1: listed targets per row
-    listed = []
+    M, N = cell_bounds.n_modes, cell_bounds.n_cells
+    listings = []
     n_listed = np.empty((M, N), dtype=np.int64)
     floors = np.empty((M, N))
     for u, md in enumerate(modes):
         a, b = cell_bounds.image_lower[u], cell_bounds.image_upper[u]
-        ef = _up1(md.floor_eps + md.floor_eta)
-        qq, cc = partition.intersecting(_down1(a - ef), _up1(b + ef))  # closed box ⊇ Im ⊕ e_f
-        n_listed[u] = np.bincount(qq, minlength=N)
-        off = np.zeros(N + 1, dtype=np.int64)
-        np.cumsum(n_listed[u], out=off[1:])
-        listed.append((off, cc))
+        ef = up(md.floor_eps + md.floor_eta)
+        n_listed[u], listing = targets.list(down(a - ef), up(b + ef))  # closed box ⊇ Im ⊕ e_f
+        listings.append(listing)
         floors[u] = _complement_up(_combine_down(md.floor_p, md.floor_pv, combine))
-    row_len = (n_listed + 1).T.ravel()  # rows q*M + u (the outside state's rows: assemble_abstraction)
-    row_ptr = np.zeros(row_len.size + 1, dtype=np.int64)
-    np.cumsum(row_len, out=row_ptr[1:])
-    nnz = int(row_ptr[-1])
-    col = np.empty(nnz, dtype=np.int64)
-    lower = np.zeros(nnz)
-    upper = np.empty(nnz)
-    lower_eps = np.full((M, N, d), np.nan)
-    lower_eta = np.full((M, N, d), np.nan)
-    containing = np.full((M, N), -1, dtype=np.int64)
+    return listings, n_listed, floors
 
-    # ---------------------------------------------------------------- pass 2: bounds, block by block
-    for u, md in enumerate(modes):
-        off_all, cc_all = listed[u]
-        for start in range(0, N, block_size):
-            rows = np.arange(start, min(start + block_size, N))
-            B = rows.size
-            a = cell_bounds.image_lower[u, rows]
-            b = cell_bounds.image_upper[u, rows]
-            nl = n_listed[u, rows]
-            E = int(nl.sum())
-            er = np.repeat(np.arange(B), nl)  # block-local row of each entry
-            cols = cc_all[off_all[start]:off_all[start] + E]
-            # -- cell containing Im(q) with positive margins (Thm 1, eq. lower-bound)
-            m = np.empty((E, d))
-            for j in range(d):
-                m[:, j] = _down1(np.minimum(a[er, j] - tlo[cols, j], thi[cols, j] - b[er, j]))
-            hit = np.flatnonzero(np.all(m > 0, axis=1))  # at most one entry per row
-            rin = er[hit]
-            Pc, PVc = np.zeros((hit.size, d)), np.zeros((hit.size, d))
-            for j in range(d):
-                p_, pv_, e_, h_ = md.split(m[hit, j], rows[rin], j, paper_candidate=True)
-                Pc[:, j], PVc[:, j] = p_, pv_
-                lower_eps[u, rows[rin], j], lower_eta[u, rows[rin], j] = e_, h_
-            low_in = _combine_down(Pc, PVc, combine) if hit.size else np.zeros(0)
-            low_c = np.zeros(B)
-            cont = np.full(B, -1, dtype=np.int64)
-            low_c[rin] = low_in
-            cont[rin] = np.where(low_in > 0, cols[hit], -1)
-            containing[u, rows] = cont
-            lower_eps[u, rows[cont < 0]] = np.nan
-            lower_eta[u, rows[cont < 0]] = np.nan
-            # -- outside state (corollary)
-            PX, PVX = np.zeros((B, d)), np.zeros((B, d))
-            g_out = np.zeros(B)
-            for j in range(d):
-                mX = _down1(np.minimum(a[:, j] - Xlo[j], Xhi[j] - b[:, j]))
-                PX[:, j], PVX[:, j], _, _ = md.split(mX, rows, j, paper_candidate=True)
-                gX = _down1(np.maximum(Xlo[j] - b[:, j], a[:, j] - Xhi[j]))
-                sp, spv, _, _ = md.split(gX, rows, j, paper_candidate=False)
-                g_out = np.maximum(g_out, _separated_best(md, sp, spv, rows, j))
-            up_out = _complement_up(_combine_down(PX, PVX, combine))  # 1 - P_g P_v 1[Im ⊕ e ⊆ X]
-            low_out = g_out  # 1 - (1 - P_g P_v 1[Im ⊕ e ∩ X = ∅])
-            # -- listed cells: per-axis gaps of every entry, then the separation bound
-            G = np.zeros(E)
-            P0, PV0 = md.top(rows)
-            for j in range(d):
-                gap = _down1(np.maximum(tlo[cols, j] - b[er, j], a[er, j] - thi[cols, j]))
-                sp, spv, _, _ = md.split(gap, rows[er], j, paper_candidate=False)
-                P, PV = P0[er], PV0[er]
-                P[:, j], PV[:, j] = sp, spv
-                G = np.maximum(G, _combine_down(P, PV, combine))
-            low = np.where(cols == cont[er], low_c[er], 0.0)
-            # -- scatter into the state-major CSR (row = q * M + u), outside state last
-            eoff = np.zeros(B + 1, dtype=np.int64)
-            np.cumsum(nl, out=eoff[1:])
-            grow = rows * M + u
-            dest = row_ptr[grow][er] + np.arange(E) - eoff[er]
-            col[dest] = cols
-            upper[dest] = _complement_up(G)
-            lower[dest] = low
-            dout = row_ptr[grow + 1] - 1
-            col[dout] = partition.n_cells  # the outside state (global index)
-            upper[dout] = up_out
-            lower[dout] = low_out
-    return AbstractionRows(
-        row_len=row_len, col=col, lower=lower, upper=upper, floor=floors.T.ravel(),
-        lower_eps=lower_eps, lower_eta=lower_eta, containing=containing,
-        floor_eps=np.stack([md.floor_eps for md in modes]), floor_eta=np.stack([md.floor_eta for md in modes]),
-        n_modes=M, eps_rule=eps_rule, combine=combine, eta=None if eta_fixed is None else np.array(eta_fixed),
-        floor_tol=float(floor_tol))
+
+@dataclass(frozen=True, eq=False)
+class _RowArrays:
+    """The state-major CSR arrays being filled (row ``q * M + u``; each row's last entry: the outside state)."""
+
+    row_len: np.ndarray
+    row_ptr: np.ndarray
+    col: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    lower_eps: np.ndarray
+    lower_eta: np.ndarray
+    containing: np.ndarray
+
+    @classmethod
+    def allocate(cls, n_listed, d):
+        M, N = n_listed.shape
+        row_len = (n_listed + 1).T.ravel()  # rows q*M + u (the outside state's rows: assemble_abstraction)
+        row_ptr = np.zeros(row_len.size + 1, dtype=np.int64)
+        np.cumsum(row_len, out=row_ptr[1:])
+        nnz = int(row_ptr[-1])
+        return cls(row_len=row_len, row_ptr=row_ptr, col=np.empty(nnz, dtype=np.int64), lower=np.zeros(nnz),
+                   upper=np.empty(nnz), lower_eps=np.full((M, N, d), np.nan), lower_eta=np.full((M, N, d), np.nan),
+                   containing=np.full((M, N), -1, dtype=np.int64))
+
+
+def _block_rows(out: _RowArrays, u, md, rows, cell_bounds, entries, partition, combine):
+    """Pass 2 for the rows ``rows`` of mode ``u``: Thm 1's bounds of every listed entry and the outside state."""
+    M = cell_bounds.n_modes
+    a = cell_bounds.image_lower[u, rows]
+    b = cell_bounds.image_upper[u, rows]
+    er, cols = entries.row, entries.cell
+    low_c, cont = _containing(out, u, md, rows, a, b, entries, partition, combine)
+    up_out, low_out = _outside_bounds(md, rows, a, b, partition.space, combine)
+    # -- listed cells: the separation bound of every entry (Thm 1, eq. upper-bound)
+    G = np.zeros(er.size)
+    P0, PV0 = md.top(rows)
+    for j in range(a.shape[1]):
+        P, PV = P0[er], PV0[er]
+        P[:, j], PV[:, j] = entries.gap_p[j], entries.gap_pv[j]
+        G = np.maximum(G, _combine_down(P, PV, combine))
+    low = np.where(cols == cont[er], low_c[er], 0.0)
+    # -- scatter into the state-major CSR (row = q * M + u), outside state last
+    eoff = np.zeros(rows.size + 1, dtype=np.int64)
+    np.cumsum(np.bincount(er, minlength=rows.size), out=eoff[1:])
+    grow = rows * M + u
+    dest = out.row_ptr[grow][er] + np.arange(er.size) - eoff[er]
+    out.col[dest] = cols
+    out.upper[dest] = _complement_up(G)
+    out.lower[dest] = low
+    dout = out.row_ptr[grow + 1] - 1
+    out.col[dout] = partition.n_cells  # the outside state (global index)
+    out.upper[dout] = up_out
+    out.lower[dout] = low_out
+
+
+def _containing(out: _RowArrays, u, md, rows, a, b, entries, partition, combine):
+    """The cell containing ``Im(q)`` with positive margins and its lower bound (Thm 1, eq. lower-bound).
+
+    Among a row's listed entries, the one with margins ``min(a_j - lo_j(q'), hi_j(q') - b_j) > 0``
+    (rounded down) on every axis; at most one, since cells have disjoint interiors. Records the
+    pair (eps, eta) behind the bound and the cell (-1 if none or if the bound is 0) in ``out``.
+    Returns ``(low_c, cont)``, (B,) each.
+    """
+    er, cols = entries.row, entries.cell
+    tlo, thi = partition.cells_lower, partition.cells_upper
+    B, d = a.shape
+    m = np.empty((er.size, d))
+    for j in range(d):
+        m[:, j] = down(np.minimum(a[er, j] - tlo[cols, j], thi[cols, j] - b[er, j]))
+    hit = np.flatnonzero(np.all(m > 0, axis=1))  # at most one entry per row
+    rin = er[hit]
+    Pc, PVc = np.zeros((hit.size, d)), np.zeros((hit.size, d))
+    for j in range(d):
+        p_, pv_, e_, h_ = md.split(m[hit, j], rows[rin], j, paper_candidate=True)
+        Pc[:, j], PVc[:, j] = p_, pv_
+        out.lower_eps[u, rows[rin], j], out.lower_eta[u, rows[rin], j] = e_, h_
+    low_in = _combine_down(Pc, PVc, combine) if hit.size else np.zeros(0)
+    low_c = np.zeros(B)
+    cont = np.full(B, -1, dtype=np.int64)
+    low_c[rin] = low_in
+    cont[rin] = np.where(low_in > 0, cols[hit], -1)
+    out.containing[u, rows] = cont
+    out.lower_eps[u, rows[cont < 0]] = np.nan
+    out.lower_eta[u, rows[cont < 0]] = np.nan
+    return low_c, cont
+
+
+def _outside_bounds(md, rows, a, b, space, combine):
+    """Bounds of the transition to the outside state (the corollary of Thm 1): ``(upper, lower)``, (B,) each.
+
+    ``upper = 1 - P_g P_v 1[Im ⊕ e ⊆ X]`` (margins to X's faces) and ``lower = P_g P_v 1[Im ⊕ e ∩ X = ∅]``
+    (the best axis separating the image from X, every other axis at its top candidates).
+    """
+    Xlo, Xhi = space.lower, space.upper
+    B, d = a.shape
+    PX, PVX = np.zeros((B, d)), np.zeros((B, d))
+    g_out = np.zeros(B)
+    for j in range(d):
+        mX = down(np.minimum(a[:, j] - Xlo[j], Xhi[j] - b[:, j]))
+        PX[:, j], PVX[:, j], _, _ = md.split(mX, rows, j, paper_candidate=True)
+        gX = down(np.maximum(Xlo[j] - b[:, j], a[:, j] - Xhi[j]))
+        sp, spv, _, _ = md.split(gX, rows, j, paper_candidate=False)
+        g_out = np.maximum(g_out, _separated_best(md, sp, spv, rows, j))
+    return _complement_up(_combine_down(PX, PVX, combine)), g_out
 
 
 def select_rows(rows: AbstractionRows, cells) -> AbstractionRows:
@@ -937,7 +524,7 @@ def _check_rows(row_ptr, lower, upper, floor, n_states, M):
     n = np.diff(row_ptr)
     s_low = np.add.reduceat(lower, row_ptr[:-1]) if lower.size else np.zeros(n.size)
     s_up = np.add.reduceat(upper, row_ptr[:-1]) + floor * (n_states - n)
-    tol = (n + 2) * 4 * _U
+    tol = (n + 2) * 4 * U
     bad = np.flatnonzero((s_low > 1 + tol) | (s_up < 1 - tol))
     if bad.size:
         r = int(bad[0])

@@ -412,6 +412,22 @@ class Partition:
 
 
 # ============================================================================ non-uniform cells
+def intervals_meeting(breakpoints, lo, hi):
+    """Per axis j, the grid intervals ``[b_l, b_{l+1}]`` of ``breakpoints[j]`` meeting each closed ``[lo, hi]``.
+
+    ``lo, hi`` are (k, d) arrays. Returns ``(first, count)``, (k, d) int64 arrays: the intervals
+    ``first, ..., first + count - 1`` (``count = 0``: none; closed intervals meet iff they share a point).
+    """
+    k, d = lo.shape
+    first = np.empty((k, d), dtype=np.int64)
+    count = np.empty((k, d), dtype=np.int64)
+    for j in range(d):
+        first[:, j] = np.searchsorted(breakpoints[j][1:], lo[:, j], side="left")  # first l: b_{l+1} >= lo
+        last = np.searchsorted(breakpoints[j][:-1], hi[:, j], side="right") - 1  # last l: b_l <= hi
+        count[:, j] = np.maximum(last - first[:, j] + 1, 0)
+    return first, count
+
+
 class BoxPartition:
     """Boxes of different sizes tiling X: a rectilinear :class:`Partition` refined by bisection.
 
@@ -648,13 +664,7 @@ class BoxPartition:
             raise DimensionError(f"lower and upper must both have shape (k, {self.dim}); got {lo.shape}, {hi.shape}")
         k = lo.shape[0]
         # base cells: per axis, the intervals [b_l, b_{l+1}] meeting [lo, hi] (closed)
-        bp = self.base.breakpoints
-        klo = np.empty((k, self.dim), dtype=np.int64)
-        cnt = np.empty((k, self.dim), dtype=np.int64)
-        for j in range(self.dim):
-            klo[:, j] = np.searchsorted(bp[j][1:], lo[:, j], side="left")  # first l: b_{l+1} >= lo
-            khi = np.searchsorted(bp[j][:-1], hi[:, j], side="right") - 1  # last l: b_l <= hi
-            cnt[:, j] = np.maximum(khi - klo[:, j] + 1, 0)
+        klo, cnt = intervals_meeting(self.base.breakpoints, lo, hi)
         tot = np.prod(cnt, axis=1)
         q = np.repeat(np.arange(k), tot)
         off = np.zeros(k + 1, dtype=np.int64)
