@@ -36,6 +36,7 @@ from scipy import ndimage
 
 from robust_imdp.errors import DimensionError, InvalidInputError
 from robust_imdp.io.files import ResultFile, as_result_file as _as_result_file
+from robust_imdp.validate import RUNNING, SATISFIED, VIOLATED
 
 __all__ = [
     "plot_partition",
@@ -253,10 +254,10 @@ def plot_values(result, which: str = "p_low", ax=None, *, title: str | None = No
     return ax
 
 
-_END_STYLES = {  # outcome code of validate.simulate -> marker style
-    1: dict(marker="*", s=110, c="white", edgecolors="black", linewidths=0.9),
-    2: dict(marker="X", s=70, c="black", edgecolors="white", linewidths=0.9),
-    0: dict(marker="o", s=30, c="#969696", edgecolors="black", linewidths=0.6),
+_END_STYLES = {  # outcome code of validate.simulate -> marker style (legend order)
+    SATISFIED: dict(marker="*", s=110, c="white", edgecolors="black", linewidths=0.9),
+    VIOLATED: dict(marker="X", s=70, c="black", edgecolors="white", linewidths=0.9),
+    RUNNING: dict(marker="o", s=30, c="#969696", edgecolors="black", linewidths=0.6),
 }
 
 

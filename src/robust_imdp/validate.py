@@ -40,8 +40,12 @@ __all__ = [
     "simulate",
     "validate",
     "MAX_STEPS",
+    "RUNNING",
+    "SATISFIED",
+    "VIOLATED",
 ]
 
+#: Outcome of a simulated run (``Trajectories.outcome``): still undecided, satisfied, violated.
 RUNNING, SATISFIED, VIOLATED = 0, 1, 2
 #: Default step cap of a simulated run, the same for :func:`validate`, :func:`simulate` and
 #: ``robust-imdp simulate --max-steps`` (runs still undecided there count as "capped").
