@@ -27,6 +27,11 @@ from robust_imdp.errors import ConvergenceError, DimensionError, InvalidInputErr
 # The GP route logs under one name, ``robust_imdp.bounds.gp`` (the public module).
 log = logging.getLogger("robust_imdp.bounds.gp")
 
+#: Factorisations of ``K + (lambda + jitter) I`` tried, the jitter growing tenfold each time.
+_JITTER_TRIES = 12
+#: The negative log likelihood reported where the kernel matrix is not positive definite.
+_FAILED_NLL = 1e25
+
 #: The string accepted as ``noise_variance`` to request the regulariser of Chowdhury &
 #: Gopalan (2017, Thm 2): ``lambda = 1 + eta`` with ``eta = 2 / m`` (m = number of samples).
 CHOWDHURY = "chowdhury"
@@ -338,7 +343,7 @@ def _stable_cholesky(K: np.ndarray, lam: float) -> tuple[np.ndarray, float]:
     m = K.shape[0]
     scale = float(np.mean(np.diag(K))) + lam
     jitter = 0.0
-    for _ in range(12):
+    for _ in range(_JITTER_TRIES):
         A = K.copy()
         A[np.diag_indices(m)] += lam + jitter
         try:
@@ -371,13 +376,13 @@ def _nll_and_grad(theta: np.ndarray, X: np.ndarray, y: np.ndarray, fixed_noise: 
     try:
         L = scipy.linalg.cholesky(A, lower=True, check_finite=False)
     except np.linalg.LinAlgError:
-        return 1e25, np.zeros_like(theta)
+        return _FAILED_NLL, np.zeros_like(theta)
     a = scipy.linalg.cho_solve((L, True), y, check_finite=False)
     nll = 0.5 * y @ a + np.sum(np.log(np.diag(L))) + 0.5 * m * math.log(2 * math.pi)
     # A^{-1} from the Cholesky factor (LAPACK potri fills the lower triangle only).
     Ainv, info = scipy.linalg.lapack.dpotri(L, lower=1)
     if info != 0:  # pragma: no cover - L is a valid factor here
-        return 1e25, np.zeros_like(theta)
+        return _FAILED_NLL, np.zeros_like(theta)
     Ainv = np.tril(Ainv) + np.tril(Ainv, -1).T
     W = np.outer(a, a) - Ainv
     grad = np.empty_like(theta)

@@ -48,6 +48,10 @@ from robust_imdp.models.intervals import (MARGIN_ULP, _WHY, _dn, _i_mul, _interv
 
 __all__ = ["KnownDynamics", "ImageBounds", "AchievedRange", "Residuals", "FUNCTIONS", "MARGIN_ULP"]
 
+#: Boxes of up to this many dimensions are sampled at all their 2^n vertices (256 at most);
+#: larger ones are not (the bisection's sampled range takes their face centres instead).
+_MAX_VERTEX_DIMS = 8
+
 # --------------------------------------------------------------------------- results
 @dataclass(frozen=True)
 class ImageBounds:
@@ -419,7 +423,7 @@ class KnownDynamics:
         """Min and max of the computed values at the centre and the vertices (face centres if n > 8)."""
         k, n = lo.shape
         c = 0.5 * lo + 0.5 * hi
-        if n <= 8:
+        if n <= _MAX_VERTEX_DIMS:
             corners = (np.arange(2 ** n)[:, None] >> np.arange(n)[None, :]) & 1  # (2^n, n)
             pts = np.where(corners[None].astype(bool), hi[:, None, :], lo[:, None, :])
         else:
@@ -446,7 +450,7 @@ class KnownDynamics:
         gen = np.random.default_rng(rng)
         c = 0.5 * lower + 0.5 * upper
         parts = [c[:, None, :]]
-        if n <= 8:
+        if n <= _MAX_VERTEX_DIMS:
             corners = ((np.arange(2 ** n)[:, None] >> np.arange(n)[None, :]) & 1).astype(bool)
             parts.append(np.where(corners[None], upper[:, None, :], lower[:, None, :]))
         if n_samples > 0:
