@@ -17,6 +17,9 @@ def jsonable(obj):
     Dicts get ``str`` keys, tuples become lists, and non-finite floats become ``None`` (JSON has
     no NaN or infinity). Anything else is returned as it is (``json.dumps`` then refuses what it
     cannot write).
+
+    >>> jsonable({1: np.array([0.5, np.inf]), "n": np.int64(3), "t": (np.float64(0.25), "a")})
+    {'1': [0.5, None], 'n': 3, 't': [0.25, 'a']}
     """
     if isinstance(obj, dict):
         return {str(k): jsonable(v) for k, v in obj.items()}
