@@ -46,19 +46,36 @@ _VARIANT_BASE = ROOT / "examples" / "problems" / "three_mode_linear.toml"
 def _variants() -> dict[str, tuple[str, str]]:
     """name -> (edit to the coarse three-mode problem, what path it takes)."""
     return {
-        "v_ridge": ('[gp]\nerror_bound = "ridge"\n', "ridge weights"),
-        "v_local": ("[gp]\nlocal_points = 40\n", "local optimal weights"),
-        "v_local_ridge": ('[gp]\nlocal_points = 40\nerror_bound = "ridge"\n', "local ridge weights"),
-        "v_gp": ('[gp]\nerror_bound = "chowdhury"\nmisspecification = 0.0\n', "GP route (Chowdhury & Gopalan)"),
-        "v_iid": ("[gp]\niid_noise = true\n", "iid (sub-Gaussian) route"),
+        "v_ridge": ('[learning]\nerror_bound = "ridge"\n', "ridge weights"),
+        "v_local": ("[learning]\nlocal_points = 40\n", "local optimal weights"),
+        "v_local_ridge": ('[learning]\nlocal_points = 40\nerror_bound = "ridge"\n', "local ridge weights"),
+        "v_gp": ('[learning]\nerror_bound = "chowdhury"\nmisspecification = 0.0\n', "GP route (Chowdhury & Gopalan)"),
+        "v_iid": ("[learning]\niid_noise = true\n", "iid (sub-Gaussian) route"),
         "v_known_f": ("MODES_F", "known nonlinear parts f = [...]"),
-        "v_per_component": ('[gp]\nrkhs_bound = {"1" = [6.0, 5.0], "2" = [6.0, 6.0], "3" = [5.5, 6.0]}\n'
+        "v_per_component": ('[learning]\nrkhs_bound = {"1" = [6.0, 5.0], "2" = [6.0, 6.0], "3" = [5.5, 6.0]}\n'
                             'misspecification = [0.001, 0.002]\n', "per-mode and per-component settings"),
         "v_refine": ("[refine]\nmax_cells = 160\nmax_rounds = 2\n", "adaptive refinement"),
         "v_horizon": ("[spec]\nhorizon = 6\n", "finite horizon"),
         "v_uniform": ('[noise]\nkind = "uniform"\nbound = [0.01, 0.01]\n', "uniform noise"),
         "v_abstraction": ('[abstraction]\neps_rule = "paper"\neta = [0.05, 0.05]\n', "the paper's eps rule"),
     }
+
+
+#: The learning table's name and its former one (a tree before the rename reads only ``[gp]``).
+_LEARNING = ("[learning]", "[gp]")
+
+
+def _reads_learning(env: dict) -> bool:
+    """Whether the tree under test reads the ``[learning]`` table (else its problems say ``[gp]``)."""
+    code = "from robust_imdp.io.problem_file import LEARNING_TABLE"
+    return subprocess.run([sys.executable, "-c", code], env=env, capture_output=True).returncode == 0
+
+
+def _to_former_names(probs: list[tuple[str, Path]]) -> None:
+    """Rename the ``[learning]`` table of every problem file to ``[gp]`` (same keys, same problem)."""
+    for _name, p in probs:
+        t = p.read_text()
+        p.write_text(re.sub(r"^\[learning\]$", "[gp]", t, flags=re.M))
 
 
 def _edit_toml(text: str, edit: str) -> str:
@@ -70,6 +87,9 @@ def _edit_toml(text: str, edit: str) -> str:
         return text
     table, body = edit.split("\n", 1)
     lines = text.splitlines(keepends=True)
+    if table in _LEARNING:  # the learning table under the name the text uses
+        table = next((t for t in _LEARNING if t + "\n" in lines), table)
+        edit = table + "\n" + body
     new_keys = {ln.split("=", 1)[0].strip(): ln for ln in body.splitlines(keepends=True) if "=" in ln}
     if table + "\n" not in lines:
         return text.rstrip("\n") + "\n\n" + edit
@@ -146,6 +166,8 @@ def _problems(work: Path, full: bool, env: dict) -> list[tuple[str, Path]]:
             t = re.sub(r"cell_size = \[[^\]]*\]", "cell_size = [0.25, 0.25, 0.39269908169872414]", t)
             p.write_text(t)
         probs.append((f"example_{name}", p))
+    if not _reads_learning(env):
+        _to_former_names(probs)
     return probs
 
 

@@ -19,7 +19,7 @@ b = [1.0]
 [noise]
 kind = "uniform"
 bound = [0.01]
-[gp]
+[learning]
 rkhs_bound = 1.0
 """
 

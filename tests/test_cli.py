@@ -29,7 +29,7 @@ b = [0.0, 0.0]
 kind = "truncated_gaussian"
 sigma = [0.01, 0.01]
 bound = [0.01, 0.01]
-[gp]
+[learning]
 rkhs_bound = 10.0
 """
 
@@ -229,6 +229,19 @@ def test_warnings_read_like_errors(tmp_path, capsys):
     lines = err.strip().splitlines()
     assert lines[0].startswith("robust-imdp: warning: data file ") and "mode 'a' has 3 samples" in lines[0]
     assert lines[1].startswith("robust-imdp: error: ") and len(lines) == 2  # no source line, no "warnings.warn("
+
+
+
+def test_former_gp_table_warns_on_the_cli(tmp_path, capsys):
+    p = tmp_path / "p.toml"
+    p.write_text(GOOD_HEAD.replace("[learning]", "[gp]"))
+    (tmp_path / "data.csv").write_text("x_1,x_2,u,x_next_1,x_next_2\n" + "".join(f"{k / 10},0,a,0,0\n" for k in range(12)))
+    code, _, err = _run(["run", str(p), "--out", str(tmp_path / "o"), "--formula", "F goal", "--quiet"], capsys)
+    assert code == 1
+    lines = err.strip().splitlines()
+    assert lines[0] == (f"robust-imdp: warning: {p}: table [gp] is now called [learning] (same keys; the default "
+                        "route is not a GP): rename [gp] to [learning]")
+    assert lines[1].startswith("robust-imdp: error: ") and len(lines) == 2
 
 
 # --------------------------------------------------------------------------- simulate a user's system

@@ -30,7 +30,7 @@ b = [0.3, 0.0]
 [noise]
 kind = "uniform"
 bound = [0.02, 0.02]
-[gp]
+[learning]
 rkhs_bound = 0.2
 """
 

@@ -39,7 +39,7 @@ b = [0.1, 0.0]
 kind = "truncated_gaussian"
 sigma = [0.01, 0.01]
 bound = [0.01, 0.01]
-[gp]
+[learning]
 rkhs_bound = 10.0
 """
 
@@ -64,7 +64,7 @@ def test_good_file_parses(tmp_path):
     ("cell_size = [0.5, 0.5]\n", "", r"\[space\] is missing required key 'cell_size'"),
     ("cell_size =", "cellsize =", r"\[space\] has unknown key 'cellsize' \(did you mean 'cell_size'\?\)"),
     ("[spec]", "[spek]", r"unknown key 'spek' \(did you mean 'spec'\?\)"),
-    ("rkhs_bound", "rkhs_bnd", r"\[gp\] has unknown key 'rkhs_bnd' \(did you mean 'rkhs_bound'\?\)"),
+    ("rkhs_bound", "rkhs_bnd", r"\[learning\] has unknown key 'rkhs_bnd' \(did you mean 'rkhs_bound'\?\)"),
     ("threshold = 0.95", 'threshold = "high"', r"\[spec\].threshold must be a number; got 'high'"),
     ("threshold = 0.95", "threshold = 1.5", r"threshold must lie in \[0.0, 1.0\]"),
     ("threshold = 0.95", "threshold = 0.9\nhorizon = 2.5", r"horizon must be an integer"),
@@ -258,7 +258,7 @@ b = [0.0, 0.0]
 kind = "truncated_gaussian"
 sigma = [0.01, 0.01]
 bound = [0.05, 0.05]
-[gp]
+[learning]
 rkhs_bound = 3.0
 """
 
@@ -281,7 +281,7 @@ def test_impossible_sample_is_refused_at_load_like_the_assumption_check(tmp_path
     residuals = [0.1] * 11 + [r] + [0.2] * 3  # the bad sample is data row 12: file line 13
     path = _one_mode(tmp_path, residuals)
     if refused:
-        with pytest.raises(AssumptionError, match=r"\[gp\].rkhs_bound = 3 is refuted by the data: mode 'a', component "
+        with pytest.raises(AssumptionError, match=r"\[learning\].rkhs_bound = 3 is refuted by the data: mode 'a', component "
                                                   r"1 .* sample 11 \(data file .*d.csv, line 13\): its residual "
                                                   rf"{r:g} in component 1 is impossible under the assumption, since "
                                                   r".* = 3.05 everywhere"):
@@ -369,3 +369,49 @@ def test_result_files_get_the_mode_of_every_other_output(tmp_path, umask):
     want = 0o666 & ~umask  # 0644 or 0600
     modes = {name: (tmp_path / name).stat().st_mode & 0o777 for name in ("result.json", "result.npz", "plain.txt")}
     assert modes == {"result.json": want, "result.npz": want, "plain.txt": want}
+
+
+# --------------------------------------------------------------------------- [learning], formerly [gp]
+def _fields(problem):
+    """Every attribute of a Problem as comparable plain values (arrays as lists)."""
+    from dataclasses import fields
+
+    out = {}
+    for f in fields(problem):
+        v = getattr(problem, f.name)
+        out[f.name] = repr(v) if f.name in ("data", "maps", "noise", "regions") else (
+            np.asarray(v).tolist() if isinstance(v, np.ndarray) else v)
+    return out
+
+
+def test_former_table_name_gp_warns_and_gives_the_same_problem(tmp_path):
+    from robust_imdp.io.files import load_problem
+
+    residuals = [0.1] * 12
+    new = load_problem(_one_mode(tmp_path, residuals))
+    with pytest.warns(DeprecationWarning, match=r"p\.toml: table \[gp\] is now called \[learning\] .*rename \[gp\] to "
+                                                r"\[learning\]"):
+        old = load_problem(_one_mode(tmp_path, residuals, ONE_MODE.replace("[learning]", "[gp]")))
+    assert _fields(old) == _fields(new)
+    np.testing.assert_array_equal(old.data.x, new.data.x)
+    np.testing.assert_array_equal(old.data.x_next, new.data.x_next)
+    assert old.data.u.tolist() == new.data.u.tolist()
+    # messages of an old file keep naming the table as written
+    with pytest.warns(DeprecationWarning), pytest.raises(ProblemFileError, match=r"\[gp\] has unknown key 'rkhs_bnd'"):
+        parse_problem_file(_write(tmp_path, GOOD.replace("[learning]", "[gp]").replace("rkhs_bound", "rkhs_bnd")))
+
+
+def test_both_learning_and_gp_tables_are_an_error_naming_the_file(tmp_path):
+    text = GOOD + "[gp]\nrkhs_bound = 1.0\n"
+    with pytest.raises(ProblemFileError, match=r"p\.toml: tables \[learning\] and \[gp\] are both given"):
+        parse_problem_file(_write(tmp_path, text))
+
+
+def test_a_missing_learning_table_is_named():
+    from robust_imdp.io.files import parse_problem_dict
+    import tomllib
+
+    doc = tomllib.loads(GOOD)
+    del doc["learning"]
+    with pytest.raises(ProblemFileError, match=r"missing required key 'learning'"):
+        parse_problem_dict(doc, where="p.toml")

@@ -272,7 +272,7 @@ f = ["0.9*x1 - 0.1*x2^2", "x2 - 0.2*tanh(x1)"]
 kind = "uniform"
 bound = [0.01, 0.01]
 
-[gp]
+[learning]
 {gp}
 lengthscale = 1.0
 """
@@ -348,10 +348,10 @@ def test_problem_file_errors_in_f(tmp_path, capsys, mode_a, match):
 
 
 @pytest.mark.parametrize("gp, match", [
-    ("rkhs_bound = [0.1, 0.2, 0.3]", r"\[gp\]\.rkhs_bound must be a number or a list of 2 numbers"),
-    ("rkhs_bound = {a = 0.1, c = 0.2}", r"\[gp\]\.rkhs_bound names modes \['c'\] that are not defined"),
-    ("rkhs_bound = 0.1\nmisspecification = {a = [0.0], b = 0.0}", r"\[gp\]\.misspecification\.a must be a number"),
-    ("rkhs_bound = 0.1\nknown = [true]", r"\[gp\]\.known must be a list of 2 true/false values"),
+    ("rkhs_bound = [0.1, 0.2, 0.3]", r"\[learning\]\.rkhs_bound must be a number or a list of 2 numbers"),
+    ("rkhs_bound = {a = 0.1, c = 0.2}", r"\[learning\]\.rkhs_bound names modes \['c'\] that are not defined"),
+    ("rkhs_bound = 0.1\nmisspecification = {a = [0.0], b = 0.0}", r"\[learning\]\.misspecification\.a must be a number"),
+    ("rkhs_bound = 0.1\nknown = [true]", r"\[learning\]\.known must be a list of 2 true/false values"),
 ])
 def test_problem_file_errors_per_component(tmp_path, capsys, gp, match):
     from robust_imdp.io.files import parse_problem_file

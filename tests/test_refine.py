@@ -490,6 +490,6 @@ def test_refine_table_in_the_problem_file():
                          ("max_rounds = 2", "missing required key 'max_cells'")):
         with pytest.raises(ProblemFileError, match=match):
             parse_problem_dict(tomllib.loads(base + "\n[refine]\n" + extra + "\n"))
-    gp = base.replace("[gp]\n", "[gp]\niid_noise = true\n")
+    gp = base.replace("[learning]\n", "[learning]\niid_noise = true\n")
     with pytest.raises(ProblemFileError, match=r"\[refine\] needs"):
         parse_problem_dict(tomllib.loads(gp + "\n[refine]\nmax_cells = 9\n"))

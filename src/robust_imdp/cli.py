@@ -499,6 +499,8 @@ def main(argv=None) -> int:
         with warnings.catch_warnings():
             if not args.debug:  # --debug keeps Python's format, with the source line
                 warnings.showwarning = _show_warning
+            # the library's own deprecations (e.g. a problem file's former table names) are for the user
+            warnings.filterwarnings("default", category=DeprecationWarning, module=r"robust_imdp\.")
             return commands[args.command](args)
     except KeyboardInterrupt:
         if args.debug:

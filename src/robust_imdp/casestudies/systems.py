@@ -461,7 +461,7 @@ def problem_toml(case: CaseStudy, formula: str, data_path: str, *, rkhs_bound: f
         lines += [f'[modes."{m}"]', f"A = {_toml_list(sysm.known_A[i])}",
                   f"b = {_toml_list(sysm.known_b[i])}"]
     lines += ["", "[noise]", 'kind = "truncated_gaussian"', f"sigma = {_toml_list(sysm.sigma)}",
-              f"bound = {_toml_list(sysm.bound)}", "", "[gp]", f"rkhs_bound = {float(rkhs_bound)!r}"]
+              f"bound = {_toml_list(sysm.bound)}", "", "[learning]", f"rkhs_bound = {float(rkhs_bound)!r}"]
     for key, value in case.gp:
         if isinstance(value, str):
             lines.append(f'{key} = "{value}"')

@@ -246,11 +246,11 @@ class Problem:
             The known part ``f_u`` of each mode, in mode order (``[modes.NAME]``: ``A``/``b`` or ``f``).
         noise : noise model (``TruncatedGaussianNoise``, ``GaussianNoise``, ``UniformNoise``)
         rkhs_bound : float, list of n floats or dict mode -> either
-            The assumption B (``[gp].rkhs_bound``), per mode and component where given so; 0 marks a
+            The assumption B (``[learning].rkhs_bound``), per mode and component where given so; 0 marks a
             known component (``robust_imdp.bounds.assumptions``).
         horizon : int or None
         lengthscale : float, (n,) float array (per input dimension), per-component list or dict per mode
-            The kernel lengthscale (``[gp].lengthscale``, kept in ``gp_options``).
+            The kernel lengthscale (``[learning].lengthscale``, kept in ``gp_options``).
         names : sequence of n str, optional
             Dimension names (``[space].names``).
         **options

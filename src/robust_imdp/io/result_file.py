@@ -1,0 +1,382 @@
+"""Result files: ``result.json`` (the documented contract, see :func:`result_to_dict` and the JSON
+schema ``docs/result.schema.json``) and ``result.npz`` (the same arrays in binary form). Both are
+written under temporary names and renamed only when complete, so an interrupted run never leaves a
+result that looks finished. :class:`ResultFile` reads ``result.json`` back as arrays.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from robust_imdp.errors import DimensionError, InvalidInputError, ProblemFileError
+from robust_imdp.io.data_file import _read_text
+from robust_imdp.jsonable import jsonable as _jsonable
+
+__all__ = ["result_to_dict", "save_result", "load_result", "ResultFile", "as_result_file", "RESULT_FORMAT"]
+
+
+def _umask() -> int:
+    """The process's umask (read by setting it and setting it back; there is no getter)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _atomic_write(path: Path, write) -> None:
+    """Write via ``write(tmp_path)`` to a temporary file in the same directory, then rename."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
+    os.close(fd)
+    try:
+        # mkstemp creates the file with mode 0600; give it the mode open() gives every other
+        # output (PNG figures, validation.json): 0666 less the umask.
+        os.chmod(tmp, 0o666 & ~_umask())
+        write(Path(tmp))
+        # on disk before the rename: a crash cannot leave an empty file under the final name
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+RESULT_FORMAT = "robust_imdp.result/1"
+CLASS_NAMES = ("yes", "no", "maybe")
+
+
+def result_to_dict(result) -> dict[str, Any]:
+    """The ``result.json`` contract as a plain dict.
+
+    Keys
+    ----
+    format : str
+        ``"robust_imdp.result/1"``.
+    space : {"lower", "upper", "names"?}
+        The compact set X; leaving it is a violation. ``names``: the dimension names
+        (``[space].names``), only when the problem gives them.
+    cells : {"lower", "upper"}
+        Per cell (index order), lists of n floats.
+    labels : list of list of str
+        Per cell, the regions (atoms) containing it.
+    modes : list of str
+        Mode names; ``strategy`` entries are these names.
+    dfa : {"atoms", "initial", "accepting", "delta"}
+        ``delta[state][letter]`` where bit i of ``letter`` is ``atoms[i]``; ``accepting`` is the
+        list of accepting states.
+    strategy : list (cells) of list (DFA states) of str
+        ``strategy[q][s]``: the mode to apply in cell q when the DFA is in state s.
+    strategy_by_time : list (steps) of such tables, or null
+        For k-step results only: ``strategy_by_time[t][q][s]`` is the mode at step t
+        (``strategy`` is then step 0).
+    p_low, p_up, p_up_star, error : list of float
+        Per cell, bounds for the cell's initial product state (q, delta(initial, L(q))).
+    classes : list of str
+        Per cell ``"yes"`` (p_low >= threshold), ``"no"`` (p_up < threshold) or ``"maybe"``.
+    no_strategy_can : list of bool
+        Per cell ``p_up_star < threshold``: no controller at all can meet the threshold (a
+        refinement of ``"no"``; the other "no" cells are "no" under this controller only).
+    formula, threshold, horizon, parameters, timings
+        What was solved, with which settings, and stage times in seconds.
+    diagnostics : dict
+        Why cells are undecided: ``confidence`` (probability over the data with which every
+        bound holds; 1 for bounded noise with the deterministic bound) and ``statement``,
+        ``eps`` (per mode and component: median and max error radius -- the excess of the
+        learned image box over the range of the data-fitted function, per side -- and the median
+        over the cell half-width), ``successors_per_row`` (mean listed successors per IMDP row),
+        ``assumption`` (rkhs_bound, lengthscale, misspecification and the data-implied
+        minimum RKHS norm per mode and component) and, when estimated, ``advice`` (the
+        result's ``advice``: estimated Q_yes share per lever and the winner).
+
+    How to run the controller without the library: start in cell q0 with DFA state
+    ``s = delta[initial][L(q0)]``; while s is neither accepting nor a sink, apply
+    ``strategy[q][s]``, step the system, stop with a violation if the state leaves X, else
+    find the new cell q' and set ``s = delta[s][L(q')]``.
+    """
+    part = result.partition
+    dfa = result.dfa
+    syn = result.synthesis
+    modes = list(result.mode_names)
+    part_atoms = list(part.atoms)
+    labels_int = np.asarray(part.labels, dtype=np.int64)
+    labels = [[a for i, a in enumerate(part_atoms) if (int(v) >> i) & 1] for v in labels_int]
+    names = np.asarray(modes, dtype=object)
+
+    def named(table):
+        table = np.asarray(table, dtype=np.int64)
+        return np.where(table >= 0, names[np.clip(table, 0, len(modes) - 1)], None).tolist()
+
+    strategy = np.asarray(syn.strategy, dtype=np.int64)
+    by_time = None
+    if strategy.ndim == 3:  # k-step: strategy[t, q, s]; "strategy" is the time-0 table
+        by_time, strategy = named(strategy), strategy[0]
+    strategy_named = np.asarray(named(strategy), dtype=object)
+    accepting = np.flatnonzero(np.asarray(dfa.accepting, dtype=bool)).tolist()
+    space = {"lower": result.space_lower, "upper": result.space_upper}
+    if getattr(result, "dim_names", None) is not None:
+        space["names"] = list(result.dim_names)
+    return _jsonable({
+        "format": RESULT_FORMAT,
+        "space": space,
+        "cells": {"lower": part.cells_lower, "upper": part.cells_upper},
+        "labels": labels,
+        "modes": modes,
+        "dfa": {
+            "atoms": list(dfa.atoms),
+            "initial": int(dfa.initial),
+            "accepting": accepting,
+            "delta": np.asarray(dfa.delta, dtype=np.int64),
+        },
+        "strategy": strategy_named.tolist(),
+        "strategy_by_time": by_time,
+        "p_low": np.asarray(syn.p_low, dtype=float),
+        "p_up": np.asarray(syn.p_up, dtype=float),
+        "p_up_star": np.asarray(syn.p_up_star, dtype=float),
+        "error": np.asarray(syn.error, dtype=float),
+        "classes": list(result.class_names),
+        "no_strategy_can": np.asarray(syn.p_up_star, dtype=float) < result.threshold,
+        "formula": result.formula,
+        "threshold": result.threshold,
+        "horizon": result.horizon,
+        "parameters": result.parameters,
+        "diagnostics": {**(getattr(result, "diagnostics", {}) or {}),
+                        **({"advice": result.advice} if getattr(result, "advice", None) else {})},
+        "timings": result.timings,
+    })
+
+
+def save_result(result, out_dir) -> Path:
+    """Write ``result.npz`` then ``result.json`` into ``out_dir`` (created if needed).
+
+    Each file is written under a temporary name and renamed when complete; ``result.json``
+    is written last, so its presence means the result is complete.
+
+    Returns
+    -------
+    Path
+        The path of ``result.json``.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    doc = result_to_dict(result)
+    arrays = {
+        "cells_lower": np.asarray(doc["cells"]["lower"], dtype=float),
+        "cells_upper": np.asarray(doc["cells"]["upper"], dtype=float),
+        "strategy": np.asarray(result.synthesis.strategy, dtype=np.int64),  # (k, C, S) if k-step
+        "dfa_delta": np.asarray(doc["dfa"]["delta"], dtype=np.int64),
+        "p_low": np.asarray(doc["p_low"], dtype=float),
+        "p_up": np.asarray(doc["p_up"], dtype=float),
+        "p_up_star": np.asarray(doc["p_up_star"], dtype=float),
+        "error": np.asarray(doc["error"], dtype=float),
+        "classes": np.asarray(doc["classes"], dtype=str),
+        "no_strategy_can": np.asarray(doc["no_strategy_can"], dtype=bool),
+        "modes": np.asarray(doc["modes"], dtype=str),
+    }
+
+    def write_npz(tmp: Path) -> None:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+
+    def write_json(tmp: Path) -> None:
+        tmp.write_text(json.dumps(doc, indent=1))
+
+    _atomic_write(out / "result.npz", write_npz)
+    _atomic_write(out / "result.json", write_json)
+    return out / "result.json"
+
+
+def load_result(path):
+    """Read a ``result.json`` (or the directory holding it) into a :class:`ResultFile`."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "result.json"
+    if not path.exists():
+        raise ProblemFileError(f"result file {path}: cannot be read (No such file or directory)")
+    try:
+        doc = json.loads(_read_text(path, f"result file {path}", "result.json or the directory holding it"))
+    except json.JSONDecodeError as exc:
+        raise ProblemFileError(f"result file {path}: not valid JSON ({exc})") from None
+    if not isinstance(doc, dict) or doc.get("format") != RESULT_FORMAT:
+        raise ProblemFileError(
+            f"result file {path}: expected format '{RESULT_FORMAT}'; "
+            f"got {doc.get('format') if isinstance(doc, dict) else type(doc).__name__!r}"
+        )
+    return ResultFile.from_dict(doc)
+
+
+# --------------------------------------------------------------------------- result tables (read back)
+@dataclass(frozen=True, eq=False)
+class ResultFile:
+    """The ``result.json`` contract as arrays (see :func:`robust_imdp.io.result_file.result_to_dict`).
+
+    Attributes
+    ----------
+    space_lower, space_upper : (n,) float arrays
+    cells_lower, cells_upper : (n_cells, n) float arrays
+    label_letters : (n_cells,) int array, bit i = ``dfa_atoms[i]`` holds in the cell
+    labels : tuple of tuple of str
+    modes : tuple of str
+    dfa_atoms : tuple of str
+    dfa_initial : int
+    dfa_accepting : (S,) bool array
+    dfa_delta : (S, 2**len(dfa_atoms)) int array
+    strategy : (n_cells, S) int array of mode indices (-1 where undefined)
+    strategy_by_time : (k, n_cells, S) int array or None (k-step results: mode at step t)
+    p_low, p_up, p_up_star, error : (n_cells,) float arrays
+    classes : (n_cells,) str array ("yes" / "no" / "maybe")
+    formula : str
+    threshold : float
+    horizon : int or None
+    parameters, timings : dict
+    dim_names : tuple of str or None
+        The dimension names (``space.names``), None when the problem gave none.
+    """
+
+    space_lower: np.ndarray
+    space_upper: np.ndarray
+    cells_lower: np.ndarray
+    cells_upper: np.ndarray
+    label_letters: np.ndarray
+    labels: tuple
+    modes: tuple
+    dfa_atoms: tuple
+    dfa_initial: int
+    dfa_accepting: np.ndarray
+    dfa_delta: np.ndarray
+    strategy: np.ndarray
+    p_low: np.ndarray
+    p_up: np.ndarray
+    p_up_star: np.ndarray
+    error: np.ndarray
+    classes: np.ndarray
+    formula: str
+    threshold: float
+    horizon: int | None
+    parameters: dict = field(default_factory=dict)
+    timings: dict = field(default_factory=dict)
+    strategy_by_time: np.ndarray | None = None
+    dim_names: tuple | None = None
+
+    @property
+    def n_cells(self) -> int:
+        return self.cells_lower.shape[0]
+
+    @property
+    def no_strategy_can(self) -> np.ndarray:
+        """(n_cells,) bool: ``p_up_star < threshold`` (result.json's ``no_strategy_can``): no
+        controller at all can meet the threshold."""
+        return self.p_up_star < self.threshold
+
+    @classmethod
+    def from_dict(cls, doc: dict[str, Any]) -> "ResultFile":
+        """Build from a parsed ``result.json`` document (validating shapes)."""
+        try:
+            cl = np.asarray(doc["cells"]["lower"], dtype=float)
+            cu = np.asarray(doc["cells"]["upper"], dtype=float)
+            modes = tuple(doc["modes"])
+            dfa = doc["dfa"]
+            atoms = tuple(dfa["atoms"])
+            delta = np.asarray(dfa["delta"], dtype=np.int64)
+            n_states = delta.shape[0]
+            accepting = np.zeros(n_states, dtype=bool)
+            accepting[np.asarray(dfa["accepting"], dtype=np.int64)] = True
+            index = {m: i for i, m in enumerate(modes)}
+            def table(rows):
+                return np.array([[index[m] if m is not None else -1 for m in row] for row in rows],
+                                dtype=np.int64)
+
+            strategy = table(doc["strategy"])
+            by_time = doc.get("strategy_by_time")
+            by_time = None if by_time is None else np.stack([table(t) for t in by_time])
+            labels = tuple(tuple(lab) for lab in doc["labels"])
+            bit = {a: 1 << i for i, a in enumerate(atoms)}
+            letters = np.array([sum(bit.get(a, 0) for a in lab) for lab in labels], dtype=np.int64)
+            out = cls(
+                space_lower=np.asarray(doc["space"]["lower"], dtype=float),
+                space_upper=np.asarray(doc["space"]["upper"], dtype=float),
+                cells_lower=cl, cells_upper=cu, label_letters=letters, labels=labels,
+                modes=modes, dfa_atoms=atoms, dfa_initial=int(dfa["initial"]),
+                dfa_accepting=accepting, dfa_delta=delta, strategy=strategy,
+                p_low=np.asarray(doc["p_low"], dtype=float),
+                p_up=np.asarray(doc["p_up"], dtype=float),
+                p_up_star=np.asarray(doc["p_up_star"], dtype=float),
+                error=np.asarray(doc["error"], dtype=float),
+                classes=np.asarray(doc["classes"], dtype=str),
+                formula=str(doc["formula"]), threshold=float(doc["threshold"]),
+                horizon=doc.get("horizon"),
+                parameters=dict(doc.get("parameters") or {}),
+                timings=dict(doc.get("timings") or {}),
+                strategy_by_time=by_time,
+                dim_names=None if doc["space"].get("names") is None else tuple(doc["space"]["names"]),
+            )
+        except (KeyError, TypeError, IndexError, ValueError) as exc:
+            raise InvalidInputError(
+                f"result document does not follow the result.json contract ({type(exc).__name__}: {exc})"
+            ) from None
+        c = out.n_cells
+        if (cu.shape != cl.shape or len(labels) != c or strategy.shape != (c, n_states)
+                or delta.shape[1] != 2 ** len(atoms) or out.p_low.shape != (c,)):
+            raise DimensionError(
+                f"result document: inconsistent shapes (cells {cl.shape}/{cu.shape}, labels "
+                f"{len(labels)}, strategy {strategy.shape}, delta {delta.shape}, p_low {out.p_low.shape})"
+            )
+        return out
+
+    # ----------------------------------------------------------------- controller tables
+    def dfa_sink(self) -> np.ndarray:
+        """(S,) bool: DFA states from which no accepting state is reachable."""
+        reach = self.dfa_accepting.copy()
+        while True:  # backward reachability; at most S rounds
+            new = reach | np.any(reach[self.dfa_delta], axis=1)
+            if np.array_equal(new, reach):
+                return ~reach
+            reach = new
+
+    def locator(self):
+        """A vectorised ``locate(x (k, n)) -> (k,) cell index or -1 (outside X)``.
+
+        Cells are boxes aligned to the breakpoints (all cell faces); every elementary box of
+        the breakpoint grid belongs to exactly one cell, so a per-dimension ``searchsorted``
+        followed by a table lookup finds the cell.
+        """
+        n = self.cells_lower.shape[1]
+        bps = [np.unique(np.concatenate([self.cells_lower[:, i], self.cells_upper[:, i]]))
+               for i in range(n)]
+        shape = tuple(len(b) - 1 for b in bps)
+        table = np.full(shape, -1, dtype=np.int64)
+        lo_idx = [np.searchsorted(bps[i], self.cells_lower[:, i]) for i in range(n)]
+        hi_idx = [np.searchsorted(bps[i], self.cells_upper[:, i]) for i in range(n)]
+        for q in range(self.n_cells):  # set-up only, once per result
+            table[tuple(slice(lo_idx[i][q], hi_idx[i][q]) for i in range(n))] = q
+        slo, sup = self.space_lower, self.space_upper
+
+        def locate(x):
+            x = np.atleast_2d(np.asarray(x, dtype=float))
+            inside = np.all((x >= slo) & (x <= sup), axis=1)
+            idx = [np.clip(np.searchsorted(bps[i], x[:, i], side="right") - 1, 0, shape[i] - 1)
+                   for i in range(n)]
+            cell = table[tuple(idx)]
+            return np.where(inside, cell, -1)
+
+        return locate
+
+
+def as_result_file(result) -> "ResultFile":
+    """A :class:`ResultFile` from a ResultFile, a pipeline ``Result``, a result dict or a path."""
+    if isinstance(result, ResultFile):
+        return result
+    if isinstance(result, dict):
+        return ResultFile.from_dict(result)
+    if isinstance(result, (str, bytes)) or hasattr(result, "__fspath__"):
+        return load_result(result)
+    return ResultFile.from_dict(result_to_dict(result))
