@@ -1,0 +1,129 @@
+"""Sample requests (robust_imdp.synthesis.suggest): the power-function algebra against closed forms,
+and the requests' properties on a small data-starved problem.
+
+Oracles: the posterior covariance after adding a point, recomputed from scratch (eq. S1); the
+ridge objective ``min_w ||phi_x - Phi* w||^2 + lambda ||w||^2`` in closed form (it equals the power
+function, which is why the RKHS term scales with it); uniform random samples of the same number.
+"""
+
+import numpy as np
+import pytest
+
+from robust_imdp.errors import InvalidInputError
+from robust_imdp.synthesis import suggest as sg
+
+
+def test_rank_one_update_equals_the_posterior_recomputed_with_the_new_point():
+    rng = np.random.default_rng(0)
+    data = rng.uniform(0, 2, (15, 2))
+    cand = rng.uniform(0, 2, (9, 2))
+    inv_l2, lam = np.array([1.0, 4.0]), 1e-3
+    S = sg._posterior_cov(cand, data, inv_l2, lam)
+    c = 4
+    S1 = S - np.outer(S[:, c], S[:, c]) / (S[c, c] + lam)  # eq. S1
+    again = sg._posterior_cov(cand, np.vstack([data, cand[c:c + 1]]), inv_l2, lam)
+    # float64 Cholesky of a 16 x 16 kernel matrix (condition ~1e5 with lam = 1e-3): 1e-9 absolute
+    assert np.max(np.abs(S1 - again)) < 1e-9
+
+
+def test_power_function_is_the_optimal_ridge_objective():
+    # P(x) = k(x,x) - k^T (K + lam I)^-1 k = min_w ||phi_x - Phi* w||^2 + lam ||w||^2 (RKHS algebra:
+    # ||phi_x - Phi* w||^2 = k(x,x) - 2 w.k + w^T K w, minimised at w = (K + lam I)^-1 k)
+    rng = np.random.default_rng(1)
+    data = rng.uniform(-1, 1, (12, 1))
+    x = np.array([[0.3]])
+    inv_l2, lam = np.array([2.0]), 1e-2
+    P = sg._posterior_cov(x, data, inv_l2, lam)[0, 0]
+    K = sg._kernel(data, data, inv_l2)
+    k = sg._kernel(data, x, inv_l2)[:, 0]
+    w = np.linalg.solve(K + lam * np.eye(12), k)
+    objective = 1.0 - 2 * w @ k + w @ K @ w + lam * w @ w
+    assert P == pytest.approx(objective, abs=1e-12)
+    # and any other weights do worse
+    for _ in range(20):
+        v = w + rng.normal(0, 0.05, 12)
+        assert 1.0 - 2 * v @ k + v @ K @ v + lam * v @ v >= objective - 1e-12
+
+
+@pytest.fixture(scope="module")
+def starved():
+    """A 2-D robot with 12 samples per mode: most cells undecided."""
+    from robust_imdp import Problem, TruncatedGaussianNoise, synthesize_from_data
+
+    rng = np.random.default_rng(3)
+    steps = {"east": [0.4, 0.0], "north": [0.0, 0.4]}
+    xs, us, xn = [], [], []
+    for name, s in steps.items():
+        x = rng.uniform(0, 3, (12, 2))
+        xs.append(x)
+        us += [name] * 12
+        xn.append(x + s + 0.05 * np.sin(x[:, ::-1]) + rng.uniform(-0.01, 0.01, x.shape))
+    problem = Problem.from_arrays(
+        np.vstack(xs), np.array(us), np.vstack(xn), lower=[0, 0], upper=[3, 3], cell_size=0.5,
+        regions={"goal": ([2, 2], [3, 3])}, formula="F goal", threshold=0.9,
+        modes={k: (np.eye(2), v) for k, v in steps.items()},
+        noise=TruncatedGaussianNoise([0.005, 0.005], [0.01, 0.01]), rkhs_bound=0.3, lengthscale=1.0,
+        misspecification=0.001)
+    return synthesize_from_data(problem, progress=False)
+
+
+def test_requests_are_inside_x_for_candidate_cells_with_valid_modes(starved):
+    reqs = sg.suggest_samples(starved, 10)
+    cells, weights, _ = sg._candidates(starved)
+    assert 0 < len(reqs) <= 10
+    part = starved.partition
+    for r in reqs:
+        assert r.cell in set(cells.tolist())
+        assert np.all(part.cells_lower[r.cell] <= r.x) and np.all(r.x <= part.cells_upper[r.cell])
+        assert r.mode in starved.problem.mode_names
+        assert r.radius_change > 0 and r.gain > 0
+    assert np.all(np.asarray(starved.class_names)[cells] != "yes") or "reached" in " ".join(r.reason for r in reqs)
+
+
+def test_suggested_samples_shrink_the_weighted_rkhs_terms_more_than_random_ones(starved):
+    """The objective the requests are chosen for, measured from scratch with the augmented data."""
+    n = 8
+    reqs = sg.suggest_samples(starved, n)
+    cells, weights, _ = sg._candidates(starved)
+    part = starved.partition
+    centres = 0.5 * (part.cells_lower[cells] + part.cells_upper[cells])
+    B, inv_l2, floor = sg._assumption(starved.problem)
+    names = list(starved.problem.mode_names)
+
+    def objective(extra):  # sum over modes and candidates of weight * B sqrt(P)
+        total = 0.0
+        for u in range(len(names)):
+            x = np.vstack([starved.problem.data.by_mode(u)[0]] + [e for m, e in extra if m == u])
+            lam = (floor[u] / B[u]) ** 2
+            P = np.maximum(np.diag(sg._posterior_cov(centres, x, inv_l2[u], lam)), 0)
+            total += weights[u] @ (B[u] * np.sqrt(P))
+        return total
+
+    base = objective([])
+    ours = objective([(names.index(r.mode), r.x[None]) for r in reqs])
+    rng = np.random.default_rng(7)
+    randoms = [objective([(int(rng.integers(0, 2)), rng.uniform(0, 3, (1, 2))) for _ in range(n)]) for _ in range(5)]
+    assert ours < base
+    assert base - ours > max(base - r for r in randoms)
+
+
+def test_bad_n_and_nothing_undecided(starved):
+    with pytest.raises(InvalidInputError, match="n .* must be an integer >= 1; got 0"):
+        sg.suggest_samples(starved, 0)
+    import dataclasses
+
+    decided = dataclasses.replace(starved, class_names=np.where(starved.class_names == "maybe", "no",
+                                                                starved.class_names))
+    assert sg.suggest_samples(decided, 5) == []
+
+
+def test_requests_csv_is_complete(tmp_path, starved):
+    import csv
+
+    reqs = sg.suggest_samples(starved, 3)
+    sg.write_requests(reqs, tmp_path / "r.csv", ["x_1", "x_2"])
+    rows = list(csv.reader(open(tmp_path / "r.csv")))
+    assert rows[0] == ["x_1", "x_2", "mode", "cell", "radius_change", "gain", "reason"]
+    assert len(rows) == len(reqs) + 1
+    assert [float(v) for v in rows[1][:2]] == reqs[0].x.tolist()
+    assert not (tmp_path / "r.csv.tmp").exists()
