@@ -126,9 +126,10 @@ def _candidates(result):
 def _assumption(problem):
     """(B per mode, inverse squared lengthscale per input dimension, noise floor per mode) of the
     problem's assumption, the most pessimistic over components where they differ."""
-    from robust_imdp.pipeline.problem import _settings
+    from robust_imdp.bounds.assumptions import resolve
 
-    st = _settings(problem)
+    st = resolve(problem.rkhs_bound, problem.gp_options.get("lengthscale"), problem.misspecification,
+                 problem.mode_names, int(np.size(problem.space_lower)))
     B = st.rkhs_bound.max(axis=1)  # (n_modes,): the largest over the components
     ls = st.lengthscale.min(axis=1)  # (n_modes, d): the shortest (the most local data influence)
     noise = np.asarray(problem.noise.bound if getattr(problem.noise, "bound", None) is not None
