@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from robust_imdp._fp import U, gamma, up_rounded
+from robust_imdp._kernels import se_kernel_with_error as _se_kernel  # the SE kernel and its error bound
 from robust_imdp.casestudies.systems import _TERM_KINDS, get_case_study
 from robust_imdp.errors import DimensionError, InvalidInputError
 
@@ -36,37 +37,6 @@ def _check_lengthscale(lengthscale, d: int) -> np.ndarray:
     if not np.all(np.isfinite(ls) & (ls > 0)):
         raise InvalidInputError(f"lengthscale must be positive and finite; got {ls.tolist()}")
     return ls
-
-
-def _se_kernel(A: np.ndarray, B: np.ndarray, lengthscale: np.ndarray):
-    """Unit-amplitude SE kernel matrix ``exp(-sum_a (A_a - B_a)^2 / (2 l_a^2))`` and its error.
-
-    Returns ``K`` (p, q) and ``rel`` with ``|K_computed - K_exact| <= rel K_exact`` entrywise.
-
-    Error analysis (``z = sum_a (A_a - B_a)^2 inv_l2_a``, the exponent is ``-z/2``):
-    per term one rounding for the difference (squared: 2), one for the square, two for
-    ``inv_l2 = 1 / (l * l)`` and one for the product: 6; plus ``d - 1`` for the sum, so the
-    computed ``z' = z (1 + t)``, ``|t| <= gamma_{d+5}``, and the exponent is off by at most
-    ``gamma_{d+5} zmax / 2`` (halving is exact). ``exp`` of a float is accurate to a few ulp (we
-    allow 4 ulp = 8u relative, the bound numpy documents for its SIMD kernels; glibc is < 1 ulp).
-    Hence ``rel = (1 + 8u) e^{gamma zmax/2} - 1 <= (expm1(gamma zmax/2) + 8u)(1 + 1e-6)``, rounded up.
-    Results stay normal floats (relative error bound valid) because ``zmax <= 1400`` is enforced.
-    """
-    inv_l2 = 1.0 / (lengthscale * lengthscale)
-    z = np.zeros((A.shape[0], B.shape[0]))
-    for a in range(A.shape[1]):
-        diff = A[:, a, None] - B[None, :, a]
-        z += (diff * diff) * inv_l2[a]
-    zmax = float(z.max()) if z.size else 0.0
-    if zmax > 1400.0:
-        # exp(-z/2) < e^-700 could be subnormal (below 2.2e-308 ~ e^-708), where exp's error is
-        # not relative any more; such far-apart points contribute nothing useful, so refuse.
-        raise InvalidInputError(
-            f"points and centres must be within sqrt(1400) ~ 37 lengthscales of each other; got sum_a "
-            f"(dx_a / l_a)^2 = {zmax:.4g}")
-    expo = gamma(A.shape[1] + 6) * zmax / 2.0  # d + 6 >= d + 5: one spare rounding
-    rel = float(up_rounded((np.expm1(expo) + 8 * U) * (1.0 + 1e-6), 4))
-    return np.exp(-0.5 * z), rel
 
 
 def rkhs_norm_upper(centres, alpha, lengthscale) -> float:

@@ -1,0 +1,265 @@
+"""Local weights: only the ``k`` data points nearest to each cell carry certificate weight (``local_points``),
+so a cell's cost no longer grows with the data and no m x m kernel matrix is built."""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from robust_imdp._fp import U as _U, up as _up
+from robust_imdp._kernels import inv_l2_up as _inv_l2, kernel_matrix as _kernel_matrix, kernel_rel_err_nb as _kernel_rel_err_nb, norm_inflation as _norm_inflation
+from robust_imdp.bounds.rkhs_model import (CELL_BLOCK, _blocks, _certified_norms, _certified_value, _certify, _check_cells,
+                                           _combine_vertices, _known_at_vertices, _vertex_b, _writable, cell_centres,
+                                           split_counts, sub_boxes, vertex_signs)
+from robust_imdp.bounds.rkhs_weights import METHODS, _active_set
+from robust_imdp.errors import InvalidInputError
+
+
+
+# ============================================================================ local weights
+@numba.njit(cache=True)
+def _chol_factor(P, n, L, jitter):  # pragma: no cover - compiled
+    """Lower Cholesky factor of ``P[:n, :n] + jitter I`` into ``L``; False if not positive definite."""
+    for j in range(n):
+        s = P[j, j] + jitter
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not s > 0.0:
+            return False
+        L[j, j] = math.sqrt(s)
+        for i in range(j + 1, n):
+            t = P[i, j]
+            for k in range(j):
+                t -= L[i, k] * L[j, k]
+            L[i, j] = t / L[j, j]
+    return True
+
+
+@numba.njit(cache=True)
+def _chol_solve(L, n, rhs, out):  # pragma: no cover - compiled
+    for i in range(n):
+        t = rhs[i]
+        for k in range(i):
+            t -= L[i, k] * out[k]
+        out[i] = t / L[i, i]
+    for i in range(n - 1, -1, -1):
+        t = out[i]
+        for k in range(i + 1, n):
+            t -= L[k, i] * out[k]
+        out[i] = t / L[i, i]
+
+
+@numba.njit(cache=True, parallel=True)
+def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_iter, tol, ptr, group):  # pragma: no cover
+    """Certified bounds of ``<h, phi_v>`` (eq. W) with weights on each cell's pool of data points.
+
+    ``pools[q]`` are the data points allowed to carry weight for cell q (any weights are sound;
+    the pool only bounds the cost). Ridge weights ``(K_PP + lam I)^{-1} b`` (one factorisation
+    per cell, the same weights for every output: the radius does not involve y), or with
+    ``optimal`` the active-set weights per output and side (warm-started across the cell's
+    vertices). Consecutive boxes of the same ``group`` (the sub-boxes of one cell) share its pool:
+    one kernel matrix and factorisation, and the warm starts run on through them. Boxes
+    ``ptr[j] .. ptr[j+1]-1`` form one parallel work unit. Returns ``val (n, V, n_out, 2)``
+    (side 0 upper, 1 lower) and the support sizes.
+    """
+    n, d = c.shape
+    V = signs.shape[0]
+    k = pools.shape[1]
+    n_out = Y.shape[1]
+    val = np.empty((n, V, n_out, 2))
+    sup = np.zeros((n, V, n_out, 2), dtype=np.int64)
+    n_chunks = ptr.shape[0] - 1
+    for ch in numba.prange(n_chunks):
+        Xp = np.empty((k, d))
+        Yp = np.empty((k, n_out))
+        L = np.empty((k, k))
+        b = np.empty(k)
+        eb = np.empty(k)
+        w = np.empty(k)
+        idx = np.arange(k)
+        v = np.empty(d)
+        ys = np.empty(k)
+        S = np.zeros((n_out, 2, k), dtype=np.int64)
+        sg = np.zeros((n_out, 2, k))
+        ws = np.zeros((n_out, 2, k))
+        nS = np.zeros((n_out, 2), dtype=np.int64)
+        bidx = np.zeros(k, dtype=np.int64)
+        bw = np.zeros(k)
+        Pw = np.empty((k, k))  # workspaces of _active_set, once per chunk
+        Lw = np.empty((k, k))
+        Kp = np.empty((k, k))
+        K_err = 0.0
+        ok = True
+        for q in range(ptr[ch], ptr[ch + 1]):
+            if not (q == ptr[ch] or group[q] != group[q - 1]):
+                pass  # the same pool as the previous box: keep its kernel matrix, factor and warm starts
+            else:
+                for p in range(k):
+                    for a in range(d):
+                        Xp[p, a] = X[pools[q, p], a]
+                    for o in range(n_out):
+                        Yp[p, o] = Y[pools[q, p], o]
+                Kp, zmax = _kernel_matrix(Xp, Xp, inv_l2)
+                K_err = _kernel_rel_err_nb(zmax, d)
+                ok = True
+                if not optimal:
+                    ok = _chol_factor(Kp, k, L, lam)
+                for o in range(n_out):
+                    for sd in range(2):
+                        nS[o, sd] = 0  # a new pool: restart the warm starts
+            for jv in range(V):
+                for a in range(d):
+                    v[a] = signs[jv, a] * r[q, a]
+                z = _vertex_b(Xp, inv_l2, c[q], v, b, eb)
+                kerr = _kernel_rel_err_nb(z, d)
+                for i in range(k):
+                    eb[i] += abs(b[i]) * kerr
+                s0 = 1.0
+                for a in range(d):
+                    s0 += v[a] * v[a] * inv_l2[a]
+                s0 = s0 * (1.0 + (d + 8) * 2.220446049250313e-16)
+                if not optimal:
+                    if ok:
+                        _chol_solve(L, k, b, w)
+                    else:
+                        for i in range(k):
+                            w[i] = 0.0
+                    l1, l2, rr = _certified_norms(idx, w, k, b, eb, Kp, K_err, s0)
+                    for o in range(n_out):
+                        for i in range(k):
+                            ys[i] = Yp[i, o]
+                        val[q, jv, o, 0] = _certified_value(idx, w, k, ys, l1, l2, rr, a1[o], a2[o], G, 1.0)[0]
+                        val[q, jv, o, 1] = _certified_value(idx, w, k, ys, l1, l2, rr, a1[o], a2[o], G, -1.0)[0]
+                        sup[q, jv, o, 0] = k
+                        sup[q, jv, o, 1] = k
+                else:
+                    for o in range(n_out):
+                        for sd in range(2):
+                            sgn = 1.0 if sd == 0 else -1.0
+                            for i in range(k):
+                                ys[i] = sgn * Yp[i, o]
+                            res = _active_set(Kp, ys, b, s0, a1[o], G, S[o, sd], sg[o, sd], ws[o, sd], nS[o, sd], k,
+                                              max_iter, tol, bidx, bw, Pw, Lw)
+                            nS[o, sd] = res[0] if (res[3] != 2 and res[3] != 3) else 0
+                            nb = res[1]
+                            for i in range(k):
+                                ys[i] = Yp[i, o]
+                            val[q, jv, o, sd] = _certify(bidx, bw, nb, ys, b, eb, Kp, K_err, s0, a1[o], 0.0, G, sgn)[0]
+                            sup[q, jv, o, sd] = nb
+    return val, sup
+
+
+def local_pools(X, cells_lower, cells_upper, lengthscale, k: int) -> np.ndarray:
+    """The ``k`` data points nearest to every cell centre in the kernel's metric (``x / l``).
+
+    Parameters
+    ----------
+    X : (m, d) float array
+    cells_lower, cells_upper : (n_cells, d) float arrays
+    lengthscale : float or (d,) float array
+    k : int >= 1 (capped at m)
+
+    Returns
+    -------
+    (n_cells, min(k, m)) int array, sorted by distance
+    """
+    from scipy.spatial import cKDTree
+
+    X = np.asarray(X, float)
+    scale = np.sqrt(_inv_l2(lengthscale, X.shape[1]))
+    k = int(min(max(int(k), 1), X.shape[0]))
+    c = 0.5 * (np.asarray(cells_lower, float) + np.asarray(cells_upper, float))
+    _, idx = cKDTree(X * scale).query(c * scale, k=k)
+    return np.ascontiguousarray(np.asarray(idx, dtype=np.int64).reshape(c.shape[0], k))
+
+
+#: Ridge regularisers tried by :func:`local_lambda`.
+LOCAL_LAMBDAS = tuple(float(v) for v in np.logspace(-8, 0, 9))
+
+
+def local_lambda(X, cells_lower, cells_upper, *, lengthscale, rkhs_bound: float, noise_l1: float, k: int,
+                 noise_l2: float = 0.0, n_sample: int = 64) -> float:
+    """The ridge regulariser of the local weights: the one of :data:`LOCAL_LAMBDAS` with the
+    smallest median certified radius on up to ``n_sample`` evenly spaced cells.
+
+    A function of the inputs and the cells only (not of y), so it can be fixed before the data's
+    outputs are used (the iid route needs that) and is the same for every chunk of cells.
+    """
+    X = np.ascontiguousarray(X, float)
+    lo, up = _check_cells(cells_lower, cells_upper, X.shape[1])
+    sel = np.unique(np.linspace(0, lo.shape[0] - 1, min(int(n_sample), lo.shape[0])).astype(np.int64))
+    c, r = cell_centres(lo[sel], up[sel])
+    pools = local_pools(X, lo[sel], up[sel], lengthscale, k)
+    signs = vertex_signs(X.shape[1])
+    inv_l2 = _inv_l2(lengthscale, X.shape[1])
+    zeros = np.zeros((X.shape[0], 1))
+    best, best_lam = np.inf, LOCAL_LAMBDAS[0]
+    for lam in LOCAL_LAMBDAS:
+        one = np.arange(c.shape[0], dtype=np.int64)
+        val, _ = _local_cells(X, zeros, inv_l2, c, r, signs, pools, lam, np.array([noise_l1]), np.array([noise_l2]),
+                              float(rkhs_bound), False, 0, 0.0, _blocks(c.shape[0], one, c.shape[0], CELL_BLOCK), one)
+        radius = float(np.median(val[:, :, 0, 0]))  # y = 0: the certified value is the radius
+        if radius < best:
+            best, best_lam = radius, lam
+    return best_lam
+
+
+def _local_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_bound, noise_bound, misspecification,
+                 method, iid_factor, iid_theta, k, lam, split_tol=None):
+    """:func:`bound_chunk` with local weights (see its ``local_points``)."""
+    if method not in METHODS:
+        raise InvalidInputError(f"method must be one of {METHODS}; got {method!r}")
+    X = _writable(X)
+    Y = _writable(np.asarray(Y, float).reshape(X.shape[0], -1))
+    m, d = X.shape
+    n = Y.shape[1]
+    lower, upper = _check_cells(cells_lower, cells_upper, d)
+    inv_l2 = _inv_l2(lengthscale, d)
+    G_eff = float(_up(float(rkhs_bound) * _norm_inflation(d)))
+    tau = float(misspecification)
+    dbar = _up(np.broadcast_to(np.asarray(noise_bound, float), (n,)) + tau)
+    c, r = cell_centres(lower, upper)
+    signs = vertex_signs(d)
+    pools = local_pools(X, lower, upper, lengthscale, k)
+    if lam is None and method == "ridge":
+        lam = local_lambda(X, lower, upper, lengthscale=lengthscale, rkhs_bound=rkhs_bound, noise_l1=float(dbar.max()),
+                           k=k)
+    n_cells = lower.shape[0]
+    s_split = split_counts(_up(np.sum(r * r * inv_l2, axis=1) * (1 + (d + 4) * _U)), G_eff, d, split_tol)
+    if np.any(s_split > 1):  # certify on sub-boxes (their union covers the cell), each with its cell's pool
+        box_lo, box_up, parent, starts = sub_boxes(lower, upper, s_split)
+        c, r = cell_centres(box_lo, box_up)
+        pools = np.ascontiguousarray(pools[parent])
+    else:
+        parent = np.arange(n_cells, dtype=np.int64)
+        starts = parent
+    ptr = _blocks(n_cells, starts, c.shape[0], CELL_BLOCK)
+    val, sup = _local_cells(X, Y, inv_l2, c, r, signs, pools, float(lam or 0.0), np.ascontiguousarray(dbar),
+                            np.zeros(n), G_eff, method == "optimal", 2000, 1e-9, ptr, parent)
+    if iid_factor is not None:
+        th = np.broadcast_to(np.asarray(iid_theta, float), (n,))
+        a2 = _up(float(iid_factor) * th * (1 + 4 * _U))
+        lam2 = local_lambda(X, lower, upper, lengthscale=lengthscale, rkhs_bound=rkhs_bound, noise_l1=tau,
+                            noise_l2=float(a2.max()), k=k)
+        iv, _ = _local_cells(X, Y, inv_l2, c, r, signs, pools, lam2, np.full(n, tau), np.ascontiguousarray(a2),
+                             G_eff, False, 0, 0.0, ptr, parent)
+        val[..., 0] = np.minimum(val[..., 0], iv[..., 0])  # both intervals hold: intersect
+        val[..., 1] = np.maximum(val[..., 1], iv[..., 1])
+    t_max = _up(np.sum(r * r * inv_l2, axis=1) * (1 + (d + 4) * _U))
+    A = np.asarray(A, float)
+    b = np.asarray(b, float)
+    out = {key: np.empty((n_cells, n)) for key in ("lower", "upper", "eps")}
+    for i in range(n):
+        lin_v, lin_err = _known_at_vertices(c, r, signs, A[i], float(b[i]))
+        su, sl = val[:, :, i, 0], val[:, :, i, 1]
+        lo_i, up_i, taylor = _combine_vertices(lin_v, lin_err, su, sl, t_max, G_eff, tau)
+        eps_i = np.max(0.5 * (su - sl), axis=1) + taylor
+        # hull of each cell's sub-boxes (eq. C holds on every sub-box; reduceat is the identity unsplit)
+        out["lower"][:, i] = np.minimum.reduceat(lo_i, starts)
+        out["upper"][:, i] = np.maximum.reduceat(up_i, starts)
+        out["eps"][:, i] = np.maximum.reduceat(eps_i, starts)
+    out["support"] = np.maximum.reduceat(sup.max(axis=(1, 3)), starts, axis=0)
+    out["n_unconverged"] = 0
+    return out

@@ -1,0 +1,399 @@
+"""Certificate weights of the RKHS route: optimal weights by a primal active-set method (the conic dual of the
+vertex problem, section 3 of ``bounds/rkhs.py``'s docstring) and kernel-ridge weights over a grid of lambdas."""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from robust_imdp._kernels import kernel_rel_err_nb as _kernel_rel_err_nb
+from robust_imdp.bounds.rkhs_model import KernelModel, _certify, _vertex_b, vertex_problems
+
+#: Ways to choose the certificate weights (see ``bounds/rkhs.py``'s docstring, sections 1-3).
+METHODS = ("optimal", "ridge")
+#: Ridge regularisers tried per vertex by ``method="ridge"`` and by the iid route.
+RIDGE_LAMBDAS = tuple(float(v) for v in np.logspace(-9, 1, 31))
+#: Largest support (number of data points with a non-zero weight) of one optimal certificate.
+MAX_SUPPORT = 400
+
+
+# ============================================================================ optimal weights
+@numba.njit(cache=True)
+def _chol_solve2(P, n, L, r1, r2, o1, o2):  # pragma: no cover - compiled
+    """Cholesky factor of ``P[:n, :n]`` into ``L``; solve for two right-hand sides. False if not PD."""
+    for j in range(n):
+        s = P[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not s > 0.0:
+            return False
+        L[j, j] = math.sqrt(s)
+        for i in range(j + 1, n):
+            t = P[i, j]
+            for k in range(j):
+                t -= L[i, k] * L[j, k]
+            L[i, j] = t / L[j, j]
+    for rhs in range(2):
+        for i in range(n):
+            t = r1[i] if rhs == 0 else r2[i]
+            for k in range(i):
+                t -= L[i, k] * (o1[k] if rhs == 0 else o2[k])
+            if rhs == 0:
+                o1[i] = t / L[i, i]
+            else:
+                o2[i] = t / L[i, i]
+        for i in range(n - 1, -1, -1):
+            t = o1[i] if rhs == 0 else o2[i]
+            for k in range(i + 1, n):
+                t -= L[k, i] * (o1[k] if rhs == 0 else o2[k])
+            if rhs == 0:
+                o1[i] = t / L[i, i]
+            else:
+                o2[i] = t / L[i, i]
+    return True
+
+
+@numba.njit(cache=True)
+def _active_set(K, ys, b, s0, dbar, G, S, sg, w, nS, cap, max_iter, tol, bS_idx, bw, P, L):  # pragma: no cover
+    """Approximately ``min_w ys.w + dbar ||w||_1 + G sqrt(s0 - 2 b.w + w.K w)`` (a heuristic).
+
+    Primal active-set method on the sign-constrained orthant: on a support S with signs sg the
+    smooth restricted problem has the closed form ``w = P^{-1}(b_S - t a_S)``, ``P = K_SS``,
+    ``a = ys_S + dbar sg``, ``t = rho / sqrt(G^2 - n^2)`` with ``rho^2 = s0 - b_S.P^{-1} b_S`` and
+    ``n^2 = a.P^{-1} a`` (minimise ``a.w + G sqrt(rho^2 + (w - P^{-1}b).P(w - P^{-1}b))``). From
+    the current sign-consistent point we move towards it (or along the descent ray ``-P^{-1}a``
+    when ``n >= G``) and stop at the first sign change, dropping that index; at a restricted
+    optimum the most violated optimality condition outside S, ``|f*(x_j) - ys_j| <= dbar`` with
+    ``f* = G (phi - Phi* w)/r``, adds an index. Stops when no condition is violated by more
+    than ``tol``, when the objective stalls (anti-cycling), or after ``max_iter`` steps.
+
+    ``S, sg, w`` hold a warm start in their first ``nS`` entries and receive the result; the
+    best point met is returned in ``bS_idx[:nb], bw[:nb]``. ``P`` and ``L`` are (cap, cap)
+    workspaces allocated once by the caller: allocating them per call costs a page-faulting
+    mmap each time where glibc's mmap threshold is fixed (Dask workers set
+    MALLOC_TRIM_THRESHOLD_, measured 1.7x slower). Returns ``(nS, nb, iters, status)``
+    (status 0 optimal, 1 iteration cap, 2 data inconsistent with the norm bound, 3 factorisation
+    failed, 4 support cap, 5 stalled).
+    """
+    m = K.shape[0]
+    inS = np.zeros(m, dtype=np.bool_)
+    for k in range(nS):
+        inS[S[k]] = True
+    bSv = np.empty(cap)
+    aS = np.empty(cap)
+    uu = np.empty(cap)
+    vv = np.empty(cap)
+    dw = np.empty(cap)
+    Kw = np.empty(m)
+    status = 1
+    it = 0
+    nb = 0
+    Fbest = np.inf
+    stall = 0
+    restricted_ok = False
+    while it < max_iter:
+        it += 1
+        if not restricted_ok:
+            for p in range(nS):
+                i = S[p]
+                bSv[p] = b[i]
+                aS[p] = ys[i] + dbar * sg[p]
+                for q in range(nS):
+                    P[p, q] = K[i, S[q]]
+                P[p, p] += 1e-11
+            if nS > 0:
+                if not _chol_solve2(P, nS, L, bSv, aS, uu, vv):
+                    status = 3
+                    break
+            rho2 = s0
+            n2 = 0.0
+            for p in range(nS):
+                rho2 -= bSv[p] * uu[p]
+                n2 += aS[p] * vv[p]
+            if rho2 < 1e-300:
+                rho2 = 1e-300
+            unbounded = n2 >= G * G * (1.0 - 1e-12)
+            if not unbounded:
+                t = math.sqrt(rho2) / math.sqrt(G * G - n2)
+                for p in range(nS):
+                    dw[p] = uu[p] - t * vv[p] - w[p]
+                alpha = 1.0
+            else:
+                for p in range(nS):
+                    dw[p] = -vv[p]
+                alpha = np.inf
+            jmin = -1
+            for p in range(nS):
+                if sg[p] * dw[p] < 0.0:
+                    a = -w[p] / dw[p]
+                    if a < alpha:
+                        alpha = a
+                        jmin = p
+            if jmin < 0 and unbounded:
+                status = 2
+                break
+            for p in range(nS):
+                w[p] += alpha * dw[p]
+            if jmin >= 0:
+                k = 0
+                for p in range(nS):
+                    if p == jmin or sg[p] * w[p] <= 0.0:
+                        inS[S[p]] = False
+                        continue
+                    S[k] = S[p]
+                    sg[k] = sg[p]
+                    w[k] = w[p]
+                    k += 1
+                nS = k
+                continue
+            restricted_ok = True
+        # at a restricted optimum: objective and optimality conditions outside S
+        for j in range(m):
+            Kw[j] = 0.0
+        r2 = s0
+        Fv = 0.0
+        for p in range(nS):
+            i = S[p]
+            r2 -= 2.0 * w[p] * b[i]
+            Fv += w[p] * ys[i] + dbar * abs(w[p])
+            wp = w[p]
+            for j in range(m):  # K is symmetric: read row i (contiguous) for column i
+                Kw[j] += K[i, j] * wp
+        for p in range(nS):
+            r2 += w[p] * Kw[S[p]]
+        if not r2 > 0.0:
+            status = 0
+            nb = nS
+            for p in range(nS):
+                bS_idx[p] = S[p]
+                bw[p] = w[p]
+            break
+        r = math.sqrt(r2)
+        Fv += G * r
+        if Fv < Fbest - 1e-13 * (1.0 + abs(Fv)):
+            Fbest = Fv
+            stall = 0
+            nb = nS
+            for p in range(nS):
+                bS_idx[p] = S[p]
+                bw[p] = w[p]
+        else:
+            stall += 1
+            if stall >= 4:
+                status = 5
+                break
+        worst = tol
+        jadd = -1
+        sadd = 0.0
+        for j in range(m):
+            if inS[j]:
+                continue
+            f = G * (b[j] - Kw[j]) / r
+            viol = abs(f - ys[j]) - dbar
+            if viol > worst:
+                worst = viol
+                jadd = j
+                sadd = 1.0 if f > ys[j] else -1.0
+        if jadd < 0:
+            status = 0
+            break
+        if nS >= cap:
+            status = 4
+            break
+        S[nS] = jadd
+        sg[nS] = sadd
+        w[nS] = 0.0
+        inS[jadd] = True
+        nS += 1
+        restricted_ok = False
+    return nS, nb, it, status
+
+
+def optimal_weights(model: KernelModel, b, s0: float, *, noise: float, rkhs_bound: float, side: int = 1,
+                    max_iter: int = 5000, tol: float = 1e-12):
+    """The optimiser of :func:`cell_ranges` for one functional: weights approximately minimising
+    ``side w.y + noise ||w||_1 + rkhs_bound ||phi - Phi* w||`` (``b = Phi phi``, ``s0 >= <phi, phi>``).
+
+    Returns
+    -------
+    w : (m,) float array (dense)
+    status : int
+        0 optimal, 1 iteration cap, 2 data inconsistent with the bound, 3 factorisation failed,
+        4 support cap, 5 stalled (see :func:`_active_set`).
+    """
+    m = model.m
+    cap = int(min(m, MAX_SUPPORT))
+    S = np.zeros(cap, dtype=np.int64)
+    sg = np.zeros(cap)
+    w = np.zeros(cap)
+    bidx = np.zeros(cap, dtype=np.int64)
+    bw = np.zeros(cap)
+    ys = np.ascontiguousarray(float(side) * model.y)
+    _, nb, _, status = _active_set(model.K, ys, np.ascontiguousarray(b, float), float(s0), float(noise),
+                                   float(rkhs_bound), S, sg, w, 0, cap, int(max_iter), float(tol), bidx, bw,
+                                   np.empty((cap, cap)), np.empty((cap, cap)))
+    out = np.zeros(m)
+    out[bidx[:nb]] = bw[:nb]
+    return out, int(status)
+
+
+@numba.njit(cache=True, parallel=True)
+def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, tol, ptr, lin,
+                   prune, group):  # pragma: no cover - compiled
+    """Certified bounds of ``<h, phi_v>`` (eq. W) with optimal weights, all cells, vertices, sides.
+
+    Per cell and side, every vertex first gets the (certified) value of the neighbouring problem's
+    weights; vertices are then optimised in the order of those values, and with ``prune`` a vertex
+    whose certified value (plus ``lin``, the float known part) cannot exceed the best vertex found
+    so far keeps it (status 6): the cell's bound is a maximum (upper side) or a minimum (lower side)
+    over vertices, so optimising it would not change the cell bound, and any certified value is
+    sound. Consecutive boxes with the same ``group`` (the sub-boxes of one cell, whose bound is
+    the maximum over all of them) share that best value. Boxes ``ptr[j] .. ptr[j+1]-1`` form one
+    parallel work unit (warm starts run through it). Returns ``val (n, V, 2)`` (side 0: upper
+    bound, side 1: lower bound), ``support (n, V, 2)`` and ``status (n, V, 2)``.
+    """
+    n, d = c.shape
+    V = signs.shape[0]
+    m = X.shape[0]
+    val = np.empty((n, V, 2))
+    sup = np.zeros((n, V, 2), dtype=np.int64)
+    stat = np.zeros((n, V, 2), dtype=np.int64)
+    n_chunks = ptr.shape[0] - 1
+    for ch in numba.prange(n_chunks):
+        S = np.zeros((2, cap), dtype=np.int64)
+        sg = np.zeros((2, cap))
+        w = np.zeros((2, cap))
+        nS = np.zeros(2, dtype=np.int64)
+        lastS = np.zeros((2, cap), dtype=np.int64)
+        lastw = np.zeros((2, cap))
+        lastn = np.zeros(2, dtype=np.int64)
+        bidx = np.zeros(cap, dtype=np.int64)
+        bw = np.zeros(cap)
+        Pw = np.empty((cap, cap))  # workspaces of _active_set, once per chunk
+        Lw = np.empty((cap, cap))
+        B = np.empty((V, m))
+        EB = np.empty((V, m))
+        s0 = np.empty(V)
+        cheap = np.empty(V)
+        ys = np.empty(m)
+        v = np.empty(d)
+        best_side = np.empty(2)
+        for q in range(ptr[ch], ptr[ch + 1]):
+            if q == ptr[ch] or group[q] != group[q - 1]:
+                best_side[0] = -np.inf
+                best_side[1] = -np.inf
+            for jv in range(V):
+                for a in range(d):
+                    v[a] = signs[jv, a] * r[q, a]
+                z = _vertex_b(X, inv_l2, c[q], v, B[jv], EB[jv])
+                kerr = _kernel_rel_err_nb(z, d)
+                for i in range(m):
+                    EB[jv, i] += abs(B[jv, i]) * kerr
+                t = 1.0
+                for a in range(d):
+                    t += v[a] * v[a] * inv_l2[a]
+                s0[jv] = t * (1.0 + (d + 8) * 2.220446049250313e-16)  # upper bound of <phi_v, phi_v>
+            for side in range(2):
+                sgn = 1.0 if side == 0 else -1.0
+                for i in range(m):
+                    ys[i] = sgn * y[i]
+                for jv in range(V):
+                    cheap[jv] = _certify(lastS[side], lastw[side], lastn[side], y, B[jv], EB[jv], K, K_err, s0[jv],
+                                         dbar, 0.0, G, sgn)[0]
+                order = np.argsort(-sgn * (lin[q] + cheap))
+                best = best_side[side]
+                for k in range(V):
+                    jv = order[k]
+                    if prune and best > -np.inf and sgn * (lin[q, jv] + cheap[jv]) <= best:
+                        val[q, jv, side] = cheap[jv]
+                        sup[q, jv, side] = lastn[side]
+                        stat[q, jv, side] = 6
+                        continue
+                    res = _active_set(K, ys, B[jv], s0[jv], dbar, G, S[side], sg[side], w[side], nS[side], cap,
+                                      max_iter, tol, bidx, bw, Pw, Lw)
+                    nS[side] = res[0]
+                    nb = res[1]
+                    stat[q, jv, side] = res[3]
+                    # the certificate: the best weights met (any weights are sound; none -> w = 0)
+                    cv = _certify(bidx, bw, nb, y, B[jv], EB[jv], K, K_err, s0[jv], dbar, 0.0, G, sgn)[0]
+                    if sgn * cv > sgn * cheap[jv]:  # the neighbour's weights were better: keep them
+                        cv = cheap[jv]
+                    val[q, jv, side] = cv
+                    sup[q, jv, side] = nb
+                    if sgn * (lin[q, jv] + cv) > best:
+                        best = sgn * (lin[q, jv] + cv)
+                    lastn[side] = nb
+                    for p in range(nb):
+                        lastS[side, p] = bidx[p]
+                        lastw[side, p] = bw[p]
+                    if prune:  # the weights just found certify the remaining vertices of this cell too
+                        for k2 in range(k + 1, V):
+                            j2 = order[k2]
+                            c2 = _certify(bidx, bw, nb, y, B[j2], EB[j2], K, K_err, s0[j2], dbar, 0.0, G, sgn)[0]
+                            if sgn * c2 < sgn * cheap[j2]:
+                                cheap[j2] = c2
+                    if res[3] == 2 or res[3] == 3:
+                        # inconsistent or ill-conditioned support: restart cold next time
+                        nS[side] = 0
+                best_side[side] = best
+    return val, sup, stat
+
+
+# ============================================================================ ridge weights
+@numba.njit(cache=True, parallel=True)
+def _certify_dense(W, y, B, EB, K, K_err, s0, a1, a2, G):  # pragma: no cover - compiled
+    """Certified (upper, lower, radius) of (eq. W) for dense weight columns ``W[:, k]``."""
+    m, N = W.shape
+    up = np.empty(N)
+    lo = np.empty(N)
+    rad = np.empty(N)
+    idx = np.arange(m)
+    for k in numba.prange(N):
+        w = np.ascontiguousarray(W[:, k])
+        up[k], rad[k] = _certify(idx, w, m, y, B[:, k], EB[:, k], K, K_err, s0[k], a1, a2, G, 1.0)
+        lo[k], _ = _certify(idx, w, m, y, B[:, k], EB[:, k], K, K_err, s0[k], a1, a2, G, -1.0)
+    return up, lo, rad
+
+
+def _ridge_weights(model: KernelModel, B, s0, a1: float, a2: float, G: float, lambdas=RIDGE_LAMBDAS):
+    """Per column of ``B`` (m, N), ridge weights ``(K + lambda I)^{-1} b`` with the lambda that
+    minimises the (float) radius ``a1 ||w||_1 + a2 ||w||_2 + G ||phi - Phi* w||``.
+
+    The radius does not involve y, so the choice is a function of the inputs only (needed by
+    the iid route). The eigendecomposition is a float approximation: it only proposes weights.
+    """
+    lam_k, Vk = np.linalg.eigh(model.K)
+    lam_k = np.maximum(lam_k, 0.0)
+    beta = Vk.T @ B  # (m, N)
+    best = np.full(B.shape[1], np.inf)
+    W = np.zeros_like(B)
+    for lam in lambdas:
+        om = beta / (lam_k + lam)[:, None]
+        q = np.maximum(s0 - np.sum(beta * beta * (lam_k + 2 * lam)[:, None] / ((lam_k + lam)[:, None] ** 2), axis=0),
+                       0.0)
+        radius = G * np.sqrt(q)
+        if a2:
+            radius = radius + a2 * np.sqrt(np.sum(om * om, axis=0))
+        w = None
+        if a1:
+            w = Vk @ om
+            radius = radius + a1 * np.sum(np.abs(w), axis=0)
+        better = radius < best
+        if np.any(better):
+            best = np.where(better, radius, best)
+            W[:, better] = (Vk @ om[:, better]) if w is None else w[:, better]
+    return W
+
+
+def _ridge_vertex_bounds(model: KernelModel, c, r, signs, a1: float, a2: float, G: float):
+    """Certified (upper, lower) bounds of ``<h, phi_v>`` (n, V) with the best ridge weights per vertex."""
+    vp = vertex_problems(model, c, r, signs)
+    Bm = np.ascontiguousarray(vp["b"].reshape(-1, model.m).T)
+    EB = np.ascontiguousarray(vp["b_err"].reshape(-1, model.m).T)
+    s0 = vp["s0"].ravel()
+    W = _ridge_weights(model, Bm, s0, a1, a2, G)
+    up, lo, _ = _certify_dense(np.ascontiguousarray(W), model.y, Bm, EB, model.K, model.K_err, s0, a1, a2, G)
+    V = signs.shape[0]
+    return up.reshape(-1, V), lo.reshape(-1, V)
