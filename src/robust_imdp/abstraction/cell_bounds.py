@@ -21,7 +21,7 @@ import numpy as np
 from robust_imdp._fp import down, up
 from robust_imdp.errors import DimensionError, InvalidInputError
 
-__all__ = ["CellBounds", "confidence_cell_bounds"]
+__all__ = ["CellBounds", "CellErrors", "confidence_cell_bounds"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -81,6 +81,56 @@ class CellBounds:
     @property
     def dim(self) -> int:
         return self.image_lower.shape[2]
+
+
+class CellErrors:
+    """What Thm 1 needs of the learning route, per mode u, dimension i and cell: the error law.
+
+    The abstraction asks two things of the error ``g_i - mu_i`` over a cell (and nothing about GPs):
+
+    * ``mode(u).eps_for_prob(i, level)``: (n_cells,) radii eps with
+      ``P[sup_cell |g_i - mu_i| <= eps] >= level`` (may be inf or negative: unusable);
+    * ``mode(u).prob_within(i, eps, rows)``: a lower bound of ``P[sup_cell |g_i - mu_i| <= eps]`` for
+      the cells ``rows`` (broadcast with ``eps``), non-decreasing in eps, checked to lie in [0, 1].
+
+    The GP route builds it from ``std_upper`` (an upper bound of the posterior std per cell) and its
+    error models (``eps_for_prob(p, std_upper)``, ``prob_within(eps, std_upper)``, e.g.
+    ``bounds.gp.RKHSErrorBound``): :meth:`from_gp`. Known dynamics (or the error folded into the
+    boxes, :func:`confidence_cell_bounds`) need none (``None``).
+    """
+
+    def __init__(self, std_upper: np.ndarray, models):
+        self.std_upper, self.models = std_upper, models
+
+    @classmethod
+    def from_gp(cls, cell_bounds: "CellBounds", error_models) -> "CellErrors | None":
+        """The error law of ``cell_bounds.std_upper`` under ``error_models`` (None for known dynamics)."""
+        if error_models is None:
+            return None
+        return cls(cell_bounds.std_upper, _check_models(error_models, cell_bounds.n_modes, cell_bounds.dim))
+
+    def mode(self, u: int) -> "_ModeErrors":
+        return _ModeErrors(self.std_upper[u], self.models[u])
+
+
+class _ModeErrors:
+    """:class:`CellErrors` of one mode: ``std`` (n_cells, d) and the d error models."""
+
+    def __init__(self, std, models):
+        self.std, self.models = std, models
+
+    def eps_for_prob(self, i, level):
+        return self.models[i].eps_for_prob(level, self.std[:, i])
+
+    def prob_within(self, i, eps, rows):
+        s = self.std[rows, i]
+        pr = np.asarray(self.models[i].prob_within(eps, s), dtype=float)
+        if pr.shape != np.broadcast(eps, s).shape or not np.all((pr >= 0) & (pr <= 1)):
+            raise InvalidInputError(
+                f"error_models[.][{i}].prob_within must return probabilities in [0, 1] of shape "
+                f"{np.broadcast(eps, s).shape}; got shape {pr.shape}"
+            )
+        return pr
 
 
 def _check_models(error_models, n_modes, d):

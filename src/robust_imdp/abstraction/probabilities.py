@@ -13,7 +13,6 @@ from __future__ import annotations
 import numpy as np
 
 from robust_imdp._fp import U, outward, up
-from robust_imdp.errors import InvalidInputError
 
 __all__ = ["EPS_LEVELS"]
 
@@ -51,23 +50,22 @@ def _complement_up(g):
 class _Mode:
     """Per-mode candidate (eps, p) arrays and the noise context (internal)."""
 
-    def __init__(self, u, bounds, models, noise, eta_fixed, rule, floor_tol, combine):
+    def __init__(self, u, bounds, errors, noise, eta_fixed, rule, floor_tol, combine):
         n, d = bounds.n_cells, bounds.dim
         self.noise, self.combine, self.rule = noise, combine, rule
-        self.std = None if bounds.std_upper is None else bounds.std_upper[u]
-        self.models = None if models is None else models[u]
+        self.errors = None if errors is None else errors.mode(u)  # None: known dynamics
         levels = np.array([_PAPER_LEVEL]) if rule == "paper" else EPS_LEVELS
         k99 = int(np.flatnonzero(levels == _PAPER_LEVEL)[0])
         K = levels.size
-        if self.std is None:  # known dynamics: eps = 0 with probability 1
+        if self.errors is None:  # known dynamics: eps = 0 with probability 1
             self.eps = np.zeros((n, d, K))
             self.p = np.ones((n, d, K))
         else:
             self.eps = np.empty((n, d, K))
             self.p = np.empty((n, d, K))
             for i in range(d):
-                e = np.stack([np.asarray(self.models[i].eps_for_prob(lv, self.std[:, i]), dtype=float)
-                              * np.ones(n) for lv in levels], axis=1)
+                e = np.stack([np.asarray(self.errors.eps_for_prob(i, lv), dtype=float) * np.ones(n)
+                              for lv in levels], axis=1)
                 bad = ~np.isfinite(e) | (e < 0)
                 e = np.where(bad, 0.0, e)
                 pr = self._prob(i, e, np.arange(n)[:, None])
@@ -115,17 +113,10 @@ class _Mode:
             self.floor_eta = eta_l[kf, np.arange(d)[None, :]]
 
     def _prob(self, i, eps, rows):
-        """Lower bound ``p_i(eps)`` of the GP-error event for cells ``rows`` (broadcast with eps)."""
-        if self.std is None:
+        """Lower bound ``p_i(eps)`` of the learning-error event for cells ``rows`` (broadcast with eps)."""
+        if self.errors is None:
             return np.ones(np.shape(eps))
-        s = self.std[rows, i]
-        pr = np.asarray(self.models[i].prob_within(eps, s), dtype=float)
-        if pr.shape != np.broadcast(eps, s).shape or not np.all((pr >= 0) & (pr <= 1)):
-            raise InvalidInputError(
-                f"error_models[.][{i}].prob_within must return probabilities in [0, 1] of shape "
-                f"{np.broadcast(eps, s).shape}; got shape {pr.shape}"
-            )
-        return pr
+        return self.errors.prob_within(i, eps, rows)
 
     def _score(self, p, pv):
         return p * pv if self.combine == "product" else p + pv - 1.0

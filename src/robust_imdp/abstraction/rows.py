@@ -79,7 +79,7 @@ from pathlib import Path
 import numpy as np
 
 from robust_imdp._fp import U, down, up
-from robust_imdp.abstraction.cell_bounds import CellBounds, _check_models, confidence_cell_bounds
+from robust_imdp.abstraction.cell_bounds import CellBounds, CellErrors, confidence_cell_bounds
 from robust_imdp.abstraction.probabilities import EPS_LEVELS, _combine_down, _complement_up, _Mode, _separated_best
 from robust_imdp.abstraction.targets import targets_of
 from robust_imdp.errors import DimensionError, InvalidInputError, SoundnessError
@@ -247,9 +247,9 @@ def abstract_rows(partition: Partition, cell_bounds: CellBounds, noise: NoiseMod
     (:class:`~robust_imdp.abstraction.probabilities._Mode`); pass 1 lists every row's targets and
     its floor; pass 2 computes the bounds block by block (:func:`_block_rows`).
     """
-    models, eta_fixed = _check_arguments(partition, cell_bounds, noise, error_models, eta, eps_rule, combine,
+    errors, eta_fixed = _check_arguments(partition, cell_bounds, noise, error_models, eta, eps_rule, combine,
                                          floor_tol, _chunk)
-    modes = [_Mode(u, cell_bounds, models, noise, eta_fixed, eps_rule, floor_tol, combine)
+    modes = [_Mode(u, cell_bounds, errors, noise, eta_fixed, eps_rule, floor_tol, combine)
              for u in range(cell_bounds.n_modes)]
     targets = targets_of(partition)
     listings, n_listed, floors = _list_targets(targets, cell_bounds, modes, combine)
@@ -269,7 +269,10 @@ def abstract_rows(partition: Partition, cell_bounds: CellBounds, noise: NoiseMod
 
 
 def _check_arguments(partition, cell_bounds, noise, error_models, eta, eps_rule, combine, floor_tol, chunk):
-    """Validate :func:`abstract_rows`' arguments; returns ``(models, eta_fixed)`` (either may be None)."""
+    """Validate :func:`abstract_rows`' arguments; returns ``(errors, eta_fixed)`` (either may be None).
+
+    ``errors`` is the :class:`~robust_imdp.abstraction.cell_bounds.CellErrors` of the GP route
+    (``std_upper`` with ``error_models``), the only place the abstraction meets it."""
     if not isinstance(partition, (Partition, BoxPartition)):
         raise InvalidInputError(f"partition must be a Partition or a BoxPartition; got {type(partition).__name__}")
     if not isinstance(cell_bounds, CellBounds):
@@ -282,7 +285,7 @@ def _check_arguments(partition, cell_bounds, noise, error_models, eta, eps_rule,
         raise InvalidInputError(f"combine must be 'product' or 'union'; got {combine!r}")
     if not (0 < floor_tol < 1):
         raise InvalidInputError(f"floor_tol must lie in (0, 1); got {floor_tol!r}")
-    M, N, d = cell_bounds.n_modes, cell_bounds.n_cells, cell_bounds.dim
+    N, d = cell_bounds.n_cells, cell_bounds.dim
     if (N != partition.n_cells and not chunk) or d != partition.dim:
         raise DimensionError(
             f"cell_bounds must have shape (n_modes, {partition.n_cells}, {partition.dim}) for this partition; "
@@ -296,7 +299,7 @@ def _check_arguments(partition, cell_bounds, noise, error_models, eta, eps_rule,
             f"(std_upper is {'None' if cell_bounds.std_upper is None else 'an array'}, "
             f"error_models is {'None' if error_models is None else 'given'})"
         )
-    models = _check_models(error_models, M, d)
+    errors = CellErrors.from_gp(cell_bounds, error_models)
     eta_fixed = None
     if eta is not None:
         eta_fixed = np.asarray(eta, dtype=float)
@@ -308,7 +311,7 @@ def _check_arguments(partition, cell_bounds, noise, error_models, eta, eps_rule,
             raise InvalidInputError(f"eta must be finite and > 0 in every dimension; got {eta_fixed.tolist()}")
     elif eps_rule == "paper":
         eta_fixed = noise.default_eta()
-    return models, eta_fixed
+    return errors, eta_fixed
 
 
 def _list_targets(targets, cell_bounds, modes, combine):

@@ -10,7 +10,7 @@ part of each mode and the noise model.
 * ``four_mode_nonlinear``: x+ = x + g_u(x) + v (f_u = identity) with g_1 = [0.5 + 0.2 sin x2,
   0.4 cos x1], g_2 = [-0.5 + 0.2 sin x2, 0.4 cos x1], g_3 = [0.4 cos x2, 0.5 + 0.2 sin x1],
   g_4 = [0.4 cos x2, -0.5 + 0.2 sin x1]; same noise; 300 samples per mode.
-* ``unicycle_3d`` (not from the paper; issue 10's scale study): a unicycle (p_x, p_y, theta) on
+* ``unicycle_3d`` (not from the paper; the 3-D scale study of benchmarks/scale.py): a unicycle (p_x, p_y, theta) on
   [0, 4]^2 x [-pi, pi] with three turning modes. Known: the heading update theta + omega_u
   (omega = +0.3, 0, -0.3) and the position itself; unknown: the motion v (cos theta, sin theta)
   (v = 0.15) plus a cross current 0.04 sin p_y along p_x. Noise N(0, 0.005^2) truncated to

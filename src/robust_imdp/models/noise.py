@@ -45,6 +45,12 @@ def _round_down(p: np.ndarray) -> np.ndarray:
     """Lower bound of a computed probability: shrink by a relative margin, one ulp down.
 
     The clamp at 0 is safe: every probability is >= 0, so 0 is a valid lower bound.
+
+    Why not ``robust_imdp._fp``: the helpers there move a value by an error bound derived
+    operation by operation (``err``, ``gamma_n``). scipy's erf/erfinv come with no such bound,
+    only "a few ulps", so the error here is a blanket relative allowance ``_REL`` (~450 ulps)
+    that covers the special function, the divisions and the CDF algebra at once. It is the
+    only user of that rule.
     """
     p = np.asarray(p, dtype=float)
     return np.maximum(np.nextafter(p * (1.0 - _REL), -np.inf), 0.0)

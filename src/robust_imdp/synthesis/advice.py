@@ -46,6 +46,10 @@ FIT_POINTS = 500
 #: Undecided cells (at most) bounded for real to calibrate the finer-grid and smaller-B estimates:
 #: each once with the smaller B and one of its sub-cells.
 PILOT_CELLS = 16
+#: The pilot takes at most 1/_PILOT_FRACTION of the grid's cells (so it costs at most about
+#: 2/_PILOT_FRACTION of the bound stage), but at least _PILOT_MIN of them.
+_PILOT_FRACTION = 16
+_PILOT_MIN = 4
 #: Largest number of cells an estimate abstracts and solves (the finer grid has 2^d times the cells).
 MAX_CELLS = 65536
 #: ``advice="auto"`` runs when the finer grid's IMDP has at most about this many listed transitions
@@ -375,10 +379,7 @@ def advise(partition, cell_bounds, fits: FittedModes, noise, dfa, *, threshold: 
     -------
     Advice
     """
-    from robust_imdp.models.geometry import Partition
-
     t_all = time.perf_counter()
-    opts = dict(abstraction_options or {})
     lo, hi = np.asarray(cell_bounds.image_lower), np.asarray(cell_bounds.image_upper)
     classes = np.asarray(classes).astype(str)
     if classes.shape != (partition.n_cells,):
@@ -389,88 +390,125 @@ def advise(partition, cell_bounds, fits: FittedModes, noise, dfa, *, threshold: 
         open_cells = np.flatnonzero(classes != "yes")
     if open_cells.size == 0:
         return Advice(base, (), None, time.perf_counter() - t_all, "every cell is in Q_yes")
-    floor = np.broadcast_to(np.asarray(noise_floor, float), (lo.shape[2],))
     flo, fhi = fits.grid_ranges(partition.breakpoints)
     e_lo, e_hi = _excess_sides(lo, hi, flo, fhi)
-    # a few undecided cells (at most 1/16 of the grid, so the pilot costs at most ~1/8 of the bound stage)
-    pilot = _pilot(open_cells, min(int(pilot_cells), max(4, partition.n_cells // 16)))
-    d = partition.dim
-    levers = []
+    # a few undecided cells (a small share of the grid, so the pilot costs a small share of the bound stage)
+    pilot = _pilot(open_cells, min(int(pilot_cells), max(_PILOT_MIN, partition.n_cells // _PILOT_FRACTION)))
+    ctx = _Context(partition, lo, hi, flo, fhi, e_lo, e_hi, pilot, base, noise, dfa, threshold, horizon,
+                   dict(abstraction_options or {}), bound_cells, max_cells)
 
     def say(text):
         if progress is not None:
             progress(text)
 
-    # (a) a finer grid: every cell split in 2^d
+    floor = np.broadcast_to(np.asarray(noise_floor, float), (lo.shape[2],))
+    levers = [_finer_grid(ctx, fits, rkhs_bound, say), _more_data(ctx, floor, say),
+              _smaller_b(ctx, rkhs_bound, min_norm, say)]
+    est = [lv for lv in levers if lv.gain is not None and lv.gain >= MIN_GAIN]
+    winner = max(est, key=lambda lv: lv.gain).name if est else None
+    return Advice(base, tuple(levers), winner, time.perf_counter() - t_all)
+
+
+@dataclass(frozen=True, eq=False)
+class _Context:
+    """What every lever of :func:`advise` reads: the solved grid, its image boxes ``[lo, hi]``, the
+    fitted function's ranges ``[flo, fhi]`` per cell, the excess per side, the pilot cells, the
+    Q_yes share solved (``base``) and the run's solve settings."""
+
+    partition: object
+    lo: np.ndarray
+    hi: np.ndarray
+    flo: np.ndarray
+    fhi: np.ndarray
+    e_lo: np.ndarray
+    e_hi: np.ndarray
+    pilot: np.ndarray
+    base: float
+    noise: object
+    dfa: object
+    threshold: float
+    horizon: object
+    opts: dict
+    bound_cells: object
+    max_cells: int
+
+    def q_yes(self, partition, lower, upper) -> float:
+        return _q_yes(partition, lower, upper, self.noise, self.dfa, self.threshold, self.horizon, self.opts)
+
+
+def _finer_grid(ctx: _Context, fits: FittedModes, rkhs_bound: float, say) -> Lever:
+    """Lever (a), a finer grid: every cell split in 2^d; the excess scaled by the pilot sub-cells' ratio."""
+    from robust_imdp.models.geometry import Partition
+
+    partition, lo, hi, e_lo, e_hi = ctx.partition, ctx.lo, ctx.hi, ctx.e_lo, ctx.e_hi
     t0 = time.perf_counter()
     h2 = np.asarray(partition.cell_size, float) / 2
-    n_fine = partition.n_cells * 2 ** d
+    n_fine = partition.n_cells * 2 ** partition.dim
     setting = f"cell_size {np.round(h2, 6).tolist()}"
-    if n_fine > max_cells:
-        levers.append(Lever("finer grid", setting, None, None, n_fine,
-                            note=f"{n_fine:,} cells > {max_cells:,}: run it on a sub-box of X"))
-    else:
-        fine = Partition(partition.space, h2, partition.regions)
-        parent = np.asarray(partition.locate(0.5 * (fine.cells_lower + fine.cells_upper)))
-        glo, ghi = fits.grid_ranges(fine.breakpoints)
-        ratio = None
-        if bound_cells is not None:
-            # one sub-cell per pilot cell, its position cycling through the children (2^d, or fewer
-            # where a region's boundary already split the cell)
-            kids = [np.flatnonzero(parent == q) for q in pilot]
-            sub = np.array([c[k % c.size] for k, c in enumerate(kids)])
-            blo, bhi = bound_cells(fine.cells_lower[sub], fine.cells_upper[sub], rkhs_bound)
-            s_lo, s_hi = _excess_sides(blo, bhi, glo[:, sub], ghi[:, sub])
-            ratio = _ratio(np.concatenate([s_lo, s_hi], axis=1),
-                           np.concatenate([e_lo[:, parent[sub]], e_hi[:, parent[sub]]], axis=1))
-        r = np.ones((lo.shape[0], lo.shape[2])) if ratio is None else ratio
-        flo_, fhi_ = _shrunk(lo[:, parent], hi[:, parent], glo, ghi, r[:, None] * e_lo[:, parent],
-                             r[:, None] * e_hi[:, parent])
-        share = _q_yes(fine, flo_, fhi_, noise, dfa, threshold, horizon, opts)
-        levers.append(Lever("finer grid", setting, share, share - base, fine.n_cells,
-                            None if ratio is None else float(np.median(ratio)), time.perf_counter() - t0,
-                            "" if ratio is not None else "excess ratio 1 (no pilot)"))
-        say(f"advice: finer grid ({fine.n_cells} cells) -> Q_yes {100 * share:.0f} % of X")
+    if n_fine > ctx.max_cells:
+        return Lever("finer grid", setting, None, None, n_fine,
+                     note=f"{n_fine:,} cells > {ctx.max_cells:,}: run it on a sub-box of X")
+    fine = Partition(partition.space, h2, partition.regions)
+    parent = np.asarray(partition.locate(0.5 * (fine.cells_lower + fine.cells_upper)))
+    glo, ghi = fits.grid_ranges(fine.breakpoints)
+    ratio = None
+    if ctx.bound_cells is not None:
+        # one sub-cell per pilot cell, its position cycling through the children (2^d, or fewer
+        # where a region's boundary already split the cell)
+        kids = [np.flatnonzero(parent == q) for q in ctx.pilot]
+        sub = np.array([c[k % c.size] for k, c in enumerate(kids)])
+        blo, bhi = ctx.bound_cells(fine.cells_lower[sub], fine.cells_upper[sub], rkhs_bound)
+        s_lo, s_hi = _excess_sides(blo, bhi, glo[:, sub], ghi[:, sub])
+        ratio = _ratio(np.concatenate([s_lo, s_hi], axis=1),
+                       np.concatenate([e_lo[:, parent[sub]], e_hi[:, parent[sub]]], axis=1))
+    r = np.ones((lo.shape[0], lo.shape[2])) if ratio is None else ratio
+    flo_, fhi_ = _shrunk(lo[:, parent], hi[:, parent], glo, ghi, r[:, None] * e_lo[:, parent],
+                         r[:, None] * e_hi[:, parent])
+    share = ctx.q_yes(fine, flo_, fhi_)
+    say(f"advice: finer grid ({fine.n_cells} cells) -> Q_yes {100 * share:.0f} % of X")
+    return Lever("finer grid", setting, share, share - ctx.base, fine.n_cells,
+                 None if ratio is None else float(np.median(ratio)), time.perf_counter() - t0,
+                 "" if ratio is not None else "excess ratio 1 (no pilot)")
 
-    # (b) more data: the excess down to its noise floor
+
+def _more_data(ctx: _Context, floor, say) -> Lever:
+    """Lever (b), more data: the excess down to its noise floor."""
+    partition = ctx.partition
     t0 = time.perf_counter()
-    if partition.n_cells > max_cells:
-        levers.append(Lever("more data", "excess at the noise floor", None, None, partition.n_cells,
-                            note=f"{partition.n_cells:,} cells > {max_cells:,}"))
-    else:
-        f = floor[None, None, :]
-        blo, bhi = _shrunk(lo, hi, flo, fhi, np.minimum(e_lo, f), np.minimum(e_hi, f))
-        share = _q_yes(partition, blo, bhi, noise, dfa, threshold, horizon, opts)
-        levers.append(Lever("more data", f"excess at the noise floor {np.round(floor, 6).tolist()}", share,
-                            share - base, partition.n_cells, None, time.perf_counter() - t0))
-        say(f"advice: more data -> Q_yes {100 * share:.0f} % of X")
+    if partition.n_cells > ctx.max_cells:
+        return Lever("more data", "excess at the noise floor", None, None, partition.n_cells,
+                     note=f"{partition.n_cells:,} cells > {ctx.max_cells:,}")
+    f = floor[None, None, :]
+    blo, bhi = _shrunk(ctx.lo, ctx.hi, ctx.flo, ctx.fhi, np.minimum(ctx.e_lo, f), np.minimum(ctx.e_hi, f))
+    share = ctx.q_yes(partition, blo, bhi)
+    say(f"advice: more data -> Q_yes {100 * share:.0f} % of X")
+    return Lever("more data", f"excess at the noise floor {np.round(floor, 6).tolist()}", share,
+                 share - ctx.base, partition.n_cells, None, time.perf_counter() - t0)
 
-    # (c) a smaller B, as small as the data allow
+
+def _smaller_b(ctx: _Context, rkhs_bound: float, min_norm: float, say) -> Lever:
+    """Lever (c), a smaller B, as small as the data allow: ``max(B / 2, min_norm)``."""
+    partition, lo, pilot = ctx.partition, ctx.lo, ctx.pilot
     t0 = time.perf_counter()
     B = float(rkhs_bound)
     Bs = max(0.5 * B, float(min_norm))
     if Bs >= B * (1 - 1e-9):
-        levers.append(Lever("smaller B", f"B = {B:g}", None, None, partition.n_cells,
-                            note=f"the data need ||g|| >= {min_norm:.3g}, so B = {B:g} cannot be smaller"))
-    elif partition.n_cells > max_cells:
-        levers.append(Lever("smaller B", f"B = {Bs:.3g}", None, None, partition.n_cells,
-                            note=f"{partition.n_cells:,} cells > {max_cells:,}"))
+        return Lever("smaller B", f"B = {B:g}", None, None, partition.n_cells,
+                     note=f"the data need ||g|| >= {min_norm:.3g}, so B = {B:g} cannot be smaller")
+    if partition.n_cells > ctx.max_cells:
+        return Lever("smaller B", f"B = {Bs:.3g}", None, None, partition.n_cells,
+                     note=f"{partition.n_cells:,} cells > {ctx.max_cells:,}")
+    if ctx.bound_cells is not None:
+        plo, phi = ctx.bound_cells(partition.cells_lower[pilot], partition.cells_upper[pilot], Bs)
+        s_lo, s_hi = _excess_sides(plo, phi, ctx.flo[:, pilot], ctx.fhi[:, pilot])
+        r = _ratio(np.concatenate([s_lo, s_hi], axis=1),
+                   np.concatenate([ctx.e_lo[:, pilot], ctx.e_hi[:, pilot]], axis=1))
+        note = ""
     else:
-        if bound_cells is not None:
-            plo, phi = bound_cells(partition.cells_lower[pilot], partition.cells_upper[pilot], Bs)
-            s_lo, s_hi = _excess_sides(plo, phi, flo[:, pilot], fhi[:, pilot])
-            r = _ratio(np.concatenate([s_lo, s_hi], axis=1),
-                       np.concatenate([e_lo[:, pilot], e_hi[:, pilot]], axis=1))
-            note = ""
-        else:
-            r = np.full((lo.shape[0], lo.shape[2]), Bs / B)
-            note = "excess ratio B'/B (no pilot)"
-        blo, bhi = _shrunk(lo, hi, flo, fhi, r[:, None] * e_lo, r[:, None] * e_hi)
-        share = _q_yes(partition, blo, bhi, noise, dfa, threshold, horizon, opts)
-        levers.append(Lever("smaller B", f"B = {Bs:.3g}", share, share - base, partition.n_cells,
-                            float(np.median(r)), time.perf_counter() - t0, note))
-        say(f"advice: B = {Bs:.3g} -> Q_yes {100 * share:.0f} % of X")
-
-    est = [lv for lv in levers if lv.gain is not None and lv.gain >= MIN_GAIN]
-    winner = max(est, key=lambda lv: lv.gain).name if est else None
-    return Advice(base, tuple(levers), winner, time.perf_counter() - t_all)
+        r = np.full((lo.shape[0], lo.shape[2]), Bs / B)
+        note = "excess ratio B'/B (no pilot)"
+    blo, bhi = _shrunk(lo, ctx.hi, ctx.flo, ctx.fhi, r[:, None] * ctx.e_lo, r[:, None] * ctx.e_hi)
+    share = ctx.q_yes(partition, blo, bhi)
+    say(f"advice: B = {Bs:.3g} -> Q_yes {100 * share:.0f} % of X")
+    return Lever("smaller B", f"B = {Bs:.3g}", share, share - ctx.base, partition.n_cells,
+                 float(np.median(r)), time.perf_counter() - t0, note)

@@ -1,4 +1,4 @@
-"""Adaptive refinement of undecided cells (issue 13): split, re-bound the new cells, re-abstract, re-solve.
+"""Adaptive refinement of undecided cells (see docs/refinement.md): split, re-bound the new cells, re-abstract, re-solve.
 
 Refining a uniform grid everywhere spends almost all of its cells where nothing is undecided.
 :func:`refine` starts from an abstraction on a :class:`~robust_imdp.models.geometry.BoxPartition` (an
@@ -357,16 +357,7 @@ def refine(partition, cell_bounds: CellBounds, bound_cells: Callable, noise, dfa
 
     t_start = time.perf_counter()
     options = RefineOptions.from_dict(options) if isinstance(options, dict) else options
-    if isinstance(partition, Partition):
-        partition = BoxPartition(partition)
-    if not isinstance(partition, BoxPartition):
-        raise InvalidInputError(f"partition must be a Partition or a BoxPartition; got {type(partition).__name__}")
-    if not isinstance(cell_bounds, CellBounds) or cell_bounds.std_upper is not None:
-        raise InvalidInputError("cell_bounds must be a CellBounds with std_upper=None (image boxes with the "
-                                "learning error folded in)")
-    if cell_bounds.n_cells != partition.n_cells or cell_bounds.dim != partition.dim:
-        raise DimensionError(f"cell_bounds must have shape (n_modes, {partition.n_cells}, {partition.dim}); got "
-                             f"{cell_bounds.image_lower.shape}")
+    partition = _check_start(partition, cell_bounds)
     abs_opts = dict(abstraction_options or {})
     M = cell_bounds.n_modes
 
@@ -376,6 +367,7 @@ def refine(partition, cell_bounds: CellBounds, bound_cells: Callable, noise, dfa
         return _synthesize(ab.imdp, part.labels, part.atoms, dfa, threshold=threshold, horizon=horizon,
                            outside_state=part.outside_state)
 
+    # -- round 0: the starting abstraction and its solution
     t0 = time.perf_counter()
     rows = abstract_rows(partition, cell_bounds, noise, None, **abs_opts)
     if abstraction is None or abstraction.partition.n_cells != partition.n_cells:
@@ -396,46 +388,26 @@ def refine(partition, cell_bounds: CellBounds, bound_cells: Callable, noise, dfa
     per_child = (2 ** partition.dim - 1) if options.split == "all" else 1
     stopped = "max_rounds"
     for rnd in range(1, options.max_rounds + 1):
-        if not focus_cells(synthesis, options.focus).any():
-            stopped = "no undecided cells"
-            break
-        if partition.n_cells + per_child > options.max_cells:
-            stopped = "cell budget"
-            break
-        if options.time_budget is not None and time.perf_counter() - t_start >= float(options.time_budget):
-            stopped = "time budget"
+        stopped = _budget_stop(partition, synthesis, options, per_child, t_start)
+        if stopped is not None:
             break
         # -- 1. select
         t0 = time.perf_counter()
-        score = select_cells(partition, abstraction.imdp, synthesis, M, options.focus)
-        cand = np.flatnonzero(score > 0)
-        axes = _split_axes(partition, cand, min_size, options.split)
-        cand, axes = cand[axes >= 0], axes[axes >= 0]
-        if cand.size == 0:
+        split, axes = _pick_cells(partition, abstraction, synthesis, M, options, min_size, per_child)
+        if split.size == 0:
             stopped = "nothing to split"
             break
-        order = np.lexsort((cand, -score[cand]))  # best first; ties by index (deterministic)
-        room = options.max_cells - partition.n_cells
-        k = min(cand.size, room // per_child, max(1, int(options.growth * partition.n_cells) // per_child))
-        pick = order[:k]
-        split, axes = cand[pick], axes[pick]
         t_sel = time.perf_counter() - t0
-        # -- 2. split
+        # -- 2. split, 3. bound the new cells only
         old_n = partition.n_cells
         partition = partition.split(split, None if options.split == "all" else axes)
-        new = np.concatenate([split, np.arange(old_n, partition.n_cells)])
-        parent = np.concatenate([split, np.repeat(split, per_child)])
-        # -- 3. bound the new cells only
         t0 = time.perf_counter()
-        nlo, nhi = _bound_new(bound_cells, partition, new, parent, cell_bounds)
+        cell_bounds = _bound_children(bound_cells, partition, cell_bounds, split, old_n, per_child)
         t_bound = time.perf_counter() - t0
-        ilo = np.concatenate([cell_bounds.image_lower, nlo[:, split.size:]], axis=1)
-        ihi = np.concatenate([cell_bounds.image_upper, nhi[:, split.size:]], axis=1)
-        ilo[:, split], ihi[:, split] = nlo[:, :split.size], nhi[:, :split.size]
-        cell_bounds = CellBounds(ilo, ihi, None)
         # -- 4. rebuild the affected rows
         t0 = time.perf_counter()
-        rows, n_rebuilt = _rebuild_rows(partition, rows, old_n, split, ilo, ihi, noise, abs_opts)
+        rows, n_rebuilt = _rebuild_rows(partition, rows, old_n, split, cell_bounds.image_lower,
+                                        cell_bounds.image_upper, noise, abs_opts)
         abstraction = assemble_abstraction(partition, [rows])
         t_abs = time.perf_counter() - t0
         # -- 5. solve
@@ -453,3 +425,58 @@ def refine(partition, cell_bounds: CellBounds, bound_cells: Callable, noise, dfa
         stopped = "max_rounds" if focus_cells(synthesis, options.focus).any() else "no undecided cells"
     return RefineResult(partition=partition, cell_bounds=cell_bounds, abstraction=abstraction, synthesis=synthesis,
                         rounds=tuple(rounds), stopped=stopped, options=options)
+
+
+def _check_start(partition, cell_bounds) -> BoxPartition:
+    """The starting cells as a ``BoxPartition`` (a ``Partition`` is its unsplit one), after checking the bounds."""
+    if isinstance(partition, Partition):
+        partition = BoxPartition(partition)
+    if not isinstance(partition, BoxPartition):
+        raise InvalidInputError(f"partition must be a Partition or a BoxPartition; got {type(partition).__name__}")
+    if not isinstance(cell_bounds, CellBounds) or cell_bounds.std_upper is not None:
+        raise InvalidInputError("cell_bounds must be a CellBounds with std_upper=None (image boxes with the "
+                                "learning error folded in)")
+    if cell_bounds.n_cells != partition.n_cells or cell_bounds.dim != partition.dim:
+        raise DimensionError(f"cell_bounds must have shape (n_modes, {partition.n_cells}, {partition.dim}); got "
+                             f"{cell_bounds.image_lower.shape}")
+    return partition
+
+
+def _budget_stop(partition, synthesis, options: RefineOptions, per_child: int, t_start: float):
+    """Why the loop stops before a round (no open cell, cell budget, time budget), or None."""
+    if not focus_cells(synthesis, options.focus).any():
+        return "no undecided cells"
+    if partition.n_cells + per_child > options.max_cells:
+        return "cell budget"
+    if options.time_budget is not None and time.perf_counter() - t_start >= float(options.time_budget):
+        return "time budget"
+    return None
+
+
+def _pick_cells(partition, abstraction, synthesis, n_modes, options: RefineOptions, min_size, per_child):
+    """The cells to split this round and their axes: the best scores that can still be split, within the
+    round's share of the cell budget (``growth``) and the room left (``max_cells``); empty if none."""
+    score = select_cells(partition, abstraction.imdp, synthesis, n_modes, options.focus)
+    cand = np.flatnonzero(score > 0)
+    axes = _split_axes(partition, cand, min_size, options.split)
+    cand, axes = cand[axes >= 0], axes[axes >= 0]
+    if cand.size == 0:
+        return cand, axes
+    order = np.lexsort((cand, -score[cand]))  # best first; ties by index (deterministic)
+    room = options.max_cells - partition.n_cells
+    k = min(cand.size, room // per_child, max(1, int(options.growth * partition.n_cells) // per_child))
+    pick = order[:k]
+    return cand[pick], axes[pick]
+
+
+def _bound_children(bound_cells, partition: BoxPartition, cell_bounds: CellBounds, split, old_n: int,
+                    per_child: int) -> CellBounds:
+    """Image boxes of every cell after ``split``: the split cells (now their first child) and the new
+    cells ``old_n..`` bounded by ``bound_cells`` within their parents' boxes; every other cell's kept."""
+    new = np.concatenate([split, np.arange(old_n, partition.n_cells)])
+    parent = np.concatenate([split, np.repeat(split, per_child)])
+    nlo, nhi = _bound_new(bound_cells, partition, new, parent, cell_bounds)
+    ilo = np.concatenate([cell_bounds.image_lower, nlo[:, split.size:]], axis=1)
+    ihi = np.concatenate([cell_bounds.image_upper, nhi[:, split.size:]], axis=1)
+    ilo[:, split], ihi[:, split] = nlo[:, :split.size], nhi[:, :split.size]
+    return CellBounds(ilo, ihi, None)
