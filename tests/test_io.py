@@ -415,3 +415,25 @@ def test_a_missing_learning_table_is_named():
     del doc["learning"]
     with pytest.raises(ProblemFileError, match=r"missing required key 'learning'"):
         parse_problem_dict(doc, where="p.toml")
+
+
+@pytest.mark.parametrize("table", ["learning", "gp"])
+def test_method_rules_name_the_learning_table_as_written(tmp_path, table):
+    # the rules come from the method registry (bounds.methods); the file's messages name its table
+    import warnings
+
+    text = GOOD.replace("[learning]", f"[{table}]")
+    cases = [("rkhs_bound = 10.0", "rkhs_bound = 10.0\noptimize = true",
+              rf"\[{table}\]\.optimize applies only to error_bound = \"chowdhury\""),
+             ("rkhs_bound = 10.0", 'rkhs_bound = 10.0\nerror_bound = "chowdhury"\nlocal_points = 5',
+              rf"\[{table}\]\.local_points applies to error_bound = \"optimal\" or \"ridge\" only"),
+             ("rkhs_bound = 10.0", 'rkhs_bound = 10.0\nerror_bound = "optimol"',
+              rf"\[{table}\]\.error_bound must be one of optimal, ridge, chowdhury; got 'optimol' \(did you mean"),
+             ("rkhs_bound = 10.0", 'rkhs_bound = 10.0\niid_noise = true\n[refine]\nmax_cells = 9',
+              rf"\[refine\] needs \[{table}\]\.error_bound = \"optimal\" or \"ridge\" without iid_noise")]
+    for old, new, match in cases:
+        assert old in text
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)
+            with pytest.raises(ProblemFileError, match=match):
+                parse_problem_file(_write(tmp_path, text.replace(old, new, 1)))

@@ -91,6 +91,28 @@ def test_cache_keys():
     assert bounds_key(p) != bounds_key(p.replace(rkhs_bound=20.0))
 
 
+def test_problem_views_by_table_read_the_flat_attributes():
+    # problem.space / .spec / .learning / .abstraction mirror the problem file's tables; the flat
+    # attributes stay the storage (constructor, replace, cache keys unchanged)
+    p = tiny_problem()
+    assert p.space.cell_size is p.cell_size and p.space.lower is p.space_lower and p.space.names is None
+    assert (p.spec.formula, p.spec.threshold, p.spec.horizon) == ("G !obs & F des", 0.9, None)
+    assert p.spec.regions is p.regions
+    lr = p.learning
+    assert (lr.rkhs_bound, lr.lengthscale, lr.error_bound, lr.iid_noise, lr.local_points) == (
+        CASE.rkhs_bound, 2.0, "optimal", False, None)
+    assert lr.gp_options is p.gp_options and (lr.bound_tol, lr.bound_max_boxes) == (1e-3, 2000)
+    assert lr.method is p.method and p.method.name == "optimal" and p.method.advice_pilot
+    ab = p.abstraction
+    assert (ab.eta, ab.eps_rule, ab.combine, ab.guarantee, ab.confidence) == (None, "optimized", "product",
+                                                                               "confidence", 0.99)
+    q = p.replace(cell_size=np.array([1.0, 1.0]), error_bound="ridge")
+    assert q.space.cell_size.tolist() == [1.0, 1.0] and q.learning.error_bound == "ridge"
+    assert not tiny_gp_problem().method.confidence_in_bounds
+    with pytest.raises(AttributeError):
+        p.space.cell_size = np.array([1.0, 1.0])  # read-only: change the Problem with replace
+
+
 def test_result_files_and_monte_carlo_containment(run, tmp_path):
     res, _ = run
     save_result(res, tmp_path)

@@ -43,11 +43,12 @@ from typing import Any
 
 import numpy as np
 
+from robust_imdp.bounds import methods
 from robust_imdp.errors import InvalidInputError, ProblemFileError
 from robust_imdp.io.data_file import (
     _check_samples_possible, _read_data, _read_text, _warn_few_samples,
 )
-from robust_imdp.pipeline.problem import ERROR_BOUNDS, GUARANTEES  # the one definition of these modes
+from robust_imdp.pipeline.problem import GUARANTEES  # the one definition of the guarantees
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -86,8 +87,6 @@ _NOISE_KEYS = {
     "uniform": ("bound",),
 }
 EPS_RULES = ("optimized", "paper")
-#: [learning] keys that configure a GP posterior (error_bound = "chowdhury" only).
-_GP_ONLY_KEYS = ("signal_variance", "optimize", "info_gain", "bound_tol", "bound_max_boxes")
 COMBINE_RULES = ("product", "union")
 
 
@@ -364,30 +363,31 @@ def _parse_learning(gp_in: dict, mode_names: list, n: int, t: str, where: str) -
     else:  # per mode and component (robust_imdp.bounds.assumptions), with B = 0 where a component is known
         gp.update(_per_component_gp(gp_in, mode_names, n, where, t))
     gp.update(_parse_gp_posterior(gp_in, t, where))
-    gp["error_bound"] = gp_in.get("error_bound", "optimal")
-    if gp["error_bound"] not in ERROR_BOUNDS:
-        raise ProblemFileError(
-            f"{where}: {t}.error_bound must be one of {', '.join(ERROR_BOUNDS)}; got {gp['error_bound']!r}"
-            + (_suggest(str(gp["error_bound"]), ERROR_BOUNDS) if isinstance(gp["error_bound"], str) else ""))
-    if gp["error_bound"] != "chowdhury":
-        gp_only = [k for k in _GP_ONLY_KEYS if k in gp_in]
-        if gp_only:
-            raise ProblemFileError(
-                f"{where}: {t}.{gp_only[0]} applies only to error_bound = \"chowdhury\" (a GP posterior); "
-                f"error_bound = \"{gp['error_bound']}\" uses the unit-amplitude kernel with the given lengthscale "
-                "only: remove the key or set error_bound = \"chowdhury\"")
+    method = _file_rule(t, methods.get, gp_in.get("error_bound", methods.DEFAULT), where)
+    gp["error_bound"] = method.name
+    _file_rule(t, method.check_file_options, gp_in, where)
     if not per_component:
         gp["misspecification"] = float(_number(gp_in.get("misspecification", 0.0), f"{t}.misspecification", where,
                                                lo=0.0))
     gp["local_points"] = None
     if "local_points" in gp_in:
-        if gp["error_bound"] == "chowdhury":
-            raise ProblemFileError(f"{where}: {t}.local_points applies to error_bound = \"optimal\" or \"ridge\" only")
+        _file_rule(t, method.check_file_local_points, where)
         gp["local_points"] = _number(gp_in["local_points"], f"{t}.local_points", where, lo=1, integer=True)
     gp["iid_noise"] = gp_in.get("iid_noise", False)
     if not isinstance(gp["iid_noise"], bool):
         raise ProblemFileError(f"{where}: {t}.iid_noise must be true or false; got {gp_in['iid_noise']!r}")
     return gp
+
+
+def _file_rule(t: str, rule, *args):
+    """``rule(*args)``: a problem-file rule of the method registry (``bounds.methods``). Its messages name
+    the learning table by its former name ``[gp]``; they name it as the file does (``t``)."""
+    try:
+        return rule(*args)
+    except ProblemFileError as exc:
+        if t == "[gp]":
+            raise
+        raise ProblemFileError(str(exc).replace("[gp].", f"{t}.")) from None
 
 
 def _parse_gp_posterior(gp_in: dict, t: str, where: str) -> dict[str, Any]:
@@ -465,9 +465,7 @@ def _parse_refine(r_in: dict, gp: dict, n: int, t: str, where: str) -> dict[str,
         if r_in["focus"] not in ("open", "undecided"):
             raise ProblemFileError(f"{where}: [refine].focus must be one of open, undecided; got {r_in['focus']!r}")
         refine["focus"] = r_in["focus"]
-    if gp.get("error_bound", "optimal") == "chowdhury" or gp.get("iid_noise"):
-        raise ProblemFileError(f"{where}: [refine] needs {t}.error_bound = \"optimal\" or \"ridge\" without "
-                               "iid_noise (the bounds of new cells must hold on the same event as the grid's)")
+    _file_rule(t, methods.get(gp.get("error_bound", methods.DEFAULT)).check_file_refine, gp.get("iid_noise"), where)
     return refine
 
 

@@ -61,7 +61,7 @@ def bounds_key(problem: Problem) -> str:
         list(problem.mode_names), [_map_key(m) for m in problem.maps],
         problem.noise, _setting_value(problem.rkhs_bound), problem.gp_options, float(problem.bound_tol),
         int(problem.bound_max_boxes), problem.error_bound, _setting_value(problem.misspecification),
-        bool(problem.iid_noise), float(problem.confidence) if problem.error_bound != "chowdhury" else None,
+        bool(problem.iid_noise), float(problem.confidence) if problem.method.confidence_in_bounds else None,
         problem.local_points,
     ])
     return h.hexdigest()[:20]

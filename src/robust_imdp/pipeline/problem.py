@@ -9,18 +9,75 @@ from typing import Any
 
 import numpy as np
 
+from robust_imdp.bounds import methods
 from robust_imdp.errors import InvalidInputError
 
 
 CLASS_NAMES = ("yes", "no", "maybe")
 GUARANTEES = ("confidence", "paper")
-#: How the unknown part is bounded over a cell (see :class:`Problem`).
-ERROR_BOUNDS = ("optimal", "ridge", "chowdhury")
+#: How the unknown part is bounded over a cell (see :class:`Problem`): the method registry's names.
+ERROR_BOUNDS = methods.ERROR_BOUNDS
 #: Failure probability allowed to the assumption check's noise bound when the noise is unbounded.
 CHECK_DELTA = 1e-6
 #: With ``local_points=None``: modes with more data points than this use local weights (100 points).
 LOCAL_AUTO = 1000
 LOCAL_DEFAULT = 100
+
+
+# --------------------------------------------------------------------------- the problem file's tables
+# Read-only views of a Problem grouped like the problem file's tables (``problem.space.cell_size``,
+# ``problem.learning.error_bound``). The Problem itself keeps the flat attributes as its storage: the
+# flat constructor, ``replace(cell_size=...)``, flat reads and the cache keys stay exactly as they are,
+# and a view is built from them on each read (it holds the same objects, no copies).
+@dataclass(frozen=True, eq=False)
+class SpaceConfig:
+    """``[space]``: the compact set X, the grid size and the dimension names."""
+
+    lower: np.ndarray
+    upper: np.ndarray
+    cell_size: np.ndarray
+    names: tuple | None
+
+
+@dataclass(frozen=True, eq=False)
+class SpecConfig:
+    """``[spec]`` with the ``[[regions.NAME]]`` its formula's atoms name."""
+
+    formula: str
+    threshold: float
+    horizon: int | None
+    regions: dict
+
+
+@dataclass(frozen=True, eq=False)
+class LearningConfig:
+    """``[learning]`` (formerly ``[gp]``): the assumption and how the unknown part is bounded."""
+
+    rkhs_bound: Any
+    lengthscale: Any
+    misspecification: Any
+    error_bound: str
+    iid_noise: bool
+    local_points: int | None
+    gp_options: dict
+    bound_tol: float
+    bound_max_boxes: int
+
+    @property
+    def method(self) -> methods.BoundMethod:
+        """The error-bound method's registry entry (``bounds.methods``)."""
+        return methods.get(self.error_bound)
+
+
+@dataclass(frozen=True, eq=False)
+class AbstractionConfig:
+    """``[abstraction]``: how the bounds become an IMDP and what the guarantee is."""
+
+    eta: Any
+    eps_rule: str
+    combine: str
+    guarantee: str
+    confidence: float
 
 
 @dataclass(frozen=True, eq=False)
@@ -97,6 +154,11 @@ class Problem:
 
     :meth:`from_arrays` builds a Problem from numpy arrays (the Python counterpart of a problem
     file).
+
+    The attributes are flat (the constructor's keywords); read-only views group them like the
+    problem file's tables: ``space`` (:class:`SpaceConfig`), ``spec`` (:class:`SpecConfig`),
+    ``learning`` (:class:`LearningConfig`), ``abstraction`` (:class:`AbstractionConfig`), and
+    ``refine``; ``method`` is the error-bound method's entry in ``bounds.methods``.
     """
 
     space_lower: np.ndarray
@@ -149,11 +211,8 @@ class Problem:
         h = self.horizon
         if h is not None and (isinstance(h, bool) or not isinstance(h, (int, np.integer)) or h < 1):
             raise InvalidInputError(f"horizon must be None (unbounded) or an integer >= 1; got {h!r}")
-        if self.error_bound not in ERROR_BOUNDS:
-            raise InvalidInputError(f"error_bound must be one of {ERROR_BOUNDS}; got {self.error_bound!r}")
-        if self.guarantee == "paper" and self.error_bound != "chowdhury":
-            raise InvalidInputError(
-                f"guarantee 'paper' (Thm 1 as printed) needs error_bound 'chowdhury'; got {self.error_bound!r}")
+        method = methods.get(self.error_bound)  # the method's rules and messages live in the registry
+        method.check_guarantee(self.guarantee)
         # one number (checked here as before), or per mode and component (checked by _check_known_parts)
         tau = float(self.misspecification) if np.ndim(self.misspecification) == 0 and not isinstance(
             self.misspecification, dict) else float(_settings(self).misspecification.max())
@@ -161,27 +220,14 @@ class Problem:
             raise InvalidInputError(f"misspecification must be a finite float >= 0; got {self.misspecification!r}")
         if self.local_points is not None and (int(self.local_points) != self.local_points or self.local_points < 1):
             raise InvalidInputError(f"local_points must be a positive integer or None; got {self.local_points!r}")
-        if self.error_bound == "chowdhury" and (tau > 0 or self.iid_noise):
-            raise InvalidInputError(
-                "misspecification and iid_noise apply to error_bound 'optimal' or 'ridge' only; the GP route "
-                f"(error_bound 'chowdhury') has neither; got misspecification={tau!r}, iid_noise={self.iid_noise!r}")
-        if self.error_bound != "chowdhury":
-            extra = sorted(set(self.gp_options) - {"lengthscale"})
-            if extra:
-                raise InvalidInputError(
-                    f"gp_options {extra} apply only to error_bound 'chowdhury' (a GP posterior); error_bound "
-                    f"{self.error_bound!r} uses the unit-amplitude kernel with the given lengthscale only")
+        method.check_noise_options(tau, self.iid_noise)
+        method.check_gp_options(self.gp_options)
         self._check_known_parts()
         if self.refine is not None:
             from robust_imdp.synthesis.refine import RefineOptions
 
             object.__setattr__(self, "refine", RefineOptions.from_dict(self.refine))
-            if self.error_bound == "chowdhury" or self.iid_noise:
-                # new cells need bounds of the same statement: the GP route folds the error in at
-                # the end, and iid_noise's union bound counts the cells of the grid
-                raise InvalidInputError(
-                    "[refine] needs error_bound 'optimal' or 'ridge' without iid_noise (the bounds of new cells "
-                    f"must hold on the same event); got error_bound={self.error_bound!r}, iid_noise={self.iid_noise!r}")
+            method.check_refine(self.iid_noise)
 
     def _check_known_parts(self) -> None:
         """Every mode's known part has the known-part interface; the assumption resolves per mode and component."""
@@ -201,18 +247,32 @@ class Problem:
                 raise InvalidInputError(f"maps: the known part of mode {name!r} must act on {n} dimensions like "
                                         f"space_lower; got dimension {m.dim}")
         settings = _settings(self)  # raises on a wrong form, naming rkhs_bound / lengthscale / misspecification
-        if self.error_bound == "chowdhury":
-            nonlinear = [name for name, m in zip(self.mode_names, maps) if not _is_affine(m)]
-            if nonlinear:
-                raise InvalidInputError(
-                    f"error_bound 'chowdhury' (the GP route, bounds.bound_image) bounds f_u + mu jointly for an affine "
-                    f"f_u = A x + b only; modes {nonlinear} have a nonlinear known part f: use error_bound 'optimal' "
-                    "or 'ridge'")
-            if not settings.uniform:
-                raise InvalidInputError(
-                    "error_bound 'chowdhury' (the GP route) takes one rkhs_bound, one lengthscale and no known "
-                    "components; per-mode or per-component values need error_bound 'optimal' or 'ridge'; got "
-                    f"rkhs_bound={self.rkhs_bound!r}, lengthscale={self.gp_options.get('lengthscale')!r}")
+        nonlinear = [name for name, m in zip(self.mode_names, maps) if not _is_affine(m)]
+        self.method.check_known_parts(nonlinear, settings.uniform, self.rkhs_bound, self.gp_options.get("lengthscale"))
+
+    # ----------------------------------------------------------------- views by table
+    @property
+    def space(self) -> SpaceConfig:
+        return SpaceConfig(self.space_lower, self.space_upper, self.cell_size, self.dim_names)
+
+    @property
+    def spec(self) -> SpecConfig:
+        return SpecConfig(self.formula, self.threshold, self.horizon, self.regions)
+
+    @property
+    def learning(self) -> LearningConfig:
+        return LearningConfig(self.rkhs_bound, self.gp_options.get("lengthscale"), self.misspecification,
+                              self.error_bound, self.iid_noise, self.local_points, self.gp_options, self.bound_tol,
+                              self.bound_max_boxes)
+
+    @property
+    def abstraction(self) -> AbstractionConfig:
+        return AbstractionConfig(self.eta, self.eps_rule, self.combine, self.guarantee, self.confidence)
+
+    @property
+    def method(self) -> methods.BoundMethod:
+        """The error-bound method's registry entry: ask its capabilities, not its name."""
+        return methods.get(self.error_bound)
 
     def replace(self, **changes) -> "Problem":
         """A copy with some attributes changed (e.g. ``formula=...``)."""

@@ -316,8 +316,8 @@ def _advice(problem: Problem, partition, cell_bounds, dfa, classes, log: _Log, r
     n_fine = partition.n_cells * 2 ** partition.dim
     work = n_fine * len(problem.mode_names) * 3 ** partition.dim  # ~ listed transitions of the finer grid
     if (want is False or (want == "auto" and (n_fine > MAX_CELLS or work > MAX_AUTO_TRANSITIONS))
-            or problem.error_bound == "chowdhury"):
-        return {}  # the GP route has no pilot bound stage (its boxes come from bounds.bound_image)
+            or not problem.method.advice_pilot):
+        return {}  # no pilot bound stage for the method (the GP route's boxes come from bounds.bound_image)
     if cell_bounds is None and cache_dir is not None:  # the abstraction came from the cache: its boxes too
         bounds_file = Path(cache_dir) / f"bounds-{bounds_key(problem)}.npz"
         loaded = read_cache_entry(bounds_file, _load_bounds)  # None when absent or damaged
