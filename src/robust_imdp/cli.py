@@ -20,6 +20,7 @@ shown unless ``--debug`` is given (before or after the command). Warnings print 
 from __future__ import annotations
 
 import argparse
+import enum
 import json
 import sys
 import warnings
@@ -29,6 +30,16 @@ from robust_imdp import __version__
 from robust_imdp.errors import InvalidInputError, RobustImdpError, interrupt_in
 
 __all__ = ["main"]
+
+
+class Exit(enum.IntEnum):
+    """The exit statuses of ``robust-imdp`` (see the module docstring)."""
+
+    OK = 0
+    ERROR = 1  #: bad input, or a validation the result fails
+    USAGE = 2  #: argparse's status for usage errors
+    INTERNAL = 3  #: a bug, not bad input
+    INTERRUPTED = 130  #: Ctrl-C (128 + SIGINT), the shell's convention
 
 
 # --------------------------------------------------------------------------- option values
@@ -268,7 +279,7 @@ def _run_into(args, out: Path, cache: Path) -> int:
     path = save_result(result, out)
     print(result.summary())
     print(f"wrote {path}" + (f" and {len(figures)} figures in {out}" if figures else " (no figures)"))
-    return 0
+    return Exit.OK
 
 
 # --------------------------------------------------------------------------- true systems
@@ -386,8 +397,8 @@ def _cmd_simulate(args) -> int:
         print(f"robust-imdp: validation failed: {len(report.outside)} of {len(report.cells)} cells are flagged, more "
               f"than the {report.allowed_outside} that chance allows at confidence {report.confidence:g}; the "
               "result's bounds are contradicted by this system (see validation.json)", file=sys.stderr)
-        return 1
-    return 0
+        return Exit.ERROR
+    return Exit.OK
 
 
 # --------------------------------------------------------------------------- export
@@ -475,7 +486,7 @@ def _cmd_export(args) -> int:
     print(f"wrote {', '.join(written)}: {model.n_states} states, {model.n_choices} choices"
           + (f" (product of {n} cells + outside with {states['dfa_states']} DFA states)" if args.product else
              f" ({n} cells + the outside state {n})"))
-    return 0
+    return Exit.OK
 
 
 def _cmd_example(args) -> int:
@@ -483,7 +494,7 @@ def _cmd_example(args) -> int:
 
     path = write_problem_files(args.name, args.out, seed=args.seed, formula=args.formula)
     print(f"wrote {path} and its data file")
-    return 0
+    return Exit.OK
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
@@ -506,7 +517,7 @@ def main(argv=None) -> int:
         if args.debug:
             raise
         print(f"robust-imdp: {getattr(args, 'interrupt_note', 'interrupted')}", file=sys.stderr)
-        return 130
+        return Exit.INTERRUPTED
     except Exception as exc:
         return _failure(exc, args)
 
@@ -519,11 +530,11 @@ def _failure(exc: Exception, args) -> int:
         if args.debug:
             raise exc
         print(f"robust-imdp: {getattr(args, 'interrupt_note', 'interrupted')}", file=sys.stderr)
-        return 130
+        return Exit.INTERRUPTED
     if type(exc).__name__ == "KilledWorker":  # distributed: a worker was lost for good
         print(f"robust-imdp: a Dask worker was lost ({exc}); "
               f"{getattr(args, 'interrupt_note', 'interrupted')}", file=sys.stderr)
-        return 130
+        return Exit.INTERRUPTED
     if isinstance(exc, (RobustImdpError, ValueError, OSError, KeyError)):
         if args.debug:
             raise exc
@@ -531,13 +542,13 @@ def _failure(exc: Exception, args) -> int:
         if isinstance(exc, OSError) and getattr(exc, "filename", None):
             msg = f"{exc.strerror}: {exc.filename}"
         print(f"robust-imdp: error: {msg}", file=sys.stderr)
-        return 1
+        return Exit.ERROR
     # a bug, not bad input: still no traceback unless --debug
     if args.debug:
         raise exc
     print(f"robust-imdp: internal error ({type(exc).__name__}: {exc}); please report it, "
           "and rerun with --debug for the traceback", file=sys.stderr)
-    return 3
+    return Exit.INTERNAL
 
 
 if __name__ == "__main__":  # pragma: no cover

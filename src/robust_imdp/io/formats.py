@@ -1,6 +1,6 @@
 """Model exchange: Storm's DRN format, PRISM explicit files, and a bridge to stormpy.
 
-So that users can check our IMDPs with other tools (issue 2, item 2):
+So that users can check our IMDPs with other tools:
 
 * :func:`write_drn` / :func:`read_drn` / :func:`load_drn` -- Storm's explicit "direct
   encoding" (DRN) with ``@type: MDP`` and interval values ``[a, b]``; the files load with

@@ -48,7 +48,7 @@ from robust_imdp.errors import InvalidInputError, ProblemFileError
 from robust_imdp.io.data_file import (
     _check_samples_possible, _read_data, _read_text, _warn_few_samples,
 )
-from robust_imdp.pipeline.problem import GUARANTEES  # the one definition of the guarantees
+from robust_imdp.pipeline.problem import BOUND_MAX_BOXES, BOUND_TOL, GUARANTEES  # the one definition of these
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -588,8 +588,8 @@ def load_problem(path):
     misspecification = gp.pop("misspecification")
     iid_noise = gp.pop("iid_noise")
     local_points = gp.pop("local_points")
-    bound_tol = gp.pop("bound_tol", 1e-3)
-    bound_max_boxes = gp.pop("bound_max_boxes", 2000)
+    bound_tol = gp.pop("bound_tol", BOUND_TOL)
+    bound_max_boxes = gp.pop("bound_max_boxes", BOUND_MAX_BOXES)
     ab = spec["abstraction"]
     return Problem(
         space_lower=spec["lower"], space_upper=spec["upper"], cell_size=spec["cell_size"],

@@ -22,6 +22,9 @@ CHECK_DELTA = 1e-6
 #: With ``local_points=None``: modes with more data points than this use local weights (100 points).
 LOCAL_AUTO = 1000
 LOCAL_DEFAULT = 100
+#: Defaults of the GP route's image / std bounds: target certified gap, branch-and-bound boxes per cell.
+BOUND_TOL = 1e-3
+BOUND_MAX_BOXES = 2000
 
 
 # --------------------------------------------------------------------------- the problem file's tables
@@ -174,8 +177,8 @@ class Problem:
     noise: Any
     rkhs_bound: float
     gp_options: dict = field(default_factory=dict)
-    bound_tol: float = 1e-3
-    bound_max_boxes: int = 2000
+    bound_tol: float = BOUND_TOL
+    bound_max_boxes: int = BOUND_MAX_BOXES
     eta: Any = None
     eps_rule: str = "optimized"
     combine: str = "product"

@@ -65,6 +65,9 @@ from robust_imdp.pipeline.bound_stage import (
 __all__ = ["Problem", "Result", "synthesize_from_data", "resynthesize", "abstraction_key",
            "bounds_key", "estimate_resources"]
 
+#: The abstraction's rows are built in tasks of at most this many cells.
+MAX_ROW_CELLS = 4096
+
 
 def _parameters(problem: Problem, abstraction) -> dict:
     noise = problem.noise
@@ -162,12 +165,12 @@ def _build_abstraction(problem: Problem, partition, log: _Log, cache_dir=None, r
             cell_bounds = confidence_cell_bounds(cell_bounds, error_models, problem.confidence)
             error_models = None
         if error_models is None:
-            # at most 4096 cells per task, and at least two tasks per worker on a cluster
+            # at most MAX_ROW_CELLS cells per task, and at least two tasks per worker on a cluster
             # (the rows do not depend on the chunk size: tests/test_chunks.py)
             from robust_imdp.pipeline.parallel import DaskScheduler
 
             workers = run.sched.n_workers if isinstance(run.sched, DaskScheduler) else 1
-            per_task = 4096 if workers <= 1 else min(4096, -(-partition.n_cells // (2 * workers)))
+            per_task = MAX_ROW_CELLS if workers <= 1 else min(MAX_ROW_CELLS, -(-partition.n_cells // (2 * workers)))
             abstraction = _chunked_abstract(problem, partition, cell_bounds, log, run,
                                             _chunk_cells(run, partition.n_cells, per_task))
         else:
@@ -294,7 +297,7 @@ def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cac
     syn, classes = _synthesize(problem, partition, abstraction, dfa, log)
     advice = _advice(problem, partition, cell_bounds, dfa, classes, log, run, abstraction_cache, diagnostics)
     parameters = _parameters(problem, abstraction)
-    if problem.refine is not None:  # issue 13: adaptive refinement of the undecided cells
+    if problem.refine is not None:  # adaptive refinement of the undecided cells (see docs/refinement.md)
         partition, abstraction, syn, classes, diagnostics, parameters["abstraction_key"] = _refine(
             problem, partition, abstraction, syn, cell_bounds, dfa, log, run, abstraction_cache, diagnostics)
     log.timings["total"] = time.perf_counter() - log.t0
