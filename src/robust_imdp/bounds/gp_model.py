@@ -22,6 +22,7 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 
+from robust_imdp._kernels import se_kernel  # the one SE kernel (bit for bit the GP route's own)
 from robust_imdp.errors import ConvergenceError, DimensionError, InvalidInputError
 
 # The GP route logs under one name, ``robust_imdp.bounds.gp`` (the public module).
@@ -76,28 +77,6 @@ def _as_matrix(name: str, X: Any, d: int | None = None) -> np.ndarray:
         bad = np.argwhere(~np.isfinite(X))[0]
         raise InvalidInputError(f"{name} must be finite; got {X[tuple(bad)]} at index {tuple(bad)}")
     return X
-
-
-def se_kernel(A: np.ndarray, B: np.ndarray, lengthscale: np.ndarray, signal_variance: float) -> np.ndarray:
-    """Squared-exponential kernel ``sf2 * exp(-0.5 * sum_j ((a_j - b_j) / l_j)^2)``.
-
-    Parameters
-    ----------
-    A : (p, d) float array
-    B : (q, d) float array
-    lengthscale : (d,) float array
-    signal_variance : float
-
-    Returns
-    -------
-    (p, q) float array
-    """
-    sq = np.zeros((A.shape[0], B.shape[0]))
-    # Coordinate-wise differences (no |a|^2 + |b|^2 - 2ab cancellation): O(p q) memory per dim.
-    for j in range(A.shape[1]):
-        diff = (A[:, j, None] - B[None, :, j]) / lengthscale[j]
-        sq += diff * diff
-    return signal_variance * np.exp(-0.5 * sq)
 
 
 # --------------------------------------------------------------------------- GP
