@@ -2,9 +2,9 @@
 
 A :class:`BoundMethod` declares what a method reads and what it can do (named capabilities), and
 raises the errors a problem or a problem file gets when it asks a method for something it cannot
-do. Every module asks the registry (``get(name).refine``, ``get(name).route`` ...) instead of
-comparing the method's name, so adding a method is one new module (its bounder) plus one entry in
-:data:`METHODS` (see docs/ARCHITECTURE.md, "How to add an error-bound method").
+do. Modules are to ask the registry (``get(name).refine``, ``get(name).route`` ...) instead of
+comparing the method's name; a method on an existing route is then one entry in :data:`METHODS`
+plus its code in the route's modules.
 
 The checks keep the messages the problem (``InvalidInputError``) and the problem file
 (``ProblemFileError``, prefixed by the file) gave before the registry existed; the names in them
@@ -25,7 +25,8 @@ GP_POSTERIOR_KEYS = ("signal_variance", "optimize", "info_gain", "bound_tol", "b
 
 
 class CellBounder(Protocol):
-    """What a method's bounder provides (``BoundMethod.bounder`` names the module).
+    """What a method's bounder is to provide (the target interface; today ``pipeline/bound_stage.py``
+    implements both routes as ``_learn_and_bound`` / ``_cell_bounder``, dispatching on ``route``).
 
     ``bound_grid(problem, partition, log, run, cache_dir, data, known_ranges, checks, check_noise)
     -> (cell_bounds, error_bounds or None, diagnostics)``: the bound stage over the grid's cells;
@@ -51,8 +52,9 @@ class BoundMethod:
     weights : str or None
         The ``method`` argument of ``rkhs.bound_chunk`` (``"optimal"`` or ``"ridge"``) on the RKHS route.
     bounder : str
-        Module (under ``robust_imdp``) whose ``bound_grid`` / ``cell_bounder`` do the bound stage
-        (the :class:`CellBounder` protocol).
+        Module (under ``robust_imdp``) that runs the method's bound stage. Today both routes live in
+        ``pipeline/bound_stage.py``, which dispatches on ``route``; :class:`CellBounder` is the
+        interface a separate bounder module is to provide (not yet split out).
     options : tuple of str
         The ``gp_options`` keys the method reads.
     misspecification, iid_noise, local_points, refine, nonlinear_known, per_component : bool
@@ -191,7 +193,7 @@ class BoundMethod:
 
 _ROUTE_TEXT = {"gp": "GP route", "rkhs": "RKHS route"}
 
-_RKHS = dict(route="rkhs", bounder="pipeline.bound_rkhs", misspecification=True, iid_noise=True,
+_RKHS = dict(route="rkhs", bounder="pipeline.bound_stage", misspecification=True, iid_noise=True,
              local_points=True, refine=True, nonlinear_known=True, per_component=True, advice_pilot=True,
              confidence_in_bounds=True)
 
@@ -199,7 +201,7 @@ _RKHS = dict(route="rkhs", bounder="pipeline.bound_rkhs", misspecification=True,
 METHODS: dict[str, BoundMethod] = {
     "optimal": BoundMethod("optimal", weights="optimal", **_RKHS),
     "ridge": BoundMethod("ridge", weights="ridge", local_lambda=True, **_RKHS),
-    "chowdhury": BoundMethod("chowdhury", route="gp", bounder="pipeline.bound_gp",
+    "chowdhury": BoundMethod("chowdhury", route="gp", bounder="pipeline.bound_stage",
                              options=("lengthscale",) + GP_POSTERIOR_KEYS, gp_posterior=True, paper_guarantee=True),
 }
 #: The method names (``Problem.error_bound`` values), default first.

@@ -1,6 +1,6 @@
 r"""Certified bounds of an unknown function of bounded RKHS norm over whole cells, from noisy data.
 
-This is the *learn + bound* stage of the tight route (issue 9). It needs no Gaussian-process
+This is the *learn + bound* stage of the tight route (``error_bound="optimal"`` or ``"ridge"``). It needs no Gaussian-process
 posterior, no probability over the data (for bounded noise) and no branch and bound.
 
 Setting (``docs/rkhs_bounds.md`` has the derivations in full)

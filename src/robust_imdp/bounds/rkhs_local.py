@@ -3,7 +3,6 @@ so a cell's cost no longer grows with the data and no m x m kernel matrix is bui
 
 from __future__ import annotations
 
-import math
 
 import numba
 import numpy as np
@@ -13,44 +12,12 @@ from robust_imdp._kernels import inv_l2_up as _inv_l2, kernel_matrix as _kernel_
 from robust_imdp.bounds.rkhs_model import (CELL_BLOCK, _blocks, _certified_norms, _certified_value, _certify, _check_cells,
                                            _combine_vertices, _known_at_vertices, _vertex_b, _writable, cell_centres,
                                            split_counts, sub_boxes, vertex_signs)
-from robust_imdp.bounds.rkhs_weights import METHODS, _active_set
+from robust_imdp.bounds.rkhs_weights import METHODS, _active_set, _chol_factor, _chol_solve
 from robust_imdp.errors import InvalidInputError
 
 
 
 # ============================================================================ local weights
-@numba.njit(cache=True)
-def _chol_factor(P, n, L, jitter):  # pragma: no cover - compiled
-    """Lower Cholesky factor of ``P[:n, :n] + jitter I`` into ``L``; False if not positive definite."""
-    for j in range(n):
-        s = P[j, j] + jitter
-        for k in range(j):
-            s -= L[j, k] * L[j, k]
-        if not s > 0.0:
-            return False
-        L[j, j] = math.sqrt(s)
-        for i in range(j + 1, n):
-            t = P[i, j]
-            for k in range(j):
-                t -= L[i, k] * L[j, k]
-            L[i, j] = t / L[j, j]
-    return True
-
-
-@numba.njit(cache=True)
-def _chol_solve(L, n, rhs, out):  # pragma: no cover - compiled
-    for i in range(n):
-        t = rhs[i]
-        for k in range(i):
-            t -= L[i, k] * out[k]
-        out[i] = t / L[i, i]
-    for i in range(n - 1, -1, -1):
-        t = out[i]
-        for k in range(i + 1, n):
-            t -= L[k, i] * out[k]
-        out[i] = t / L[i, i]
-
-
 @numba.njit(cache=True, parallel=True)
 def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_iter, tol, ptr, group):  # pragma: no cover
     """Certified bounds of ``<h, phi_v>`` (eq. W) with weights on each cell's pool of data points.

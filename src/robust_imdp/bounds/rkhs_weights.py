@@ -21,10 +21,10 @@ MAX_SUPPORT = 400
 
 # ============================================================================ optimal weights
 @numba.njit(cache=True)
-def _chol_solve2(P, n, L, r1, r2, o1, o2):  # pragma: no cover - compiled
-    """Cholesky factor of ``P[:n, :n]`` into ``L``; solve for two right-hand sides. False if not PD."""
+def _chol_factor(P, n, L, jitter):  # pragma: no cover - compiled
+    """Lower Cholesky factor of ``P[:n, :n] + jitter I`` into ``L``; False if not positive definite."""
     for j in range(n):
-        s = P[j, j]
+        s = P[j, j] + jitter
         for k in range(j):
             s -= L[j, k] * L[j, k]
         if not s > 0.0:
@@ -35,23 +35,30 @@ def _chol_solve2(P, n, L, r1, r2, o1, o2):  # pragma: no cover - compiled
             for k in range(j):
                 t -= L[i, k] * L[j, k]
             L[i, j] = t / L[j, j]
-    for rhs in range(2):
-        for i in range(n):
-            t = r1[i] if rhs == 0 else r2[i]
-            for k in range(i):
-                t -= L[i, k] * (o1[k] if rhs == 0 else o2[k])
-            if rhs == 0:
-                o1[i] = t / L[i, i]
-            else:
-                o2[i] = t / L[i, i]
-        for i in range(n - 1, -1, -1):
-            t = o1[i] if rhs == 0 else o2[i]
-            for k in range(i + 1, n):
-                t -= L[k, i] * (o1[k] if rhs == 0 else o2[k])
-            if rhs == 0:
-                o1[i] = t / L[i, i]
-            else:
-                o2[i] = t / L[i, i]
+    return True
+
+
+@numba.njit(cache=True)
+def _chol_solve(L, n, rhs, out):  # pragma: no cover - compiled
+    for i in range(n):
+        t = rhs[i]
+        for k in range(i):
+            t -= L[i, k] * out[k]
+        out[i] = t / L[i, i]
+    for i in range(n - 1, -1, -1):
+        t = out[i]
+        for k in range(i + 1, n):
+            t -= L[k, i] * out[k]
+        out[i] = t / L[i, i]
+
+
+@numba.njit(cache=True)
+def _chol_solve2(P, n, L, r1, r2, o1, o2):  # pragma: no cover - compiled
+    """Cholesky factor of ``P[:n, :n]`` into ``L``; solve for two right-hand sides. False if not PD."""
+    if not _chol_factor(P, n, L, 0.0):
+        return False
+    _chol_solve(L, n, r1, o1)
+    _chol_solve(L, n, r2, o2)
     return True
 
 

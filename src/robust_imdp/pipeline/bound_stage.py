@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from robust_imdp.bounds.methods import get as _method
 from robust_imdp.pipeline.problem import (
     CHECK_DELTA,
     LOCAL_AUTO,
@@ -118,7 +119,7 @@ def _mode_extras(problem: Problem, data, partition, allowance, local) -> list:
         extra = {"noise_bound": np.asarray(allowance, float)}
         if not st.uniform:
             extra["groups"] = st.groups(u)
-            if problem.error_bound == "ridge" and local[u] is not None:
+            if _method(problem.error_bound).local_lambda and local[u] is not None:
                 # one ridge lambda per group, for all chunks (as _local_settings does per mode)
                 extra["local_lambda"] = [
                     None if B == 0 else local_lambda(data[u][0], partition.cells_lower, partition.cells_upper,
@@ -293,7 +294,7 @@ def _local_settings(problem: Problem, data, partition, noise_bound):
             out.append(None)
             continue
         lam = None
-        if problem.error_bound == "ridge":
+        if _method(problem.error_bound).local_lambda:
             base = _base_settings(problem)
             lam = local_lambda(x, partition.cells_lower, partition.cells_upper,
                                lengthscale=base["lengthscale"], rkhs_bound=base["rkhs_bound"],
@@ -322,7 +323,7 @@ def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" 
     # the long stages (ExpressionDomainError names the mode, the component and the box)
     known_ranges = _known_ranges(problem, partition.cells_lower, partition.cells_upper)
     checks, check_noise = _check_assumption(problem, data, log, cache_dir)
-    if problem.error_bound == "chowdhury":
+    if _method(problem.error_bound).route == "gp":
         return _learn_and_bound_gp(problem, partition, log, checks, check_noise)
     from robust_imdp.bounds.rkhs import CELL_BLOCK, check_ranges, hoeffding_factor, noise_bound_at_confidence
 
@@ -333,7 +334,7 @@ def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" 
     lo, up = partition.cells_lower, partition.cells_upper
     iid_theta = problem.noise.sub_gaussian_parameter() if problem.iid_noise else None
     settings = {**_base_settings(problem), "noise_bound": _shared_allowance(problem, noise_bound),
-                "method": problem.error_bound, "iid_theta": iid_theta,
+                "method": _method(problem.error_bound).weights, "iid_theta": iid_theta,
                 "iid_factor": None if iid_theta is None else hoeffding_factor(M * n * N * 2 ** n, iid_delta)}
     chunk = _chunk_cells(run, N, 256)
     tasks = [(u, s0) for u in range(M) for s0 in range(0, N, chunk)]
@@ -494,7 +495,7 @@ def _cell_bounder(problem: Problem, partition, log: _Log, run: _Run, task=None):
     m_total = sum(x.shape[0] for x, _, _ in data)
     noise_bound, _ = noise_bound_at_confidence(problem.noise, m_total, data_fail if data_fail > 0 else 0.5)
     settings = {**_base_settings(problem), "noise_bound": _shared_allowance(problem, noise_bound),
-                "method": problem.error_bound, "iid_theta": None, "iid_factor": None}
+                "method": _method(problem.error_bound).weights, "iid_theta": None, "iid_factor": None}
     local = _local_settings(problem, data, partition, noise_bound)
     # one allowance for every mode (the largest), as on the one-setting path: equal settings, equal bytes
     extras = _mode_extras(problem, data, partition, _shared_allowance(problem, noise_bound), local)
