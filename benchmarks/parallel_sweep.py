@@ -33,7 +33,7 @@ sys.path.insert(0, str(HERE))
 
 from solver import loadavg, med, random_model, targets  # noqa: E402
 
-from robust_imdp.solvers import api as solve  # noqa: E402
+from robust_imdp.solvers import sweep as solve  # noqa: E402  (PAR_MIN_STATES and the layer kernels)
 from robust_imdp.solvers.api import solve_reachability  # noqa: E402
 
 OUT = HERE / "results"

@@ -403,13 +403,14 @@ def test_parallel_jacobi_sweeps_give_the_serial_results_bit_for_bit(monkeypatch)
     bounds and strategies, and the parallel kernel was really used."""
     import numba
 
-    from robust_imdp.solvers import api as S
+    from robust_imdp.solvers import sweep as S
+    from robust_imdp.solvers.kernels import PAR_BLOCK
     from robust_imdp.spec.dfa import ltlf_to_dfa
     from robust_imdp.solvers.product import solve_product
 
     rng = np.random.default_rng(5)
     n, A, k = 2600, 2, 5  # more than two of the kernel's blocks of PAR_BLOCK = 1024 states
-    assert n > 2 * S.PAR_BLOCK
+    assert n > 2 * PAR_BLOCK
     col = np.sort(rng.choice(n, size=(n * A, k)), axis=1)
     col = np.where(np.diff(col, axis=1, prepend=-1) == 0, -1, col)  # duplicates dropped below
     p = rng.dirichlet(np.ones(k), size=n * A)

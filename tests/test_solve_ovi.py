@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 
 from robust_imdp.solvers import api as solve
+from robust_imdp.solvers import graph, ovi  # the modules whose names are patched
 from robust_imdp.models.imdp import IMDP
 from robust_imdp.solvers.lp import evaluate_strategy_lp, ordering_inner_dense, solve_reachability_lp
 from robust_imdp.solvers.product import evaluate_product_strategy, materialize_product, solve_product
@@ -55,7 +56,7 @@ def statuses(monkeypatch):
         seen[id(status)] = status  # the same array is filled by later calls and for end components
         return original(*args)
 
-    monkeypatch.setattr(solve, "solve_components", recording)
+    monkeypatch.setattr(ovi, "solve_components", recording)
     return lambda: list(seen.values())
 
 
@@ -134,7 +135,7 @@ def test_every_path_brackets_the_value(monkeypatch, statuses, variant):
     status): the bracket holds the value (two-sided dense value iteration) and has width <=
     precision; the strategy, checked with evaluate_strategy, achieves the optimal value up to
     the precision."""
-    monkeypatch.setattr(solve, "OVI_PARAMS", PARAMS[variant])
+    monkeypatch.setattr(ovi, "OVI_PARAMS", PARAMS[variant])
     rng = np.random.default_rng(3)
     m = leaking_model(rng, 40, 3, 5)
     t = np.zeros(40, bool)
@@ -402,7 +403,7 @@ def test_floor_models_every_path(monkeypatch, variant):
     """Floor rows (the GP abstraction's shape) use optimistic value iteration with Jacobi checks
     on the whole model: brackets hold the dense reference (floors expanded) with teeth, for each
     parameter variant (wrong guesses included), both adversaries and objectives."""
-    monkeypatch.setattr(solve, "OVI_PARAMS", PARAMS[variant])
+    monkeypatch.setattr(ovi, "OVI_PARAMS", PARAMS[variant])
     rng = np.random.default_rng(4)
     m = with_floor(leaking_model(rng, 30, 2, 4), 0.004)
     assert m.has_floor
@@ -428,7 +429,7 @@ def test_floor_models_with_end_components_against_lp(monkeypatch, adversary):
     comp = solve._end_components(m, np.zeros((1, 6), np.int64), np.ones((1, 6), bool), 0, np.zeros(1, np.int64))[0]
     assert np.any(comp >= 0)  # the model has end components
     for params in (PARAMS["ovi"], PARAMS["wrong-guesses"]):
-        monkeypatch.setattr(solve, "OVI_PARAMS", params)
+        monkeypatch.setattr(ovi, "OVI_PARAMS", params)
         r = solve_reachability(m, [0], avoid=[1], adversary=adversary)
         assert check_bracket(r.lower, r.upper, ref, 1e-7) == 0, adversary
 
@@ -464,7 +465,7 @@ def test_guesses_on_an_end_component_are_checked_by_the_cap(monkeypatch, statuse
     lp = solve_reachability_lp(m, [0], avoid=[1], adversary=adversary, objective=objective)
     ref = 0.5 * (lp.lower + lp.upper)
     for params in (PARAMS["ovi"], PARAMS["wrong-guesses"]):
-        monkeypatch.setattr(solve, "OVI_PARAMS", params)
+        monkeypatch.setattr(ovi, "OVI_PARAMS", params)
         r = solve_reachability(m, [0], avoid=[1], adversary=adversary, objective=objective)
         assert check_bracket(r.lower, r.upper, ref, 1e-7) == 0, (adversary, objective)
         if informative(ref).any() and r.converged:
@@ -498,7 +499,7 @@ def test_many_end_components_solved_per_level_agree_with_interval_iteration(stat
     m = IMDP.from_dense(lo, up)
     calls = []
     original = solve._deflated_component
-    monkeypatch.setattr(solve, "_deflated_component", lambda *a: calls.append(1) or original(*a))
+    monkeypatch.setattr(ovi, "_deflated_component", lambda *a: calls.append(1) or original(*a))
     with_teeth = 0
     for adversary, objective in COMBOS:
         ref = solve_reachability(m, [0], avoid=[1], adversary=adversary, objective=objective, method="interval")
@@ -557,7 +558,7 @@ def test_a_stalled_upper_iteration_stops_early_and_says_so(monkeypatch):
     solver notices that a whole period changed nothing and stops long before max_iterations,
     with converged=False, a ConvergenceWarning, and a bracket that is still sound."""
     m = response_gadget()
-    monkeypatch.setattr(solve, "response_end_components",
+    monkeypatch.setattr(graph, "response_end_components",
                         lambda members, *a: (np.full(a[5].size, -1, dtype=np.int64), 0))
     with pytest.warns(solve.ConvergenceWarning):
         r = solve_reachability(m, [0], avoid=[1], adversary="pessimistic", max_iterations=100_000)

@@ -64,7 +64,7 @@ def _base_problem(directory: Path):
 
 def _run_case(name: str, base, first):
     """Run case ``name``; returns the pipeline Result of the "optimal" case (reused), else None."""
-    from robust_imdp.solvers import api as solve
+    from robust_imdp.solvers import sweep as solve  # PAR_MIN_STATES: the threshold of the threaded sweep
     from robust_imdp.pipeline.run import resynthesize, synthesize_from_data
 
     if name == "optimal":

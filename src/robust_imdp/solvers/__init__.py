@@ -2,4 +2,5 @@
 
 from robust_imdp._lazy import exports
 
-__getattr__, __dir__ = exports(__name__, ["api", "lp", "product"])
+__getattr__, __dir__ = exports(__name__, ["common", "kernels", "graph", "sweep", "ovi", "engine", "lp", "api",
+                                           "product"])

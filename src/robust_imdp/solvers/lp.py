@@ -12,7 +12,7 @@ certified bounds, so an inaccurate solve costs tightness, never soundness.
 Contents
 --------
 * :func:`inner_lp` -- the inner problem ``min/max p.v`` over one row's polytope
-  ``{l <= p <= u, sum p = 1}`` (issue 2, item 3), as a plain LP.
+  ``{l <= p <= u, sum p = 1}``, as a plain LP.
 * :func:`solve_reachability_lp` -- whole-problem LPs:
 
   - controller and nature optimise in the *same* direction (optimistic maximisation, or
@@ -44,6 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from robust_imdp.errors import ConvergenceError, DimensionError, InvalidInputError
+from robust_imdp.solvers.common import Control, adversary_maximises, control_of, target_avoid
 
 #: Clarabel tolerances used by every LP here (gap and feasibility).  Values of the whole
 #: problems come out accurate to ~1e-9 on models of <= 30 states with these settings.
@@ -76,7 +77,8 @@ def _solve(problem, what: str):
 
 
 def _normalise(value, name: str, allowed: tuple[str, ...]) -> str:
-    """Accept the enum members of solve.py or their lower-case strings."""
+    """Accept the enum members of ``solvers.common`` or their lower-case strings (used by
+    ``io.formats``; the solvers themselves use ``common.enum_value``)."""
     v = getattr(value, "value", value)
     v = v.lower() if isinstance(v, str) else getattr(value, "name", str(value)).lower()
     if v not in allowed:
@@ -89,44 +91,15 @@ def nature_maximises(adversary, objective) -> bool:
 
     ``"pessimistic"`` means nature plays against the controller's objective (it minimises
     the probability when the controller maximises it, and vice versa); ``"optimistic"``
-    means nature cooperates.  This is Storm's ROBUST / COOPERATIVE.
+    means nature cooperates.  This is Storm's ROBUST / COOPERATIVE; the same rule as
+    :func:`robust_imdp.solvers.common.adversary_maximises`, which it is.
     """
-    adv = _normalise(adversary, "adversary", ("pessimistic", "optimistic"))
-    obj = _normalise(objective, "objective", ("maximize", "minimize"))
-    return (obj == "maximize") == (adv == "optimistic")
-
-
-def _as_mask(x, n: int, name: str, *, allow_none: bool) -> np.ndarray:
-    """A boolean mask of length n from a mask or an index array."""
-    if x is None:
-        if allow_none:
-            return np.zeros(n, dtype=bool)
-        raise InvalidInputError(f"{name} must be a boolean mask of length {n} or an index array; got None")
-    arr = np.asarray(x)
-    if arr.dtype == bool:
-        if arr.shape != (n,):
-            raise DimensionError(f"{name} as a boolean mask must have shape ({n},); got {arr.shape}")
-        return arr.copy()
-    if arr.ndim != 1 or (arr.size and not np.issubdtype(arr.dtype, np.integer)):
-        raise InvalidInputError(f"{name} must be a boolean mask of length {n} or a 1-D integer index array; got {arr.dtype} {arr.shape}")
-    bad = arr[(arr < 0) | (arr >= n)]
-    if bad.size:
-        raise InvalidInputError(f"{name} holds state {int(bad[0])}, outside [0, {n})")
-    mask = np.zeros(n, dtype=bool)
-    mask[arr] = True
-    return mask
+    return adversary_maximises(adversary, objective)
 
 
 def _target_avoid(n: int, target, avoid):
     """Masks of target and avoid; the target must be non-empty and disjoint from avoid."""
-    tgt = _as_mask(target, n, "target", allow_none=False)
-    avd = _as_mask(avoid, n, "avoid", allow_none=True)
-    if not tgt.any():
-        raise InvalidInputError("target must contain at least one state; got an empty target")
-    both = np.flatnonzero(tgt & avd)
-    if both.size:
-        raise InvalidInputError(f"target and avoid must be disjoint; state {int(both[0])} is in both")
-    return tgt, avd
+    return target_avoid(n, target, avoid, item="state")
 
 
 def ordering_inner_dense(lo: np.ndarray, up: np.ndarray, v: np.ndarray, maximize: bool) -> np.ndarray:
@@ -458,7 +431,7 @@ def solve_reachability_lp(imdp, target, *, avoid=None, adversary="pessimistic", 
     n = imdp.n_states
     tgt, avd = _target_avoid(n, target, avoid)
     nat = nature_maximises(adversary, objective)
-    ctrl = _normalise(objective, "objective", ("maximize", "minimize")) == "maximize"
+    ctrl = control_of(objective) is Control.MAXIMISE
     lo, up = _dense(imdp)
     if nat == ctrl:
         zero = _prob0(lo, up, imdp.row_state, n, tgt, avd, nat, ctrl) & ~tgt

@@ -1,4 +1,4 @@
-"""IMDP x DFA product, solved lazily (issue 3, item 3).
+"""IMDP x DFA product, solved lazily.
 
 Semantics (the *standard* one; the paper's printed definition reads the first label twice):
 from product state (q, s) under choice u the system moves to (q', delta(s, L(q'))); the initial
@@ -12,7 +12,7 @@ default Gauss-Seidel engine, per layer and sweep in the Jacobi one), so no produ
 materialised, memory stays that of the base IMDP plus O(S n) values (and the solver's row
 orders, S bytes per base entry), and a floor row stays a floor row: its unlisted base states
 are exactly the unlisted product successors reachable from layer s.  The soundness argument of
-:mod:`robust_imdp.solvers.api` applies verbatim to the layered operator (it is the Bellman operator of
+:mod:`robust_imdp.solvers.engine` applies verbatim to the layered operator (it is the Bellman operator of
 the materialised product); its strongly connected components may span layers and are solved
 in reverse topological order.
 
@@ -32,7 +32,9 @@ import numpy as np
 
 from robust_imdp.errors import DimensionError, InvalidInputError, InvalidModelError
 from robust_imdp.models.imdp import IMDP
-from robust_imdp.solvers.api import Adversary, _as_mask, _check_method, _enum, check_strategy, solve_layered
+from robust_imdp.solvers.api import check_method
+from robust_imdp.solvers.common import Adversary, Control, as_mask, check_strategy, enum_value
+from robust_imdp.solvers.engine import solve_layered
 
 
 @dataclass(frozen=True)
@@ -119,7 +121,7 @@ def _dfa_arrays(imdp: IMDP, letters, dfa, avoid):
         raise InvalidInputError(f"letters[{q}] = {int(let[q])} is not a letter of the DFA's alphabet "
                                 f"[0, {delta.shape[1]})")
     let = let.astype(np.int64)
-    av = _as_mask(avoid, n, "avoid", allow_none=True)
+    av = as_mask(avoid, n, "avoid", allow_none=True)
     acc = acc.astype(bool)
     # DFA states that cannot reach acceptance (backward reachability over all letters)
     good = acc.copy()
@@ -166,17 +168,17 @@ def solve_product(imdp: IMDP, letters, dfa, *, avoid=None, adversary="pessimisti
         The ``adversary="optimistic"`` solve of the same product (same horizon).  Rows tied in
         the lower value are then chosen by their optimistic value, and nodes where every row
         has lower value 0 take the optimistic strategy's row (lexicographic choice, see
-        "Strategy extraction" in :mod:`robust_imdp.solvers.api`).  Without it ties go to the first
+        "Strategy extraction" in :mod:`robust_imdp.solvers.engine`).  Without it ties go to the first
         row.
 
     Returns
     -------
     ProductResult
     """
-    _check_method(method)
+    check_method(method)
     nxt, target, zero, init = _dfa_arrays(imdp, letters, dfa, avoid)
-    adv_max = _enum(Adversary, adversary, "adversary") is Adversary.OPTIMISTIC
-    res = solve_layered(imdp, nxt, target, zero, ctrl=0, adv_max=adv_max, horizon=horizon,
+    adv_max = enum_value(Adversary, adversary, "adversary") is Adversary.OPTIMISTIC
+    res = solve_layered(imdp, nxt, target, zero, ctrl=Control.MAXIMISE, adv_max=adv_max, horizon=horizon,
                         precision=precision, max_iterations=max_iterations, method=method, tie_break=tie_break)
     return _result(res, init)
 
@@ -189,7 +191,7 @@ def evaluate_product_strategy(imdp: IMDP, letters, dfa, strategy, *, avoid=None,
     base state q used in DFA state s.  ``adversary="pessimistic"`` minimises the probability,
     ``"optimistic"`` maximises it.  ``method`` as in :func:`solve_product`.
     """
-    _check_method(method)
+    check_method(method)
     nxt, target, zero, init = _dfa_arrays(imdp, letters, dfa, avoid)
     S, n = nxt.shape
     st = np.asarray(strategy)
@@ -199,8 +201,8 @@ def evaluate_product_strategy(imdp: IMDP, letters, dfa, strategy, *, avoid=None,
     if st.ndim == 3 and (horizon is None or st.shape[0] != int(horizon)):
         raise DimensionError(f"a time-varying strategy of shape {st.shape} needs horizon={st.shape[0]}; got {horizon}")
     strat = st.astype(np.int64) if st.ndim == 3 else st.astype(np.int64)[None]
-    adv_max = _enum(Adversary, adversary, "adversary") is Adversary.OPTIMISTIC
-    res = solve_layered(imdp, nxt, target, zero, ctrl=2, adv_max=adv_max, horizon=horizon,
+    adv_max = enum_value(Adversary, adversary, "adversary") is Adversary.OPTIMISTIC
+    res = solve_layered(imdp, nxt, target, zero, ctrl=Control.FIXED, adv_max=adv_max, horizon=horizon,
                         precision=precision, max_iterations=max_iterations, strategy=strat, method=method)
     return _result(res, init)
 

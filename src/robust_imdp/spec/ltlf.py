@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
-from typing import Iterable, Sequence, Union
+from typing import ClassVar, Iterable, Sequence, Union
 
 import numpy as np
 
@@ -87,6 +87,29 @@ class _Node:
 
 
 @dataclass(frozen=True)
+class _Unary(_Node):
+    """A node with one operand, written ``symbol operand`` (``symbol`` per subclass)."""
+
+    operand: "Formula"
+    symbol: ClassVar[str] = ""
+
+    def __str__(self) -> str:
+        return f"{self.symbol}{_wrap(self.operand)}"
+
+
+@dataclass(frozen=True)
+class _Binary(_Node):
+    """A node with two operands, written ``(left symbol right)`` (``symbol`` per subclass)."""
+
+    left: "Formula"
+    right: "Formula"
+    symbol: ClassVar[str] = ""
+
+    def __str__(self) -> str:
+        return f"({self.left} {self.symbol} {self.right})"
+
+
+@dataclass(frozen=True)
 class Top(_Node):
     """The constant ``true``."""
 
@@ -113,119 +136,80 @@ class Atom(_Node):
 
 
 @dataclass(frozen=True)
-class Not(_Node):
+class Not(_Unary):
     """Negation ``!operand``."""
 
-    operand: "Formula"
-
-    def __str__(self) -> str:
-        return f"!{_wrap(self.operand)}"
+    symbol: ClassVar[str] = '!'
 
 
 @dataclass(frozen=True)
-class Next(_Node):
+class Next(_Unary):
     """Strong next ``X operand`` (false at the last position)."""
 
-    operand: "Formula"
-
-    def __str__(self) -> str:
-        return f"X {_wrap(self.operand)}"
+    symbol: ClassVar[str] = 'X '
 
 
 @dataclass(frozen=True)
-class WeakNext(_Node):
+class WeakNext(_Unary):
     """Weak next ``WX operand`` (true at the last position)."""
 
-    operand: "Formula"
-
-    def __str__(self) -> str:
-        return f"WX {_wrap(self.operand)}"
+    symbol: ClassVar[str] = 'WX '
 
 
 @dataclass(frozen=True)
-class Eventually(_Node):
+class Eventually(_Unary):
     """``F operand`` = ``true U operand``."""
 
-    operand: "Formula"
-
-    def __str__(self) -> str:
-        return f"F {_wrap(self.operand)}"
+    symbol: ClassVar[str] = 'F '
 
 
 @dataclass(frozen=True)
-class Globally(_Node):
+class Globally(_Unary):
     """``G operand`` = ``!F !operand``."""
 
-    operand: "Formula"
-
-    def __str__(self) -> str:
-        return f"G {_wrap(self.operand)}"
+    symbol: ClassVar[str] = 'G '
 
 
 @dataclass(frozen=True)
-class And(_Node):
+class And(_Binary):
     """Conjunction ``left & right``."""
 
-    left: "Formula"
-    right: "Formula"
-
-    def __str__(self) -> str:
-        return f"({self.left} & {self.right})"
+    symbol: ClassVar[str] = '&'
 
 
 @dataclass(frozen=True)
-class Or(_Node):
+class Or(_Binary):
     """Disjunction ``left | right``."""
 
-    left: "Formula"
-    right: "Formula"
-
-    def __str__(self) -> str:
-        return f"({self.left} | {self.right})"
+    symbol: ClassVar[str] = '|'
 
 
 @dataclass(frozen=True)
-class Implies(_Node):
+class Implies(_Binary):
     """Implication ``left -> right``."""
 
-    left: "Formula"
-    right: "Formula"
-
-    def __str__(self) -> str:
-        return f"({self.left} -> {self.right})"
+    symbol: ClassVar[str] = '->'
 
 
 @dataclass(frozen=True)
-class Iff(_Node):
+class Iff(_Binary):
     """Equivalence ``left <-> right``."""
 
-    left: "Formula"
-    right: "Formula"
-
-    def __str__(self) -> str:
-        return f"({self.left} <-> {self.right})"
+    symbol: ClassVar[str] = '<->'
 
 
 @dataclass(frozen=True)
-class Until(_Node):
+class Until(_Binary):
     """``left U right``: ``right`` eventually holds and ``left`` holds until then."""
 
-    left: "Formula"
-    right: "Formula"
-
-    def __str__(self) -> str:
-        return f"({self.left} U {self.right})"
+    symbol: ClassVar[str] = 'U'
 
 
 @dataclass(frozen=True)
-class Release(_Node):
+class Release(_Binary):
     """``left R right`` = ``!(!left U !right)``."""
 
-    left: "Formula"
-    right: "Formula"
-
-    def __str__(self) -> str:
-        return f"({self.left} R {self.right})"
+    symbol: ClassVar[str] = 'R'
 
 
 Formula = Union[

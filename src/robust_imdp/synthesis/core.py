@@ -31,8 +31,8 @@ the lower value is 0) the choice is lexicographic: best lower value, then best o
 ``p_up_star``): it is the best any controller can still hope for after the step, and it is what
 separates "into the obstacle" from "round it" when no action has a guaranteed positive value.
 Where the lower value is 0 for every action the optimistic solve's own action is used (it makes
-progress towards acceptance; a choice by U alone can circle, see :mod:`robust_imdp.solvers.api`).
-The tie tolerance is ``solve._TIE_TOL`` (1e-12, absolute). The strategy is then evaluated as
+progress towards acceptance; a choice by U alone can circle, see :mod:`robust_imdp.solvers.engine`).
+The tie tolerance is ``robust_imdp.solvers.engine._TIE_TOL`` (1e-12, absolute). The strategy is then evaluated as
 any other, and it is checked that its ``p_low`` keeps the optimal robust lower value at every
 cell (``_keeps_optimal_lower``); if it did not, the first-choice strategy would be used.
 ``no_strategy_can`` (``p_up_star < threshold``) marks the Q_no cells where no controller can meet
@@ -47,20 +47,16 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from robust_imdp import _fp
 from robust_imdp.solvers import product as _product
 from robust_imdp.synthesis.controller import Controller, remap_letters  # below synthesis: numpy only
-from robust_imdp.spec.dfa import DFA
+from robust_imdp.spec.api import is_dfa
 from robust_imdp.errors import DimensionError, InvalidInputError, SoundnessError
 from robust_imdp.models.imdp import IMDP
 
 __all__ = ["SolverRun", "SynthesisResult", "synthesize", "remap_letters"]
 
 CLASS_YES, CLASS_NO, CLASS_MAYBE = "yes", "no", "maybe"
-
-
-def _round_up(x: np.ndarray) -> np.ndarray:
-    """One ulp towards +inf: the outward rounding of upper bounds computed by a subtraction."""
-    return np.nextafter(x, np.inf)
 
 
 # --------------------------------------------------------------------------- results
@@ -130,7 +126,7 @@ class SynthesisResult:
     classes: np.ndarray
     initial_dfa_state: np.ndarray
     labels: np.ndarray
-    dfa: DFA
+    dfa: Any  # a DFA (duck type, docs/ARCHITECTURE.md)
     threshold: float
     horizon: int | None
     n_modes: int
@@ -221,12 +217,13 @@ def synthesize(
     imdp: IMDP,
     labels: Any,
     atoms: Sequence[str],
-    dfa: DFA,
+    dfa: Any,
     *,
     threshold: float,
     horizon: int | None = None,
     outside_state: int | None = None,
     precision: float = 1e-8,
+    method: str = "vi",
 ) -> SynthesisResult:
     """Robust strategy, bounds ``p_low <= p_up <= p_up_star`` and classes for every cell.
 
@@ -240,7 +237,8 @@ def synthesize(
     atoms : sequence of str
         Atom order of ``labels`` (e.g. ``partition.atoms``); must contain ``dfa.atoms``.
     dfa : DFA
-        Automaton of the specification (:func:`robust_imdp.spec.dfa.ltlf_to_dfa`).
+        Automaton of the specification: any object of the DFA duck type (docs/ARCHITECTURE.md;
+        :func:`robust_imdp.spec.api.to_dfa` makes one from an LTLf formula).
     threshold : float in [0, 1]
         Probability threshold of the classification.
     horizon : int >= 1, optional
@@ -251,6 +249,8 @@ def synthesize(
         no outside state (``imdp.n_states == n_cells``).
     precision : float
         Target width of the value brackets of the unbounded solves.
+    method : str
+        Algorithm of the product solves (a name of :data:`robust_imdp.solvers.engine.METHODS`).
 
     Returns
     -------
@@ -263,71 +263,16 @@ def synthesize(
     SoundnessError
         If the solver's brackets contradict ``p_low <= p_up`` (a bug, never repaired).
     """
-    if not isinstance(imdp, IMDP):
-        raise InvalidInputError(f"imdp must be an IMDP; got {type(imdp).__name__}")
-    if not isinstance(dfa, DFA):
-        raise InvalidInputError(f"dfa must be a DFA; got {type(dfa).__name__}")
-    threshold = _check_threshold(threshold)
-    horizon = _check_horizon(horizon)
-    if isinstance(atoms, str):
-        raise InvalidInputError(f"atoms must be a sequence of atom names; got the str {atoms!r}")
-    atoms = tuple(atoms)
-    lab = _check_labels(labels, atoms)
+    threshold, horizon, atoms, lab, avoid = _check_inputs(imdp, labels, atoms, dfa, threshold, horizon,
+                                                          outside_state)
     n_cells = int(lab.shape[0])
-    if outside_state is None:
-        if imdp.n_states != n_cells:
-            raise DimensionError(
-                f"labels must have one entry per IMDP state ({imdp.n_states}) when outside_state is "
-                f"None; got {n_cells} (pass outside_state=n_cells if the last state is outside X)"
-            )
-        avoid = None
-    else:
-        if outside_state != n_cells or imdp.n_states != n_cells + 1:
-            raise DimensionError(
-                f"outside_state must be n_cells = len(labels) = {n_cells} with imdp.n_states = "
-                f"n_cells + 1; got outside_state={outside_state!r}, imdp.n_states={imdp.n_states}"
-            )
-        avoid = np.array([n_cells], dtype=np.int64)
     cell_letters = remap_letters(lab, atoms, dfa.atoms)
     # the outside state's letter is never read: it is absorbing, never accepting (avoid)
     letters = np.concatenate([cell_letters, np.zeros(imdp.n_states - n_cells, dtype=np.int64)])
 
-    kw = dict(avoid=avoid, horizon=horizon, precision=precision)
-    optimistic = _product.solve_product(imdp, letters, dfa, adversary="optimistic", **kw)
-    # Lexicographic choice: best lower value, then best optimistic value (module docstring).
-    robust = _product.solve_product(imdp, letters, dfa, adversary="pessimistic", tie_break=optimistic, **kw)
-    pi = np.asarray(robust.strategy)
-    ev_low = _product.evaluate_product_strategy(imdp, letters, dfa, pi, adversary="pessimistic", **kw)
-    choice = "lexicographic"
-    extra_runs = ()
-    if not _keeps_optimal_lower(ev_low, robust, n_cells, precision):
-        # the tie-broken strategy lost lower value somewhere (it must not): use the first-choice
-        # extraction instead if that one does better anywhere
-        first = _product.solve_product(imdp, letters, dfa, adversary="pessimistic", **kw)
-        ev_first = _product.evaluate_product_strategy(imdp, letters, dfa, first.strategy, adversary="pessimistic",
-                                                      **kw)
-        extra_runs = (_run("robust_first_choice", first, n_cells),
-                      _run("evaluate_first_choice", ev_first, n_cells))
-        tol = ev_low.precision + ev_first.precision + precision
-        if np.any(np.asarray(ev_first.initial_lower)[:n_cells] > np.asarray(ev_low.initial_lower)[:n_cells] + tol):
-            robust, ev_low, pi, choice = first, ev_first, np.asarray(first.strategy), "first"
-    ev_up = _product.evaluate_product_strategy(imdp, letters, dfa, pi, adversary="optimistic", **kw)
-
-    p_low = np.array(ev_low.initial_lower, dtype=np.float64)[:n_cells]
-    p_up_star = np.array(optimistic.initial_upper, dtype=np.float64)[:n_cells]
-    # Both are upper bounds of max_adv P(pi): its own bracket's upper end, and p_up_star since
-    # max_adv P(pi) <= max_pi max_adv P. Their minimum is an upper bound too, and <= p_up_star.
-    p_up = np.minimum(np.array(ev_up.initial_upper, dtype=np.float64)[:n_cells], p_up_star)
-    bad = np.flatnonzero(~(p_low <= p_up))
-    if bad.size:
-        q = int(bad[0])
-        raise SoundnessError(
-            f"cell {q}: p_low = {float(p_low[q])!r} > p_up = {float(p_up[q])!r}; the solver brackets are not sound"
-        )
-    # error bounds |P(pi_x) - p_opt| <= p_up_star - p_low (Thm. 2); round the difference up.
-    # The clamp to 1 is safe: both are probabilities, so the true difference is at most 1.
-    error = np.minimum(_round_up(p_up_star - p_low), 1.0)
-    classes = np.where(p_low >= threshold, CLASS_YES, np.where(p_up < threshold, CLASS_NO, CLASS_MAYBE))
+    kw = dict(avoid=avoid, horizon=horizon, precision=precision, method=method)
+    optimistic, robust, ev_low, ev_up, pi, choice, extra_runs = _solve(imdp, letters, dfa, n_cells, precision, kw)
+    p_low, p_up, p_up_star, error, classes = _bounds(optimistic, ev_low, ev_up, n_cells, threshold)
 
     if horizon is None:
         strategy = pi[:, :n_cells].T  # (S, n) -> (n_cells, S)
@@ -350,3 +295,79 @@ def synthesize(
         threshold=threshold, horizon=horizon, n_modes=int(imdp.n_choices_of().max()),
         runs=runs, precision=float(precision), strategy_choice=choice,
     )
+
+
+def _check_inputs(imdp, labels, atoms, dfa, threshold, horizon, outside_state):
+    """The checked inputs of :func:`synthesize`: (threshold, horizon, atoms tuple, labels as int64,
+    avoid = the outside state or None)."""
+    if not isinstance(imdp, IMDP):
+        raise InvalidInputError(f"imdp must be an IMDP; got {type(imdp).__name__}")
+    if not is_dfa(dfa):
+        raise InvalidInputError(f"dfa must be a DFA; got {type(dfa).__name__}")
+    threshold = _check_threshold(threshold)
+    horizon = _check_horizon(horizon)
+    if isinstance(atoms, str):
+        raise InvalidInputError(f"atoms must be a sequence of atom names; got the str {atoms!r}")
+    atoms = tuple(atoms)
+    lab = _check_labels(labels, atoms)
+    n_cells = int(lab.shape[0])
+    if outside_state is None:
+        if imdp.n_states != n_cells:
+            raise DimensionError(
+                f"labels must have one entry per IMDP state ({imdp.n_states}) when outside_state is "
+                f"None; got {n_cells} (pass outside_state=n_cells if the last state is outside X)"
+            )
+        avoid = None
+    else:
+        if outside_state != n_cells or imdp.n_states != n_cells + 1:
+            raise DimensionError(
+                f"outside_state must be n_cells = len(labels) = {n_cells} with imdp.n_states = "
+                f"n_cells + 1; got outside_state={outside_state!r}, imdp.n_states={imdp.n_states}"
+            )
+        avoid = np.array([n_cells], dtype=np.int64)
+    return threshold, horizon, atoms, lab, avoid
+
+
+def _solve(imdp, letters, dfa, n_cells, precision, kw):
+    """The product solves of :func:`synthesize`: (optimistic, robust, ev_low, ev_up, strategy,
+    strategy_choice, extra runs)."""
+    optimistic = _product.solve_product(imdp, letters, dfa, adversary="optimistic", **kw)
+    # Lexicographic choice: best lower value, then best optimistic value (module docstring).
+    robust = _product.solve_product(imdp, letters, dfa, adversary="pessimistic", tie_break=optimistic, **kw)
+    pi = np.asarray(robust.strategy)
+    ev_low = _product.evaluate_product_strategy(imdp, letters, dfa, pi, adversary="pessimistic", **kw)
+    choice = "lexicographic"
+    extra_runs = ()
+    if not _keeps_optimal_lower(ev_low, robust, n_cells, precision):
+        # the tie-broken strategy lost lower value somewhere (it must not): use the first-choice
+        # extraction instead if that one does better anywhere
+        first = _product.solve_product(imdp, letters, dfa, adversary="pessimistic", **kw)
+        ev_first = _product.evaluate_product_strategy(imdp, letters, dfa, first.strategy, adversary="pessimistic",
+                                                      **kw)
+        extra_runs = (_run("robust_first_choice", first, n_cells),
+                      _run("evaluate_first_choice", ev_first, n_cells))
+        tol = ev_low.precision + ev_first.precision + precision
+        if np.any(np.asarray(ev_first.initial_lower)[:n_cells] > np.asarray(ev_low.initial_lower)[:n_cells] + tol):
+            robust, ev_low, pi, choice = first, ev_first, np.asarray(first.strategy), "first"
+    ev_up = _product.evaluate_product_strategy(imdp, letters, dfa, pi, adversary="optimistic", **kw)
+    return optimistic, robust, ev_low, ev_up, pi, choice, extra_runs
+
+
+def _bounds(optimistic, ev_low, ev_up, n_cells, threshold):
+    """(p_low, p_up, p_up_star, error, classes) of the cells from the solves (module docstring)."""
+    p_low = np.array(ev_low.initial_lower, dtype=np.float64)[:n_cells]
+    p_up_star = np.array(optimistic.initial_upper, dtype=np.float64)[:n_cells]
+    # Both are upper bounds of max_adv P(pi): its own bracket's upper end, and p_up_star since
+    # max_adv P(pi) <= max_pi max_adv P. Their minimum is an upper bound too, and <= p_up_star.
+    p_up = np.minimum(np.array(ev_up.initial_upper, dtype=np.float64)[:n_cells], p_up_star)
+    bad = np.flatnonzero(~(p_low <= p_up))
+    if bad.size:
+        q = int(bad[0])
+        raise SoundnessError(
+            f"cell {q}: p_low = {float(p_low[q])!r} > p_up = {float(p_up[q])!r}; the solver brackets are not sound"
+        )
+    # error bounds |P(pi_x) - p_opt| <= p_up_star - p_low (Thm. 2); round the difference up.
+    # The clamp to 1 is safe: both are probabilities, so the true difference is at most 1.
+    error = np.minimum(_fp.up(p_up_star - p_low), 1.0)  # one ulp up: the difference was rounded
+    classes = np.where(p_low >= threshold, CLASS_YES, np.where(p_up < threshold, CLASS_NO, CLASS_MAYBE))
+    return p_low, p_up, p_up_star, error, classes
