@@ -127,3 +127,54 @@ def test_requests_csv_is_complete(tmp_path, starved):
     assert len(rows) == len(reqs) + 1
     assert [float(v) for v in rows[1][:2]] == reqs[0].x.tolist()
     assert not (tmp_path / "r.csv.tmp").exists()
+
+
+def test_result_method_and_cli_write_the_same_requests(tmp_path, starved, capsys):
+    """``Result.suggest_samples`` is the module function; ``robust-imdp suggest`` re-reads a run
+    from its cache and writes the same requests as CSV."""
+    import csv
+
+    from robust_imdp.cli import main
+    from robust_imdp.io.files import write_data_file
+
+    assert [r.cell for r in starved.suggest_samples(4)] == [r.cell for r in sg.suggest_samples(starved, 4)]
+    p = starved.problem
+    write_data_file(tmp_path / "d.csv", p.data.x, p.data.u, p.data.x_next, modes=p.mode_names)
+    (tmp_path / "p.toml").write_text(PROBLEM_TOML)
+    out = tmp_path / "out"
+    assert main(["run", str(tmp_path / "p.toml"), "--out", str(out), "--no-figures", "--quiet", "--advice", "off"]) == 0
+    assert main(["suggest", str(out), "--problem", str(tmp_path / "p.toml"), "--budget", "3"]) == 0
+    err = capsys.readouterr()
+    rows = list(csv.reader(open(out / "suggestions.csv")))
+    assert len(rows) == 4 and "sample requests" in err.out and "did not hold" not in err.err
+    assert main(["suggest", str(tmp_path), "--problem", str(tmp_path / "p.toml"), "--budget", "3"]) == 1
+    assert "no result.json" in capsys.readouterr().err
+
+
+PROBLEM_TOML = """[space]
+lower = [0.0, 0.0]
+upper = [3.0, 3.0]
+cell_size = [0.5, 0.5]
+[[regions.goal]]
+lower = [2.0, 2.0]
+upper = [3.0, 3.0]
+[spec]
+formula = "F goal"
+threshold = 0.9
+[data]
+path = "d.csv"
+[modes.east]
+A = [[1.0, 0.0], [0.0, 1.0]]
+b = [0.4, 0.0]
+[modes.north]
+A = [[1.0, 0.0], [0.0, 1.0]]
+b = [0.0, 0.4]
+[noise]
+kind = "truncated_gaussian"
+sigma = [0.005, 0.005]
+bound = [0.01, 0.01]
+[learning]
+rkhs_bound = 0.3
+lengthscale = 1.0
+misspecification = 0.001
+"""

@@ -5,6 +5,7 @@
                                                   (a case study, or FILE.py:NAME for your own system)
     robust-imdp export DIR --format drn --out F   the abstraction (or --product: with the DFA) for Storm / PRISM
     robust-imdp example NAME --out DIR            write a case study's problem file and data
+    robust-imdp suggest DIR --problem P --budget N  where to sample next: N (x, mode) requests as CSV
     robust-imdp --version
 
 ``simulate`` exits with status 1 when more cells are flagged than chance allows (the result's
@@ -178,6 +179,18 @@ def _parser() -> argparse.ArgumentParser:
                      help="the product with the result's DFA, whose values are p_low / p_up_star")
     exp.add_argument("--cache", type=Path, default=None,
                      help="the run's cache directory (default: DIR/cache)")
+
+    sg = sub.add_parser("suggest", parents=[common], help="where to collect data next: (x, mode) sample requests",
+                        description="Rank sample requests (state, mode) by how much one more sample there "
+                                    "shrinks the RKHS term of the error radii of the undecided cells and of the "
+                                    "cells their strategy reaches (robust_imdp.synthesis.suggest). Writes a CSV "
+                                    "(x_1..x_d, mode, cell, radius_change, gain, reason). The run's cache "
+                                    "(DIR/cache) makes this a re-read, not a re-run.")
+    sg.add_argument("result", type=Path, help="the run's output directory (holding result.json and cache/)")
+    sg.add_argument("--problem", type=Path, required=True, help="the run's TOML problem file")
+    sg.add_argument("--budget", type=_at_least(1), required=True, help="number of sample requests")
+    sg.add_argument("--out", type=Path, default=None, help="CSV file (default: DIR/suggestions.csv)")
+    sg.add_argument("--cache", type=Path, default=None, help="the run's cache directory (default: DIR/cache)")
 
     ex = sub.add_parser("example", parents=[common], help="write a case study's problem file and data",
                         description="Generate the data of a paper case study with a fixed seed "
@@ -497,6 +510,33 @@ def _cmd_example(args) -> int:
     return Exit.OK
 
 
+def _cmd_suggest(args) -> int:
+    from robust_imdp.io.files import load_problem
+    from robust_imdp.pipeline.run import synthesize_from_data
+    from robust_imdp.synthesis.suggest import suggest_samples, write_requests
+
+    if not (args.result / "result.json").exists():
+        raise InvalidInputError(f"{args.result}: no result.json; run `robust-imdp run PROBLEM --out {args.result}` "
+                                "first")
+    problem = load_problem(args.problem)
+    cache = args.cache or args.result / "cache"
+    result = synthesize_from_data(problem, progress=False, abstraction_cache=cache)
+    if not result.from_cache:
+        print(f"robust-imdp: note: {cache} did not hold this problem's abstraction; it was computed again",
+              file=sys.stderr)
+    requests = suggest_samples(result, args.budget)
+    out = args.out or args.result / "suggestions.csv"
+    names = list(problem.dim_names) if getattr(problem, "dim_names", None) else \
+        [f"x_{i + 1}" for i in range(len(problem.space_lower))]
+    write_requests(requests, out, names)
+    undecided = int((result.class_names == "maybe").sum())
+    print(f"wrote {out}: {len(requests)} sample requests for {undecided} undecided cells")
+    for r in requests[:5]:
+        print(f"  x = {', '.join(f'{v:.4g}' for v in r.x)}  mode {r.mode}: cell {r.cell}, {r.reason}; "
+              f"radius -{r.radius_change:.3g}")
+    return Exit.OK
+
+
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
     """Warnings read like the errors: ``robust-imdp: warning: <message>``, no source line."""
     print(f"robust-imdp: warning: {message}", file=sys.stderr if file is None else file, flush=True)
@@ -505,7 +545,8 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
 def main(argv=None) -> int:
     """Entry point of ``robust-imdp``; returns the exit status."""
     args = _parser().parse_args(argv)
-    commands = {"run": _cmd_run, "simulate": _cmd_simulate, "export": _cmd_export, "example": _cmd_example}
+    commands = {"run": _cmd_run, "simulate": _cmd_simulate, "export": _cmd_export, "example": _cmd_example,
+                "suggest": _cmd_suggest}
     try:
         with warnings.catch_warnings():
             if not args.debug:  # --debug keeps Python's format, with the source line

@@ -56,6 +56,13 @@ class Result:
     advice: dict = field(default_factory=dict)
 
     # Convenience views used by io.result_to_dict and plotting.
+    def suggest_samples(self, n: int) -> list:
+        """Where to collect data next: ``n`` (state, mode) sample requests, best first
+        (:func:`robust_imdp.synthesis.suggest.suggest_samples`)."""
+        from robust_imdp.synthesis.suggest import suggest_samples
+
+        return suggest_samples(self, n)
+
     @property
     def mode_names(self) -> tuple:
         return tuple(self.problem.mode_names)
