@@ -7,6 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from robust_imdp.pipeline import bound_rkhs as pl_bound_rkhs
 from robust_imdp.pipeline import bound_stage as pl_bound_stage
 from robust_imdp.pipeline import cache as pl_cache
 from robust_imdp.pipeline import preflight as pl_preflight
@@ -186,7 +187,7 @@ def test_the_eta_after_a_resume_uses_the_rate_of_this_process(problem, tmp_path,
     p = problem.replace(cell_size=np.array([4.0 / 256]))
     cache = tmp_path / "cache"
     clock = [0.0]
-    for module in (pl_runtime, pl_bound_stage):  # the stage's clock and the progress line's
+    for module in (pl_runtime, pl_bound_rkhs):  # the stage's clock and the progress line's
         monkeypatch.setattr(module, "time", SimpleNamespace(perf_counter=lambda: clock[0]))
     monkeypatch.setattr(pl_bound_stage, "_check_assumption",
                         lambda problem, data, log, cache_dir=None: ((rkhs.NormCheck(0, 0, 0.1, 30),), np.array([0.01])))
@@ -197,7 +198,7 @@ def test_the_eta_after_a_resume_uses_the_rate_of_this_process(problem, tmp_path,
         return {"lower": np.full((k, 1), 1.0), "upper": np.full((k, 1), 3.0), "eps": np.zeros((k, 1)),
                 "support": np.zeros((k, 1), dtype=np.int64), "n_unconverged": 0, "seconds": 10.0}
 
-    monkeypatch.setattr(pl_bound_stage, "_bound_task", fake_task)
+    monkeypatch.setattr(pl_bound_rkhs, "_bound_task", fake_task)
     part = pl_runtime._Run(workers=1, chunk_cells=16)
     from robust_imdp.models.geometry import Box, Partition
 

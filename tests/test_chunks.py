@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from robust_imdp.pipeline import bound_stage as pl_bound_stage
+from robust_imdp.pipeline import bound_rkhs as pl_bound_rkhs
 from robust_imdp.pipeline import parallel
 from robust_imdp.abstraction.rows import CellBounds, abstract, abstract_rows, assemble_abstraction
 from robust_imdp.casestudies.systems import get_case_study
@@ -95,7 +95,7 @@ def test_resume_computes_only_the_missing_chunks(tmp_path, monkeypatch):
     calls = []
     import robust_imdp.pipeline.run as pl
 
-    real = pl_bound_stage._bound_task
+    real = pl_bound_rkhs._bound_task
 
     def counted(*args, **kwargs):  # call 1 is the pre-flight pilot block, then the chunks
         calls.append(1)
@@ -103,12 +103,12 @@ def test_resume_computes_only_the_missing_chunks(tmp_path, monkeypatch):
             raise KeyboardInterrupt
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(pl_bound_stage, "_bound_task", counted)
+    monkeypatch.setattr(pl_bound_rkhs, "_bound_task", counted)
     with pytest.raises(KeyboardInterrupt):  # a Ctrl-C during the third chunk
         synthesize_from_data(p, progress=False, abstraction_cache=tmp_path, chunk_cells=16, workers=1)
     assert len(list(tmp_path.glob("bounds-*.parts/m*.npz"))) == 2
     calls.clear()
-    monkeypatch.setattr(pl_bound_stage, "_bound_task", lambda *a, **k: (calls.append(1), real(*a, **k))[1])
+    monkeypatch.setattr(pl_bound_rkhs, "_bound_task", lambda *a, **k: (calls.append(1), real(*a, **k))[1])
     res = synthesize_from_data(p, progress=False, abstraction_cache=tmp_path, chunk_cells=16, workers=1)
     assert len(calls) == 1 + 3 * 4 - 2  # the pilot + 3 modes x 4 chunks of 16 cells, 2 already saved
     monkeypatch.undo()

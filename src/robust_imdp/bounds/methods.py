@@ -2,9 +2,22 @@
 
 A :class:`BoundMethod` declares what a method reads and what it can do (named capabilities), and
 raises the errors a problem or a problem file gets when it asks a method for something it cannot
-do. Modules are to ask the registry (``get(name).refine``, ``get(name).route`` ...) instead of
-comparing the method's name; a method on an existing route is then one entry in :data:`METHODS`
-plus its code in the route's modules.
+do. Modules ask the registry (``get(name).refine``, ``get(name).route`` ...) instead of comparing
+the method's name.
+
+Each method names its bound stage, a :class:`CellBounder`, by a dotted path
+(``"robust_imdp.pipeline.bound_rkhs:learn_and_bound"``), and, with ``refine`` or ``advice_pilot``,
+its bounder of new cells (:class:`NewCellBounder`); ``pipeline/bound_stage.py`` dispatches through
+:meth:`BoundMethod.stage` / :meth:`BoundMethod.new_cells_stage`, which import them on first use (a
+string, not an import: bounds/ stays below pipeline/).
+
+**A new error-bound method** = one new module (its bound stage, e.g. ``pipeline/bound_mymethod.py``
+with ``learn_and_bound``, built on ``bound_stage``'s shared helpers: ``_prepare``, ``_diagnostics``)
+plus one :data:`METHODS` entry here naming it and its capabilities: 1 existing code file. Nothing
+else compares method names (``Problem``, the problem file, the cache keys and the advice ask the
+capabilities). The bookkeeping every new module gets: its row in docs/ARCHITECTURE.md
+(tests/test_architecture.py), its name in its package's lazy list (``pipeline/__init__.py``) and
+docs/api.md regenerated (tests/test_api_docs.py).
 
 The checks keep the messages the problem (``InvalidInputError``) and the problem file
 (``ProblemFileError``, prefixed by the file) gave before the registry existed; the names in them
@@ -14,6 +27,7 @@ The checks keep the messages the problem (``InvalidInputError``) and the problem
 from __future__ import annotations
 
 import difflib
+import importlib
 from dataclasses import dataclass
 from typing import Callable, Protocol
 
@@ -25,18 +39,33 @@ GP_POSTERIOR_KEYS = ("signal_variance", "optimize", "info_gain", "bound_tol", "b
 
 
 class CellBounder(Protocol):
-    """What a method's bounder is to provide (the target interface; today ``pipeline/bound_stage.py``
-    implements both routes as ``_learn_and_bound`` / ``_cell_bounder``, dispatching on ``route``).
+    """A method's bound stage over the grid's cells (``BoundMethod.bounder`` names it).
 
-    ``bound_grid(problem, partition, log, run, cache_dir, data, known_ranges, checks, check_noise)
-    -> (cell_bounds, error_bounds or None, diagnostics)``: the bound stage over the grid's cells;
-    ``cell_bounder(problem, partition, log, run, task=None) -> bound_cells(lower, upper)`` (only with
-    ``refine`` or ``advice_pilot``): the bounder of new cells, on the same event as the grid's.
+    ``bounder(problem, partition, log, run=None, cache_dir=None) -> (cell_bounds, error_models, diagnostics)``:
+    ``cell_bounds`` an ``abstraction.cell_bounds.CellBounds``, ``error_models`` the per-mode GP error
+    bounds the abstraction folds in or None (the boxes hold the whole error), ``diagnostics`` a dict
+    (``pipeline.bound_stage._diagnostics`` plus the method's own keys). ``run``: the run's scheduler
+    options (``pipeline.runtime._Run``), ``cache_dir``: where chunks and the check are saved, or None.
     """
 
-    def bound_grid(self, problem, partition, log, run, cache_dir, data, known_ranges, checks, check_noise): ...
+    def __call__(self, problem, partition, log, run=None, cache_dir=None) -> tuple: ...
 
-    def cell_bounder(self, problem, partition, log, run, task=None) -> Callable: ...
+
+class NewCellBounder(Protocol):
+    """A method's bounder of new cells (``BoundMethod.new_cells``; refinement and the advice's pilot cells).
+
+    ``new_cells(problem, partition, log, run, task=None) -> bound_cells``, ``bound_cells(lower, upper) ->
+    (image_lower, image_upper)`` (each ``(n_modes, k, n)``): boxes on the same event as the grid's.
+    ``task``: the function each chunk runs (None: the bound stage's).
+    """
+
+    def __call__(self, problem, partition, log, run, task=None) -> Callable: ...
+
+
+def _resolve(path: str):
+    """The object a ``"package.module:name"`` path names (the module imported on first use)."""
+    module, _, name = path.partition(":")
+    return getattr(importlib.import_module(module), name)
 
 
 @dataclass(frozen=True)
@@ -52,9 +81,10 @@ class BoundMethod:
     weights : str or None
         The ``method`` argument of ``rkhs.bound_chunk`` (``"optimal"`` or ``"ridge"``) on the RKHS route.
     bounder : str
-        Module (under ``robust_imdp``) that runs the method's bound stage. Today both routes live in
-        ``pipeline/bound_stage.py``, which dispatches on ``route``; :class:`CellBounder` is the
-        interface a separate bounder module is to provide (not yet split out).
+        ``"module:function"`` of the method's bound stage, a :class:`CellBounder` (:meth:`stage`).
+    new_cells : str or None
+        ``"module:function"`` of its bounder of new cells, a :class:`NewCellBounder`
+        (:meth:`new_cells_stage`); needed with ``refine`` or ``advice_pilot``, else None.
     options : tuple of str
         The ``gp_options`` keys the method reads.
     misspecification, iid_noise, local_points, refine, nonlinear_known, per_component : bool
@@ -77,6 +107,7 @@ class BoundMethod:
     name: str
     route: str
     bounder: str
+    new_cells: str | None = None
     weights: str | None = None
     options: tuple = ("lengthscale",)
     misspecification: bool = False
@@ -90,6 +121,23 @@ class BoundMethod:
     advice_pilot: bool = False
     local_lambda: bool = False
     confidence_in_bounds: bool = False
+
+    def __post_init__(self):
+        if (self.refine or self.advice_pilot) and self.new_cells is None:
+            raise ValueError(f"error-bound method {self.name!r}: refine and advice_pilot need a bounder of "
+                             "new cells (new_cells)")
+
+    # ------------------------------------------------------------------ bound stages
+    def stage(self) -> CellBounder:
+        """The method's bound stage (:class:`CellBounder`), imported on first use."""
+        return _resolve(self.bounder)
+
+    def new_cells_stage(self) -> NewCellBounder:
+        """The method's bounder of new cells (:class:`NewCellBounder`), imported on first use."""
+        if self.new_cells is None:
+            raise InvalidInputError(f"error_bound {self.name!r} has no bounder of new cells (refinement and the "
+                                    f"advice's pilot cells need error_bound {_names('refine')})")
+        return _resolve(self.new_cells)
 
     # ------------------------------------------------------------------ Problem (InvalidInputError)
     def check_guarantee(self, guarantee: str) -> None:
@@ -193,7 +241,8 @@ class BoundMethod:
 
 _ROUTE_TEXT = {"gp": "GP route", "rkhs": "RKHS route"}
 
-_RKHS = dict(route="rkhs", bounder="pipeline.bound_stage", misspecification=True, iid_noise=True,
+_RKHS = dict(route="rkhs", bounder="robust_imdp.pipeline.bound_rkhs:learn_and_bound",
+             new_cells="robust_imdp.pipeline.bound_rkhs:cell_bounder", misspecification=True, iid_noise=True,
              local_points=True, refine=True, nonlinear_known=True, per_component=True, advice_pilot=True,
              confidence_in_bounds=True)
 
@@ -201,7 +250,7 @@ _RKHS = dict(route="rkhs", bounder="pipeline.bound_stage", misspecification=True
 METHODS: dict[str, BoundMethod] = {
     "optimal": BoundMethod("optimal", weights="optimal", **_RKHS),
     "ridge": BoundMethod("ridge", weights="ridge", local_lambda=True, **_RKHS),
-    "chowdhury": BoundMethod("chowdhury", route="gp", bounder="pipeline.bound_stage",
+    "chowdhury": BoundMethod("chowdhury", route="gp", bounder="robust_imdp.pipeline.bound_gp:learn_and_bound",
                              options=("lengthscale",) + GP_POSTERIOR_KEYS, gp_posterior=True, paper_guarantee=True),
 }
 #: The method names (``Problem.error_bound`` values), default first.

@@ -1,10 +1,11 @@
-"""The check and bound stages: residual data, data-noise allowances, the assumption check, certified cell
-bounds (chunked, resumable, on the run's scheduler), their diagnostics, and the bounder of new cells.
+"""The check and bound stages' shared part and their dispatch: residual data, data-noise allowances, the known
+parts' ranges, the assumption check, diagnostics; the bound stage and the bounder of new cells of the
+problem's error-bound method (``bounds.methods``: each method names its :class:`~robust_imdp.bounds.methods.CellBounder`
+by a dotted path, e.g. ``pipeline/bound_rkhs.py``, ``pipeline/bound_gp.py``, which build on this module).
 """
 
 from __future__ import annotations
 
-import time
 from dataclasses import asdict
 from pathlib import Path
 
@@ -13,24 +14,13 @@ import numpy as np
 from robust_imdp.bounds.methods import get as _method
 from robust_imdp.pipeline.problem import (
     CHECK_DELTA,
-    LOCAL_AUTO,
-    LOCAL_DEFAULT,
     Problem,
     _is_affine,
     _setting_text,
     _settings,
 )
-from robust_imdp.pipeline.runtime import _Log, _Run, _chunk_cells
-from robust_imdp.pipeline.cache import (
-    _load_npz,
-    _read_checks,
-    _savez,
-    _write_json_entry,
-    bounds_key,
-    check_key,
-    read_cache_entry,
-    write_cache_entry,
-)
+from robust_imdp.pipeline.runtime import _Log, _Run
+from robust_imdp.pipeline.cache import _read_checks, _write_json_entry, check_key, read_cache_entry
 
 
 def _residual_data(problem: Problem):
@@ -46,15 +36,6 @@ def _residual_data(problem: Problem):
 def _one_setting(problem: Problem) -> bool:
     """Affine known parts and one assumption for every mode and component: the original path, unchanged."""
     return all(_is_affine(m) for m in problem.maps) and _settings(problem).uniform
-
-
-def _affine_part(problem: Problem, u: int):
-    """(A, b) of mode ``u``'s affine known part, or zeros for a nonlinear one (its range is added to g's)."""
-    m = problem.maps[u]
-    if _is_affine(m):
-        return m.A, m.b
-    n = int(np.size(problem.space_lower))
-    return np.zeros((n, n)), np.zeros(n)
 
 
 def _noise_allowance(problem: Problem, noise_bound) -> np.ndarray:
@@ -93,46 +74,6 @@ def _add_known_range(lower, upper, ranges) -> None:
     from robust_imdp.bounds.assumptions import add_ranges
 
     lower[...], upper[...] = add_ranges(lower, upper, ranges.lower, ranges.upper)
-
-
-def _base_settings(problem: Problem, settings=None) -> dict:
-    """The bound stage's problem-wide settings: the problem's own values with one assumption (as before);
-    otherwise stand-ins (the largest B, the first lengthscale) that every mode's groups override."""
-    if _settings(problem).uniform:
-        return {"lengthscale": problem.gp_options.get("lengthscale", 1.0), "rkhs_bound": problem.rkhs_bound,
-                "misspecification": problem.misspecification}
-    st = _settings(problem) if settings is None else settings
-    B = st.rkhs_bound
-    return {"lengthscale": st.lengthscale[0, 0], "rkhs_bound": float(B.max()) if np.any(B > 0) else 1.0,
-            "misspecification": float(st.misspecification.max())}
-
-
-def _mode_extras(problem: Problem, data, partition, allowance, local) -> list:
-    """Per mode: None (the original path) or the dict of ``assumptions.bound_mode_chunk``."""
-    if _one_setting(problem):
-        return [None] * len(problem.mode_names)
-    from robust_imdp.bounds.rkhs import local_lambda
-
-    st = _settings(problem)
-    out = []
-    for u in range(len(problem.mode_names)):
-        extra = {"noise_bound": np.asarray(allowance, float)}
-        if not st.uniform:
-            extra["groups"] = st.groups(u)
-            if _method(problem.error_bound).local_lambda and local[u] is not None:
-                # one ridge lambda per group, for all chunks (as _local_settings does per mode)
-                extra["local_lambda"] = [
-                    None if B == 0 else local_lambda(data[u][0], partition.cells_lower, partition.cells_upper,
-                                                     lengthscale=L, rkhs_bound=B,
-                                                     noise_l1=float(np.max(allowance[u][idx])) + tau, k=local[u][0])
-                    for idx, B, L, tau in extra["groups"]]
-        out.append(extra)
-    return out
-
-
-def _extra(mode) -> tuple:
-    """The task's optional last argument: nothing on the original path (the tasks' arguments as before)."""
-    return () if mode is None else (mode,)
 
 
 def _known_gap(problem: Problem, partition, ranges, n_cells: int = 8) -> list:
@@ -258,266 +199,27 @@ def _assumption_diagnostics(problem: Problem, n: int) -> dict:
             "misspecification": float(st.misspecification.max()), "per_component": st.to_rows(problem.mode_names)}
 
 
-def _bound_task(X, Y, A, b, lower, upper, local, mode=None, *, threads=1, **settings):
-    """One chunk of the bound stage; ``local`` = (points, ridge lambda) of the mode or None; ``mode``: None
-    (the problem-wide settings) or the mode's own (``assumptions.bound_mode_chunk``)."""
-    return _bound_work(X, Y, A, b, lower, upper, local, mode, threads=threads, **settings)
+def _prepare(problem: Problem, partition, log: _Log, cache_dir=None):
+    """What every method's bound stage does first: ``(data, known_ranges, checks, check_noise)``.
 
-
-def _bound_work(X, Y, A, b, lower, upper, local, mode=None, *, threads=1, **settings):
-    """The work of :func:`_bound_task` and :func:`_pilot_task`."""
-    from robust_imdp.bounds.rkhs import bound_chunk
-
-    if mode is not None:
-        from robust_imdp.bounds.assumptions import bound_mode_chunk
-
-        t0 = time.perf_counter()
-        out = bound_mode_chunk(X, Y, A, b, lower, upper, local, mode, threads=threads, **settings)
-        out["seconds"] = time.perf_counter() - t0
-        return out
-
-    if local is not None:
-        settings = dict(settings, local_points=local[0], local_lambda=local[1])
-    return bound_chunk(X, Y, A, b, lower, upper, threads=threads, **settings)
-
-
-def _local_settings(problem: Problem, data, partition, noise_bound):
-    """Per mode: None (all points) or (points, ridge lambda) of the local weights."""
-    from robust_imdp.bounds.rkhs import local_lambda
-
-    out = []
-    for x, _, _ in data:
-        k = problem.local_points
-        if k is None:
-            k = None if x.shape[0] <= LOCAL_AUTO else LOCAL_DEFAULT
-        if k is None or k >= x.shape[0]:
-            out.append(None)
-            continue
-        lam = None
-        if _method(problem.error_bound).local_lambda:
-            base = _base_settings(problem)
-            lam = local_lambda(x, partition.cells_lower, partition.cells_upper,
-                               lengthscale=base["lengthscale"], rkhs_bound=base["rkhs_bound"],
-                               noise_l1=float(np.max(noise_bound)) + float(base["misspecification"]), k=k)
-        out.append((int(k), lam))
-    return out
-
-
-def _check_part(part: dict, k: int, n: int) -> dict:
-    """A saved bound chunk, checked to hold ``k`` cells x ``n`` outputs (else ValueError: computed again)."""
-    for key in ("lower", "upper", "eps", "support"):
-        if key not in part or np.shape(part[key]) != (k, n):
-            raise ValueError(f"{key} must have shape ({k}, {n}); got "
-                             f"{np.shape(part[key]) if key in part else 'no such array'}")
-    if "n_unconverged" not in part:
-        raise ValueError("n_unconverged is missing")
-    return part
+    The residual data (:func:`_residual_data`), the known parts' certified ranges over the grid's cells
+    (a function undefined on part of X is refused before the long stages: ``ExpressionDomainError``
+    names the mode, the component and the box), then the assumption check (:func:`_check_assumption`).
+    """
+    data = _residual_data(problem)
+    known_ranges = _known_ranges(problem, partition.cells_lower, partition.cells_upper)
+    checks, check_noise = _check_assumption(problem, data, log, cache_dir)
+    return data, known_ranges, checks, check_noise
 
 
 def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" = None, cache_dir=None):
-    from robust_imdp.abstraction.rows import CellBounds
-
-    run = run if run is not None else _Run()
-    data = _residual_data(problem)
-    # the known parts' certified ranges first: a function undefined on part of X is refused before
-    # the long stages (ExpressionDomainError names the mode, the component and the box)
-    known_ranges = _known_ranges(problem, partition.cells_lower, partition.cells_upper)
-    checks, check_noise = _check_assumption(problem, data, log, cache_dir)
-    if _method(problem.error_bound).route == "gp":
-        return _learn_and_bound_gp(problem, partition, log, checks, check_noise)
-    from robust_imdp.bounds.rkhs import CELL_BLOCK, check_ranges, hoeffding_factor, noise_bound_at_confidence
-
-    data_fail, iid_delta = _failure_budget(problem)
-    m_total = sum(x.shape[0] for x, _, _ in data)
-    noise_bound, _ = noise_bound_at_confidence(problem.noise, m_total, data_fail if data_fail > 0 else 0.5)
-    M, n, N = len(problem.mode_names), len(problem.space_lower), partition.n_cells
-    lo, up = partition.cells_lower, partition.cells_upper
-    iid_theta = problem.noise.sub_gaussian_parameter() if problem.iid_noise else None
-    settings = {**_base_settings(problem), "noise_bound": _shared_allowance(problem, noise_bound),
-                "method": _method(problem.error_bound).weights, "iid_theta": iid_theta,
-                "iid_factor": None if iid_theta is None else hoeffding_factor(M * n * N * 2 ** n, iid_delta)}
-    chunk = _chunk_cells(run, N, 256)
-    tasks = [(u, s0) for u in range(M) for s0 in range(0, N, chunk)]
-    local = _local_settings(problem, data, partition, noise_bound)
-    # one allowance for every mode (the largest), as on the one-setting path: equal settings, equal bytes
-    extras = _mode_extras(problem, data, partition, _shared_allowance(problem, noise_bound), local)
-    if any(loc is not None for loc in local):
-        log.info("local weights: " + ", ".join(f"mode {problem.mode_names[u]}: "
-                                               + ("all points" if loc is None else f"{loc[0]} nearest points")
-                                               for u, loc in enumerate(local)))
-    parts_dir = None if cache_dir is None else Path(cache_dir) / f"bounds-{bounds_key(problem)}.parts"
-    results: dict = {}
-    if parts_dir is not None and parts_dir.exists():
-        for u, s0 in tasks:
-            part = read_cache_entry(parts_dir / f"m{u}-c{s0}-{chunk}.npz",
-                                    lambda f, k=min(chunk, N - s0): _check_part(_load_npz(f), k, n))
-            if part is not None:
-                results[(u, s0)] = part
-        if results:
-            log.info(f"resumed: {len(results)} of {len(tasks)} bound chunks from {parts_dir}")
-    missing = [t for t in tasks if t not in results]
-    with log.stage("bound"):
-        work = None
-        if missing:
-            # Pre-flight: time a few blocks of cells in this process and extrapolate.
-            from robust_imdp.bounds import rkhs
-
-            x0, y0, _ = data[0]
-            A0, b0 = _affine_part(problem, 0)
-            # The kernels' first call in a process compiles them (no warm-up at install) or loads
-            # them from numba's cache (about 1 s): a one-cell call takes that time, so that the
-            # timed pilot below measures bounding only.
-            first = dict(settings) if local[0] is None else dict(settings, local_points=local[0][0],
-                                                                 local_lambda=local[0][1])
-            compile_s = rkhs.bound_chunk(x0, y0, A0, b0, lo[:1], up[:1], threads=1, **first)["seconds"]
-            if compile_s > 5.0:
-                log.info(f"pre-flight: numba compiled the bound kernels in {compile_s:.0f} s (once: cached for later "
-                         "runs; `python -m robust_imdp.warmup` does it at install)")
-            sched = run.scheduler(log)
-            # One block per thread of a task, on that many threads: in process, the numba threads
-            # share the cores with whatever else runs, and this measures the speed the tasks get.
-            threads = int(getattr(sched, "threads", 1))
-            k = min(N, CELL_BLOCK * threads)
-            pilot = _bound_task(x0, y0, A0, b0, lo[:k], up[:k], local[0], *_extra(extras[0]), threads=threads,
-                                **settings)
-            per_cell = pilot["seconds"] / k  # wall seconds per cell and mode, on ``threads`` threads
-            lanes = max(1, sched.n_workers // threads)  # tasks running at once
-            wall = per_cell * N * M * len(missing) / len(tasks) / lanes
-            log.info(f"pre-flight: {N:,} cells x {M} modes x {n} outputs = {N * M * n:,} cell bounds; about "
-                     f"{wall * sched.n_workers:.0f} s of work ({per_cell * threads * 1e3:.2f} ms per cell and mode "
-                     f"on one core), about {wall:.0f} s on {sched.n_workers} core{'s' if sched.n_workers > 1 else ''}")
-            shared = [(sched.share(np.ascontiguousarray(x)), sched.share(np.ascontiguousarray(y)))
-                      for x, y, _ in data]  # sent to the workers once
-            args = [(*shared[u], *_affine_part(problem, u), lo[s0:s0 + chunk], up[s0:s0 + chunk],
-                     local[u], *_extra(extras[u])) for u, s0 in missing]
-            t0 = time.perf_counter()
-            for i, res in sched.run(_bound_task, args, settings):
-                key = missing[i]
-                results[key] = res
-                if parts_dir is not None:  # saved as it completes: an interrupted run resumes from here
-                    write_cache_entry(parts_dir / f"m{key[0]}-c{key[1]}-{chunk}.npz",
-                                      lambda tmp, r=res: _savez(tmp, {k: np.asarray(v) for k, v in r.items()}))
-                log.progress("bound", len(results), len(tasks), t0, resumed=len(tasks) - len(missing))
-    lower = np.empty((M, N, n))
-    upper = np.empty((M, N, n))
-    support = np.empty((M, N, n), dtype=np.int64)
-    unconv = 0
-    for (u, s0), r in results.items():
-        sl = slice(s0, min(N, s0 + chunk))
-        lower[u, sl], upper[u, sl], support[u, sl] = r["lower"], r["upper"], r["support"]
-        unconv += int(r["n_unconverged"])
-    for u in range(M):
-        check_ranges(lower[u], upper[u], u)
-        if known_ranges[u] is not None:  # f_u's certified range plus g_u's (the chunks bounded g_u alone)
-            _add_known_range(lower[u], upper[u], known_ranges[u])
-    confidence = 1.0 - data_fail - (iid_delta if iid_theta is not None else 0.0)
-    log.info(f"bounded images of {N} cells x {M} modes x {n} outputs ({problem.error_bound} weights)")
-    if confidence >= 1.0:
-        statement = ("with probability 1, if every unknown component is within the misspecification of a "
-                     "function of RKHS norm <= rkhs_bound and the data noise is within its bound")
-    else:
-        events = []
-        if data_fail > 0:
-            events.append(f"the data noise within {np.round(noise_bound, 6).tolist()} (probability >= "
-                          f"{1 - data_fail:g})")
-        if iid_delta > 0:
-            events.append(f"the sub-Gaussian bound of independent noise (probability >= {1 - iid_delta:g})")
-        statement = (f"with probability >= {confidence:g} over the data ({'; '.join(events)}), if every "
-                     "unknown component is within the misspecification of a function of RKHS norm <= rkhs_bound")
-    cell_bounds = CellBounds(lower, upper, None)
-    diag = _diagnostics(problem, partition, cell_bounds, data, checks, check_noise, confidence, statement)
-    diag["support_median"] = float(np.median(support))
-    if any(r is not None for r in known_ranges):
-        diag["known_part_gap"] = _known_gap(problem, partition, known_ranges)
-    if unconv:
-        diag["unconverged_vertex_problems"] = int(unconv)
-    return cell_bounds, None, diag
-
-
-def _learn_and_bound_gp(problem: Problem, partition, log: _Log, checks, check_noise):
-    from robust_imdp.abstraction.rows import CellBounds
-    from robust_imdp.bounds.gp_cells import bound_image
-    from robust_imdp.bounds.gp import learn
-
-    theta = problem.noise.sub_gaussian_parameter()
-    with log.stage("learn"):
-        learned = learn(problem.data, list(problem.maps), rkhs_bound=problem.rkhs_bound,
-                        noise_theta=theta, **problem.gp_options)
-    n_modes, n = len(problem.mode_names), len(problem.space_lower)
-    log.info(f"learned {n_modes} modes x {n} outputs from {len(problem.data.u)} points")
-    lo, up = partition.cells_lower, partition.cells_upper
-    with log.stage("bound"):
-        images = [bound_image(learned.gps[u], problem.maps[u].A, problem.maps[u].b, lo, up,
-                              tol=problem.bound_tol, max_boxes=problem.bound_max_boxes)
-                  for u in range(n_modes)]
-    log.info(f"bounded images of {partition.n_cells} cells x {n_modes} modes")
-    cell_bounds = CellBounds(
-        image_lower=np.stack([im.lower for im in images]),
-        image_upper=np.stack([im.upper for im in images]),
-        std_upper=np.stack([im.std_upper for im in images]),
-    )
-    boxes = cell_bounds  # the error radius is measured on the boxes that are abstracted
-    if problem.guarantee == "confidence":
-        from robust_imdp.abstraction.rows import confidence_cell_bounds
-
-        boxes = confidence_cell_bounds(cell_bounds, learned.error_bounds, problem.confidence)
-    if problem.guarantee == "confidence":
-        statement = (f"with probability >= {problem.confidence:g} over the data (Chowdhury-Gopalan error bound, "
-                     "union bound over the GPs), if every unknown component has RKHS norm <= rkhs_bound")
-        conf = float(problem.confidence)
-    else:
-        statement = ("Thm 1 as printed: mixes a probability over the data into the transition bounds; not a "
-                     "guarantee for one fixed system (docs/soundness_audit.md, F2)")
-        conf = None
-    diag = _diagnostics(problem, partition, boxes, _residual_data(problem), checks, check_noise,
-                        conf if conf is not None else float("nan"), statement)
-    if conf is None:
-        diag["confidence"] = None
-    return cell_bounds, learned.error_bounds, diag
-
-
-def _pilot_task(*args, threads=1, **settings):
-    """The advice's pilot cells: the work of :func:`_bound_task` (same arguments, including a mode's own
-    settings) under its own name, so that progress does not count them as bound-stage chunks."""
-    return _bound_work(*args, threads=threads, **settings)
+    """The bound stage of the problem's error-bound method: ``(cell_bounds, error models or None, diagnostics)``
+    (its ``BoundMethod.stage()``)."""
+    return _method(problem.error_bound).stage()(problem, partition, log, run, cache_dir)
 
 
 def _cell_bounder(problem: Problem, partition, log: _Log, run: _Run, task=None):
-    """``bound_cells(lower, upper) -> (image_lower, image_upper)`` for new cells: the bound stage's settings.
-
-    The same data, noise bound (one event over the data, whatever the cells), weights and local
-    pools as :func:`_learn_and_bound`, so a new cell's box holds on the same event as the grid's.
-    """
-    from robust_imdp.bounds.rkhs import check_ranges, noise_bound_at_confidence
-
-    data = _residual_data(problem)
-    data_fail, _ = _failure_budget(problem)
-    m_total = sum(x.shape[0] for x, _, _ in data)
-    noise_bound, _ = noise_bound_at_confidence(problem.noise, m_total, data_fail if data_fail > 0 else 0.5)
-    settings = {**_base_settings(problem), "noise_bound": _shared_allowance(problem, noise_bound),
-                "method": _method(problem.error_bound).weights, "iid_theta": None, "iid_factor": None}
-    local = _local_settings(problem, data, partition, noise_bound)
-    # one allowance for every mode (the largest), as on the one-setting path: equal settings, equal bytes
-    extras = _mode_extras(problem, data, partition, _shared_allowance(problem, noise_bound), local)
-    sched = run.scheduler(log)
-    shared = [(sched.share(np.ascontiguousarray(x)), sched.share(np.ascontiguousarray(y))) for x, y, _ in data]
-    M, n = len(problem.mode_names), len(problem.space_lower)
-
-    def bound_cells(lower, upper):
-        k = lower.shape[0]
-        chunk = _chunk_cells(run, k, 256)
-        tasks = [(u, s0) for u in range(M) for s0 in range(0, k, chunk)]
-        args = [(*shared[u], *_affine_part(problem, u), lower[s0:s0 + chunk], upper[s0:s0 + chunk],
-                 local[u], *_extra(extras[u])) for u, s0 in tasks]
-        lo, hi = np.empty((M, k, n)), np.empty((M, k, n))
-        for i, res in sched.run(task or _bound_task, args, settings):
-            u, s0 = tasks[i]
-            lo[u, s0:s0 + chunk], hi[u, s0:s0 + chunk] = res["lower"], res["upper"]
-        known = _known_ranges(problem, lower, upper)
-        for u in range(M):
-            check_ranges(lo[u], hi[u], u)
-            if known[u] is not None:  # f_u's certified range plus g_u's
-                _add_known_range(lo[u], hi[u], known[u])
-        return lo, hi
-
-    return bound_cells
+    """``bound_cells(lower, upper) -> (image_lower, image_upper)`` for new cells, on the same event as the
+    grid's (refinement, the advice's pilot cells; ``task``: the function each chunk runs): the method's
+    ``BoundMethod.new_cells_stage()``."""
+    return _method(problem.error_bound).new_cells_stage()(problem, partition, log, run, task=task)

@@ -57,9 +57,9 @@ from robust_imdp.pipeline.bound_stage import (
     _failure_budget,
     _fitted,
     _learn_and_bound,
-    _pilot_task,
     _residual_data,
 )
+from robust_imdp.pipeline.bound_rkhs import _pilot_task
 
 
 __all__ = ["Problem", "Result", "synthesize_from_data", "resynthesize", "abstraction_key",
