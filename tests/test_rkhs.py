@@ -516,7 +516,7 @@ def test_check_assumption_refuses_a_refuted_bound_with_a_clear_message():
                                    mode_names=["left", "right"])
     worst = max(c.minimum for c in checks)
     assert len(checks) == 4 and worst > 0.5
-    with pytest.raises(AssumptionError, match=r"\[gp\]\.rkhs_bound = 0\.5.*mode 'left', component 1"):
+    with pytest.raises(AssumptionError, match=r"\[learning\]\.rkhs_bound = 0\.5.*mode 'left', component 1"):
         rkhs.check_assumption(data, lengthscale=1.0, rkhs_bound=0.5, noise_bound=[0.01, 0.01],
                               mode_names=["left", "right"])
     Yb = Y.copy()

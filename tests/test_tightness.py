@@ -47,7 +47,7 @@ def test_refuted_rkhs_bound_exits_1_before_any_result(tmp_path, capsys):
     (out / "result.json").write_text("{}")  # an old result must not survive a refused run
     code, stdout, err = _run(["run", str(problem), "--out", str(out), "--quiet"], capsys)
     assert code == 1
-    assert "[gp].rkhs_bound = 2 is refuted by the data" in err and "component" in err
+    assert "[learning].rkhs_bound = 2 is refuted by the data" in err and "component" in err
     assert "needs an RKHS norm of at least" in err and "Traceback" not in err
     assert err.count("\n") == 1  # one message
     assert not (out / "result.json").exists()

@@ -171,14 +171,14 @@ def resolve(rkhs_bound, lengthscale, misspecification, mode_names: Sequence[str]
         or dict mode -> any of these; None means 1.0
     mode_names : the modes in order
     n : the state dimension (components = input dimensions)
-    prefix : put before the names in messages (``"[gp]."`` for a problem file)
+    prefix : put before the names in messages (``"[learning]."`` for a problem file)
     known : list of n bools or dict mode -> list, optional
         Components declared known (their B is set to 0).
 
     Raises
     ------
     InvalidInputError, DimensionError
-        Naming ``[gp].rkhs_bound`` (etc.), the mode, the expected form and what was given.
+        Naming ``[learning].rkhs_bound`` (etc.), the mode, the expected form and what was given.
     """
     names = [str(m) for m in mode_names]
     M = len(names)
@@ -326,7 +326,7 @@ def check_modes(data, settings: Settings, noise_bound, *, mode_names, sample_ind
     Raises
     ------
     AssumptionError
-        Naming ``[gp].rkhs_bound``, the mode, the component and the sample (or the data-implied
+        Naming ``[learning].rkhs_bound``, the mode, the component and the sample (or the data-implied
         minimum), for the worst refuted component.
     """
     from robust_imdp.bounds.rkhs import NormCheck, min_rkhs_norm, refutation_reason
@@ -350,14 +350,14 @@ def check_modes(data, settings: Settings, noise_bound, *, mode_names, sample_ind
         name = mode_names[c.mode]
         if B == 0:
             raise AssumptionError(
-                f"[gp] declares component {c.output + 1} of mode {name!r} known (rkhs_bound = 0 or known = true), "
+                f"[learning] declares component {c.output + 1} of mode {name!r} known (rkhs_bound = 0 or known = true), "
                 f"but sample {c.sample} has residual {c.residual:.6g} there, beyond the noise bound + "
                 f"misspecification = {nbi + tau:.6g}: the known part does not explain the data; give the component "
                 "an rkhs_bound > 0, a misspecification allowance, or check the known part and the data"
                 + (f" ({len(bad)} components are refuted)" if len(bad) > 1 else ""))
         why = refutation_reason(c, B, nbi, tau)
         raise AssumptionError(
-            f"[gp].rkhs_bound = {B:g} for mode {name!r}, component {c.output + 1} is refuted by the data: it needs an "
+            f"[learning].rkhs_bound = {B:g} for mode {name!r}, component {c.output + 1} is refuted by the data: it needs an "
             f"RKHS norm of at least {c.minimum:.4g} (lengthscale {settings.lengthscale[c.mode, c.output].tolist()}); "
             f"{why}. Choose rkhs_bound >= {c.minimum:.4g} for it (with a margin), a different lengthscale, a "
             "misspecification allowance, or check the data"

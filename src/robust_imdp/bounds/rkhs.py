@@ -414,7 +414,7 @@ def check_ranges(lower, upper, mode: int) -> None:
         raise AssumptionError(
             f"the data contradict the assumption: the certified range of mode {mode}, component {i + 1} is "
             f"empty on {len(bad)} cells (e.g. cell {q}: [{lower[q, i]:.6g}, {upper[q, i]:.6g}]); "
-            "no function allowed by [gp].rkhs_bound, the lengthscale and the noise bound explains them")
+            "no function allowed by [learning].rkhs_bound, the lengthscale and the noise bound explains them")
 
 
 def image_ranges(data, known_maps, cells_lower, cells_upper, *, lengthscale, rkhs_bound: float, noise_bound,

@@ -152,7 +152,7 @@ def check_assumption(data, *, lengthscale, rkhs_bound: float, noise_bound, missp
             c = max(bad, key=lambda c: c.minimum)
             why = refutation_reason(c, float(rkhs_bound), float(nb[c.output]), float(misspecification))
             raise AssumptionError(
-                f"[gp].rkhs_bound = {float(rkhs_bound):g} is refuted by the data: mode {names[c.mode]!r}, component "
+                f"[learning].rkhs_bound = {float(rkhs_bound):g} is refuted by the data: mode {names[c.mode]!r}, component "
                 f"{c.output + 1} needs an RKHS norm of at least {c.minimum:.4g} (lengthscale "
                 f"{np.asarray(lengthscale).tolist()}); {why}. Choose rkhs_bound >= {c.minimum:.4g} (with a margin), "
                 "a different lengthscale, a misspecification allowance, or check the data"
