@@ -62,6 +62,118 @@ def _chol_solve2(P, n, L, r1, r2, o1, o2):  # pragma: no cover - compiled
     return True
 
 
+#: ``_active_set``'s status codes (``optimal_weights``' ``status``).
+AS_OPTIMAL, AS_ITER_CAP, AS_INCONSISTENT, AS_FACTOR_FAILED, AS_SUPPORT_CAP, AS_STALLED = 0, 1, 2, 3, 4, 5
+#: Steps without a decrease of the objective after which the active set stops (anti-cycling).
+_STALL_STEPS = 4
+
+
+@numba.njit(cache=True)
+def _restricted_system(K, ys, b, dbar, S, sg, nS, P, bSv, aS):  # pragma: no cover - compiled
+    """``P = K_SS`` (+1e-11 on the diagonal), ``b_S`` and ``a_S = ys_S + dbar sg`` of the support S."""
+    for p in range(nS):
+        i = S[p]
+        bSv[p] = b[i]
+        aS[p] = ys[i] + dbar * sg[p]
+        for q in range(nS):
+            P[p, q] = K[i, S[q]]
+        P[p, p] += 1e-11
+
+
+@numba.njit(cache=True)
+def _restricted_step(s0, G, sg, w, nS, bSv, aS, uu, vv, dw):  # pragma: no cover - compiled
+    """The move from ``w`` towards the restricted optimum (``uu = P^{-1} b_S``, ``vv = P^{-1} a_S``) into ``dw``,
+    or along the descent ray ``-vv`` when ``n >= G``; ``(alpha, jmin, unbounded)``: the step length, stopped
+    at the first sign change (index ``jmin``, -1 if none)."""
+    rho2 = s0
+    n2 = 0.0
+    for p in range(nS):
+        rho2 -= bSv[p] * uu[p]
+        n2 += aS[p] * vv[p]
+    if rho2 < 1e-300:
+        rho2 = 1e-300
+    unbounded = n2 >= G * G * (1.0 - 1e-12)
+    if not unbounded:
+        t = math.sqrt(rho2) / math.sqrt(G * G - n2)
+        for p in range(nS):
+            dw[p] = uu[p] - t * vv[p] - w[p]
+        alpha = 1.0
+    else:
+        for p in range(nS):
+            dw[p] = -vv[p]
+        alpha = np.inf
+    jmin = -1
+    for p in range(nS):
+        if sg[p] * dw[p] < 0.0:
+            a = -w[p] / dw[p]
+            if a < alpha:
+                alpha = a
+                jmin = p
+    return alpha, jmin, unbounded
+
+
+@numba.njit(cache=True)
+def _drop_index(S, sg, w, nS, jmin, inS):  # pragma: no cover - compiled
+    """Remove index ``jmin`` and every weight of the wrong sign from the support; its new size."""
+    k = 0
+    for p in range(nS):
+        if p == jmin or sg[p] * w[p] <= 0.0:
+            inS[S[p]] = False
+            continue
+        S[k] = S[p]
+        sg[k] = sg[p]
+        w[k] = w[p]
+        k += 1
+    return k
+
+
+@numba.njit(cache=True)
+def _objective_parts(K, ys, b, s0, dbar, S, w, nS, Kw):  # pragma: no cover - compiled
+    """``Kw = K w`` and ``(r2, Fv)``: ``s0 - 2 b.w + w.K w`` and ``ys.w + dbar ||w||_1`` on the support."""
+    m = K.shape[0]
+    for j in range(m):
+        Kw[j] = 0.0
+    r2 = s0
+    Fv = 0.0
+    for p in range(nS):
+        i = S[p]
+        r2 -= 2.0 * w[p] * b[i]
+        Fv += w[p] * ys[i] + dbar * abs(w[p])
+        wp = w[p]
+        for j in range(m):  # K is symmetric: read row i (contiguous) for column i
+            Kw[j] += K[i, j] * wp
+    for p in range(nS):
+        r2 += w[p] * Kw[S[p]]
+    return r2, Fv
+
+
+@numba.njit(cache=True)
+def _keep_best(S, w, nS, bS_idx, bw):  # pragma: no cover - compiled
+    """Copy the support and its weights into ``bS_idx[:nS], bw[:nS]``."""
+    for p in range(nS):
+        bS_idx[p] = S[p]
+        bw[p] = w[p]
+
+
+@numba.njit(cache=True)
+def _most_violated(ys, b, dbar, G, Kw, r, inS, tol):  # pragma: no cover - compiled
+    """The index outside S whose condition ``|f*(x_j) - ys_j| <= dbar`` (``f* = G (phi - Phi* w)/r``) is
+    violated most, by more than ``tol``, and its sign: ``(jadd, sadd)``, ``jadd = -1`` if none."""
+    worst = tol
+    jadd = -1
+    sadd = 0.0
+    for j in range(Kw.shape[0]):
+        if inS[j]:
+            continue
+        f = G * (b[j] - Kw[j]) / r
+        viol = abs(f - ys[j]) - dbar
+        if viol > worst:
+            worst = viol
+            jadd = j
+            sadd = 1.0 if f > ys[j] else -1.0
+    return jadd, sadd
+
+
 @numba.njit(cache=True)
 def _active_set(K, ys, b, s0, dbar, G, S, sg, w, nS, cap, max_iter, tol, bS_idx, bw, P, L):  # pragma: no cover
     """Approximately ``min_w ys.w + dbar ||w||_1 + G sqrt(s0 - 2 b.w + w.K w)`` (a heuristic).
@@ -82,7 +194,7 @@ def _active_set(K, ys, b, s0, dbar, G, S, sg, w, nS, cap, max_iter, tol, bS_idx,
     mmap each time where glibc's mmap threshold is fixed (Dask workers set
     MALLOC_TRIM_THRESHOLD_, measured 1.7x slower). Returns ``(nS, nb, iters, status)``
     (status 0 optimal, 1 iteration cap, 2 data inconsistent with the norm bound, 3 factorisation
-    failed, 4 support cap, 5 stalled).
+    failed, 4 support cap, 5 stalled: the ``AS_*`` constants).
     """
     m = K.shape[0]
     inS = np.zeros(m, dtype=np.bool_)
@@ -94,7 +206,7 @@ def _active_set(K, ys, b, s0, dbar, G, S, sg, w, nS, cap, max_iter, tol, bS_idx,
     vv = np.empty(cap)
     dw = np.empty(cap)
     Kw = np.empty(m)
-    status = 1
+    status = AS_ITER_CAP
     it = 0
     nb = 0
     Fbest = np.inf
@@ -103,79 +215,27 @@ def _active_set(K, ys, b, s0, dbar, G, S, sg, w, nS, cap, max_iter, tol, bS_idx,
     while it < max_iter:
         it += 1
         if not restricted_ok:
-            for p in range(nS):
-                i = S[p]
-                bSv[p] = b[i]
-                aS[p] = ys[i] + dbar * sg[p]
-                for q in range(nS):
-                    P[p, q] = K[i, S[q]]
-                P[p, p] += 1e-11
+            _restricted_system(K, ys, b, dbar, S, sg, nS, P, bSv, aS)
             if nS > 0:
                 if not _chol_solve2(P, nS, L, bSv, aS, uu, vv):
-                    status = 3
+                    status = AS_FACTOR_FAILED
                     break
-            rho2 = s0
-            n2 = 0.0
-            for p in range(nS):
-                rho2 -= bSv[p] * uu[p]
-                n2 += aS[p] * vv[p]
-            if rho2 < 1e-300:
-                rho2 = 1e-300
-            unbounded = n2 >= G * G * (1.0 - 1e-12)
-            if not unbounded:
-                t = math.sqrt(rho2) / math.sqrt(G * G - n2)
-                for p in range(nS):
-                    dw[p] = uu[p] - t * vv[p] - w[p]
-                alpha = 1.0
-            else:
-                for p in range(nS):
-                    dw[p] = -vv[p]
-                alpha = np.inf
-            jmin = -1
-            for p in range(nS):
-                if sg[p] * dw[p] < 0.0:
-                    a = -w[p] / dw[p]
-                    if a < alpha:
-                        alpha = a
-                        jmin = p
+            alpha, jmin, unbounded = _restricted_step(s0, G, sg, w, nS, bSv, aS, uu, vv, dw)
             if jmin < 0 and unbounded:
-                status = 2
+                status = AS_INCONSISTENT
                 break
             for p in range(nS):
                 w[p] += alpha * dw[p]
             if jmin >= 0:
-                k = 0
-                for p in range(nS):
-                    if p == jmin or sg[p] * w[p] <= 0.0:
-                        inS[S[p]] = False
-                        continue
-                    S[k] = S[p]
-                    sg[k] = sg[p]
-                    w[k] = w[p]
-                    k += 1
-                nS = k
+                nS = _drop_index(S, sg, w, nS, jmin, inS)
                 continue
             restricted_ok = True
         # at a restricted optimum: objective and optimality conditions outside S
-        for j in range(m):
-            Kw[j] = 0.0
-        r2 = s0
-        Fv = 0.0
-        for p in range(nS):
-            i = S[p]
-            r2 -= 2.0 * w[p] * b[i]
-            Fv += w[p] * ys[i] + dbar * abs(w[p])
-            wp = w[p]
-            for j in range(m):  # K is symmetric: read row i (contiguous) for column i
-                Kw[j] += K[i, j] * wp
-        for p in range(nS):
-            r2 += w[p] * Kw[S[p]]
+        r2, Fv = _objective_parts(K, ys, b, s0, dbar, S, w, nS, Kw)
         if not r2 > 0.0:
-            status = 0
+            status = AS_OPTIMAL
             nb = nS
-            for p in range(nS):
-                bS_idx[p] = S[p]
-                bw[p] = w[p]
+            _keep_best(S, w, nS, bS_idx, bw)
             break
         r = math.sqrt(r2)
         Fv += G * r
@@ -183,31 +243,18 @@ def _active_set(K, ys, b, s0, dbar, G, S, sg, w, nS, cap, max_iter, tol, bS_idx,
             Fbest = Fv
             stall = 0
             nb = nS
-            for p in range(nS):
-                bS_idx[p] = S[p]
-                bw[p] = w[p]
+            _keep_best(S, w, nS, bS_idx, bw)
         else:
             stall += 1
-            if stall >= 4:
-                status = 5
+            if stall >= _STALL_STEPS:
+                status = AS_STALLED
                 break
-        worst = tol
-        jadd = -1
-        sadd = 0.0
-        for j in range(m):
-            if inS[j]:
-                continue
-            f = G * (b[j] - Kw[j]) / r
-            viol = abs(f - ys[j]) - dbar
-            if viol > worst:
-                worst = viol
-                jadd = j
-                sadd = 1.0 if f > ys[j] else -1.0
+        jadd, sadd = _most_violated(ys, b, dbar, G, Kw, r, inS, tol)
         if jadd < 0:
-            status = 0
+            status = AS_OPTIMAL
             break
         if nS >= cap:
-            status = 4
+            status = AS_SUPPORT_CAP
             break
         S[nS] = jadd
         sg[nS] = sadd
