@@ -367,7 +367,7 @@ def check_modes(data, settings: Settings, noise_bound, *, mode_names, sample_ind
 
 # ============================================================================ the data-fitted function
 class ComponentFits:
-    """``advice.FittedModes`` per mode and lengthscale, read as one (a diagnostic, not a bound).
+    """``bounds.fit.FittedModes`` per mode and lengthscale, read as one (a diagnostic, not a bound).
 
     ``parts`` : list of (mode, component indices, FittedModes of that one mode); the ranges of each
     component come from the fit with its own lengthscale and ridge parameter.
@@ -399,10 +399,10 @@ class ComponentFits:
 
 
 def fit_components(data, maps, settings: Settings, sigma) -> ComponentFits:
-    """Kernel-ridge fits (``advice.fit_modes``) with each mode's and component's lengthscale and
+    """Kernel-ridge fits (``bounds.fit.fit_modes``) with each mode's and component's lengthscale and
     ``lambda = (sigma / B)^2`` (kept >= 1e-6); a known component (B = 0) is fitted with ``lambda = 1e12``,
     so its fit is its known part."""
-    from robust_imdp.synthesis.advice import fit_modes
+    from robust_imdp.bounds.fit import fit_modes
 
     sigma = np.broadcast_to(np.asarray(sigma, float), (settings.rkhs_bound.shape[1],))
     parts = []
