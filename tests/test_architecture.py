@@ -1,4 +1,5 @@
-"""The layering of docs/ARCHITECTURE.md holds: every module imports only modules listed before it.
+"""The layering of docs/ARCHITECTURE.md holds: subpackages import only lower layers, and every module
+imports only modules listed before it.
 
 The table of docs/ARCHITECTURE.md lists the modules bottom-up. Every ``import`` of a
 robust_imdp module, at module level or inside a function, must name a module listed earlier;
@@ -83,3 +84,50 @@ def test_imports_only_go_down_the_table():
     order = table_order((ROOT / "docs" / "ARCHITECTURE.md").read_text())
     sources = {str(p.relative_to(SRC).with_suffix("")): p.read_text() for p in SRC.rglob("*.py") if p.stem != "__init__"}
     assert violations(order, sources) == []
+
+
+def ranking(text: str) -> list:
+    """Layers of the section "Subpackages, bottom-up": ``| rank | `name` ... |`` rows; a layer may hold
+    several subpackages or top-level modules (comma-separated in backquotes)."""
+    section = text.split("## Subpackages, bottom-up", 1)[1].split("\n## ", 1)[0]
+    layers = []
+    for row in re.findall(r"^\| (\d+) \| ([^|]+) \|", section, flags=re.M):
+        layers.append(re.findall(r"`([a-z_]+)/?`", row[1]))
+    return layers
+
+
+def package_violations(layers: list, sources: dict) -> list:
+    """``"pkg/mod.py:LINE imports other (layer j >= layer i)"`` for imports into a layer not below the
+    importer's own (imports inside one subpackage are ranked by the module table instead)."""
+    rank = {name: i for i, names in enumerate(layers) for name in names}
+    out = []
+    for mod, src in sorted(sources.items()):
+        own = mod.split("/")[0]
+        for dep, line in sorted(imports_of(src).items()):
+            other = dep.split("/")[0]
+            if other == own:
+                continue
+            if own not in rank or other not in rank:
+                out.append(f"{mod}.py:{line} imports {dep}: {own if own not in rank else other} is not ranked")
+            elif rank[other] >= rank[own]:
+                out.append(f"{mod}.py:{line} imports {dep} (layer {rank[other]} >= {own}'s layer {rank[own]})")
+    return out
+
+
+def test_package_checker_finds_an_upward_import():
+    layers = [["errors"], ["models"], ["bounds", "spec"]]
+    sources = {"models/a": "from robust_imdp.bounds import rkhs\n", "bounds/b": "from robust_imdp.spec.dfa import x\n",
+               "spec/c": "from robust_imdp.models.a import y\n"}
+    assert package_violations(layers, sources) == [
+        "bounds/b.py:1 imports spec/dfa (layer 2 >= bounds's layer 2)",
+        "models/a.py:1 imports bounds/rkhs (layer 2 >= models's layer 1)"]
+
+
+def test_subpackages_import_only_lower_layers():
+    text = (ROOT / "docs" / "ARCHITECTURE.md").read_text()
+    layers = ranking(text)
+    top = {p.stem for p in SRC.glob("*.py") if p.stem != "__init__"} | {p.name for p in SRC.iterdir() if p.is_dir()
+                                                                        and (p / "__init__.py").exists()}
+    assert sorted(n for names in layers for n in names) == sorted(top)  # every subpackage and top-level module once
+    sources = {str(p.relative_to(SRC).with_suffix("")): p.read_text() for p in SRC.rglob("*.py") if p.stem != "__init__"}
+    assert package_violations(layers, sources) == []
