@@ -139,77 +139,77 @@ class Atom(_Node):
 class Not(_Unary):
     """Negation ``!operand``."""
 
-    symbol: ClassVar[str] = '!'
+    symbol: ClassVar[str] = "!"
 
 
 @dataclass(frozen=True)
 class Next(_Unary):
     """Strong next ``X operand`` (false at the last position)."""
 
-    symbol: ClassVar[str] = 'X '
+    symbol: ClassVar[str] = "X "
 
 
 @dataclass(frozen=True)
 class WeakNext(_Unary):
     """Weak next ``WX operand`` (true at the last position)."""
 
-    symbol: ClassVar[str] = 'WX '
+    symbol: ClassVar[str] = "WX "
 
 
 @dataclass(frozen=True)
 class Eventually(_Unary):
     """``F operand`` = ``true U operand``."""
 
-    symbol: ClassVar[str] = 'F '
+    symbol: ClassVar[str] = "F "
 
 
 @dataclass(frozen=True)
 class Globally(_Unary):
     """``G operand`` = ``!F !operand``."""
 
-    symbol: ClassVar[str] = 'G '
+    symbol: ClassVar[str] = "G "
 
 
 @dataclass(frozen=True)
 class And(_Binary):
     """Conjunction ``left & right``."""
 
-    symbol: ClassVar[str] = '&'
+    symbol: ClassVar[str] = "&"
 
 
 @dataclass(frozen=True)
 class Or(_Binary):
     """Disjunction ``left | right``."""
 
-    symbol: ClassVar[str] = '|'
+    symbol: ClassVar[str] = "|"
 
 
 @dataclass(frozen=True)
 class Implies(_Binary):
     """Implication ``left -> right``."""
 
-    symbol: ClassVar[str] = '->'
+    symbol: ClassVar[str] = "->"
 
 
 @dataclass(frozen=True)
 class Iff(_Binary):
     """Equivalence ``left <-> right``."""
 
-    symbol: ClassVar[str] = '<->'
+    symbol: ClassVar[str] = "<->"
 
 
 @dataclass(frozen=True)
 class Until(_Binary):
     """``left U right``: ``right`` eventually holds and ``left`` holds until then."""
 
-    symbol: ClassVar[str] = 'U'
+    symbol: ClassVar[str] = "U"
 
 
 @dataclass(frozen=True)
 class Release(_Binary):
     """``left R right`` = ``!(!left U !right)``."""
 
-    symbol: ClassVar[str] = 'R'
+    symbol: ClassVar[str] = "R"
 
 
 Formula = Union[

@@ -58,6 +58,9 @@ __all__ = ["SolverRun", "SynthesisResult", "synthesize", "remap_letters"]
 
 CLASS_YES, CLASS_NO, CLASS_MAYBE = "yes", "no", "maybe"
 
+#: One ulp towards +inf: the outward rounding of upper bounds computed by a subtraction.
+_round_up = _fp.up
+
 
 # --------------------------------------------------------------------------- results
 @dataclass(frozen=True)
@@ -368,6 +371,6 @@ def _bounds(optimistic, ev_low, ev_up, n_cells, threshold):
         )
     # error bounds |P(pi_x) - p_opt| <= p_up_star - p_low (Thm. 2); round the difference up.
     # The clamp to 1 is safe: both are probabilities, so the true difference is at most 1.
-    error = np.minimum(_fp.up(p_up_star - p_low), 1.0)  # one ulp up: the difference was rounded
+    error = np.minimum(_round_up(p_up_star - p_low), 1.0)
     classes = np.where(p_low >= threshold, CLASS_YES, np.where(p_up < threshold, CLASS_NO, CLASS_MAYBE))
     return p_low, p_up, p_up_star, error, classes
