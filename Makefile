@@ -15,9 +15,13 @@ $(VENV)/.installed: pyproject.toml
 	touch $@
 
 # Compile the numba kernels once, on tiny problems, into numba's cache next to the sources
-# (src/robust_imdp/__pycache__, git-ignored): the first real run then only loads them. Re-run
-# when a source is newer than the stamp (numba recompiles only the kernels of changed files).
+# (src/robust_imdp/*/__pycache__, git-ignored): the first real run then only loads them. Re-run
+# when a source is newer than the stamp.
+# numba keys a kernel's cache by its own file only, and a kernel compiled with callees from another
+# file keeps their old code when only that file changes: start from an empty cache whenever any
+# source changed.
 $(VENV)/.warm: $(VENV)/.installed $(shell find src/robust_imdp -name "*.py")
+	find src/robust_imdp -name '*.nbi' -delete -o -name '*.nbc' -delete
 	$(PY) -m robust_imdp.warmup
 	touch $@
 
