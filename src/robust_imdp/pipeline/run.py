@@ -2,7 +2,7 @@
 
 ``synthesize_from_data(problem)`` chains the stages of the paper (Jackson et al., HSCC 2021):
 
-1. **specify** -- LTLf formula to a minimal DFA (``dfa.ltlf_to_dfa``); checked first, so an
+1. **specify** -- the specification to a minimal DFA (``spec.to_dfa``); checked first, so an
    unknown region fails before any expensive work;
 2. **partition** -- grid over X respecting the labelled regions (``geometry.Partition``);
 3. **check** -- the data-implied minimum RKHS norm of every mode and output
@@ -247,7 +247,7 @@ def synthesize_from_data(problem: Problem, *, progress: bool = True, abstraction
     -------
     Result
     """
-    from robust_imdp.spec.dfa import ltlf_to_dfa
+    from robust_imdp.spec.api import to_dfa
 
     if advice not in ("auto", True, False):
         raise InvalidInputError(f"advice must be 'auto', True or False; got {advice!r}")
@@ -256,7 +256,7 @@ def synthesize_from_data(problem: Problem, *, progress: bool = True, abstraction
                check_resources=check_resources)
     run.advice = advice
     with log.stage("specify"):
-        dfa = ltlf_to_dfa(problem.formula)
+        dfa = to_dfa(problem.formula)
         _check_atoms(dfa, problem)
     log.info(f"DFA: {dfa.n_states} states over atoms {list(dfa.atoms)}")
     _warn_overlaps(problem, dfa)
@@ -403,7 +403,7 @@ def _refine(problem: Problem, partition, abstraction, syn, cell_bounds, dfa, log
 def resynthesize(result: Result, *, formula: str | None = None, threshold: float | None = None,
                  horizon="keep", progress: bool = True) -> Result:
     """Solve a new formula / threshold / horizon on ``result``'s abstraction (no re-learning)."""
-    from robust_imdp.spec.dfa import ltlf_to_dfa
+    from robust_imdp.spec.api import to_dfa
 
     changes = {}
     if formula is not None:
@@ -415,7 +415,7 @@ def resynthesize(result: Result, *, formula: str | None = None, threshold: float
     problem = result.problem.replace(**changes)
     log = _Log(progress)
     with log.stage("specify"):
-        dfa = ltlf_to_dfa(problem.formula)
+        dfa = to_dfa(problem.formula)
         _check_atoms(dfa, problem)
     syn, classes = _synthesize(problem, result.partition, result.abstraction, dfa, log)
     log.timings["total"] = time.perf_counter() - log.t0
