@@ -4,6 +4,11 @@ checks of the samples against the problem (impossible samples refused, modes wit
 ``.csv`` with header ``x_1..x_n,u,x_next_1..x_next_n`` (``u`` holds mode names), or ``.npz`` with
 arrays ``x`` (m, n), ``u`` (m,) and ``x_next`` (m, n). Every mode name in ``u`` must be one of the
 ``[modes.*]`` tables. Errors name the CSV file's 1-based line.
+
+An optional last column (CSV) or array (npz) ``round`` says in which round of ``robust-imdp improve``
+a sample was collected (0: the initial data). The pipeline ignores it, except that samples of a
+round > 0 were chosen from earlier data (an adaptive design): the problem file refuses them with
+``iid_noise = true`` (:func:`read_rounds`).
 """
 
 from __future__ import annotations
@@ -15,7 +20,10 @@ import numpy as np
 
 from robust_imdp.errors import ProblemFileError
 
-__all__ = ["read_data_file", "write_data_file", "FEW_SAMPLES"]
+__all__ = ["read_data_file", "write_data_file", "read_rounds", "FEW_SAMPLES", "ROUND_COLUMN"]
+
+#: Name of the optional column (CSV) / array (npz) of the improve round of each sample.
+ROUND_COLUMN = "round"
 
 
 def _read_text(path: Path, where: str, expected: str) -> str:
@@ -271,6 +279,8 @@ def _read_csv(path: Path, where: str, n_dims: int | None = None):
     n = (len(header) - 1) // 2
     want = n_dims if n_dims is not None else max(n, 1)
     expected = _header(want)
+    if header == expected + [ROUND_COLUMN]:  # the improve rounds' column: read by read_rounds only
+        expected = header
     if header != expected:
         raw = ",".join(header)
         seps = [c for c in (";", "\t", "|") if c in raw and len(header) == 1]
@@ -311,7 +321,60 @@ def _read_csv(path: Path, where: str, n_dims: int | None = None):
     return values[:, :n], u, values[:, n:], lines
 
 
-def write_data_file(path, x, u, x_next, modes=None) -> None:
+def read_rounds(path):
+    """The ``round`` column (CSV) or array (npz) of a data file as an int array, or None without one.
+
+    Raises ProblemFileError naming the line (CSV) when a round is not an integer >= 0.
+    """
+    path = Path(path)
+    where = f"data file {path}"
+    if path.suffix == ".npz":
+        with np.load(path, allow_pickle=False) as z:
+            if ROUND_COLUMN not in z.files:
+                return None
+            values, lines = np.asarray(z[ROUND_COLUMN]).reshape(-1).tolist(), None
+    else:
+        with open(path, newline="", encoding="utf-8") as fh:
+            reader = csv.reader(fh)
+            header = [h.strip() for h in next(reader, [])]
+            if not header or header[-1] != ROUND_COLUMN:
+                return None
+            values, lines = [], []
+            for r in reader:
+                if r:
+                    values.append(r[-1].strip())
+                    lines.append(reader.line_num)
+    out = np.empty(len(values), dtype=np.int64)
+    for i, v in enumerate(values):
+        try:
+            out[i] = int(v)
+            ok = out[i] >= 0 and float(v) == out[i]
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            at = f"line {lines[i]}, column {ROUND_COLUMN}" if lines is not None else f"{ROUND_COLUMN}[{i}]"
+            raise ProblemFileError(f"{where}: {at} must be an integer >= 0 (the improve round); got {v!r}")
+    return out
+
+
+#: Why the iid route refuses adaptively chosen inputs (the problem file's check and ``improve``'s).
+ADAPTIVE_IID_MESSAGE = (
+    "iid_noise = true assumes the inputs were chosen independently of the noise, but samples of "
+    "improve rounds > 0 were chosen from earlier data (an adaptive design); set iid_noise = false "
+    "(the deterministic bound holds for any inputs)")
+
+
+def refuse_adaptive_iid(path, iid_noise: bool) -> None:
+    """ProblemFileError when ``iid_noise`` is on and the data file has samples of a round > 0."""
+    if not iid_noise:
+        return
+    rounds = read_rounds(path)
+    if rounds is not None and np.any(rounds > 0):
+        raise ProblemFileError(f"data file {Path(path)}: {int(np.sum(rounds > 0))} samples of rounds > 0: "
+                               + ADAPTIVE_IID_MESSAGE)
+
+
+def write_data_file(path, x, u, x_next, modes=None, rounds=None) -> None:
     """Write a data file (.csv or .npz) readable by :func:`read_data_file`.
 
     Parameters
@@ -320,6 +383,8 @@ def write_data_file(path, x, u, x_next, modes=None) -> None:
     u : (m,) int (indices into ``modes``) or str array (mode names)
     modes : sequence of str, optional
         Mode names; required when ``u`` holds indices.
+    rounds : (m,) int array, optional
+        The improve round of each sample: written as the last column / array ``round``.
     """
     path = Path(path)
     x = np.asarray(x, dtype=float)
@@ -332,13 +397,15 @@ def write_data_file(path, x, u, x_next, modes=None) -> None:
     u = u.astype(str)
     n = x.shape[1]
     path.parent.mkdir(parents=True, exist_ok=True)
+    extra = {} if rounds is None else {ROUND_COLUMN: np.asarray(rounds, dtype=np.int64)}
     if path.suffix == ".npz":
-        np.savez(path, x=x, u=u, x_next=x_next)
+        np.savez(path, x=x, u=u, x_next=x_next, **extra)
         return
     header = [f"x_{i + 1}" for i in range(n)] + ["u"] + [f"x_next_{i + 1}" for i in range(n)]
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(header)
-        for xi, ui, yi in zip(x, u, x_next):
-            w.writerow([repr(float(v)) for v in xi] + [ui] + [repr(float(v)) for v in yi])
+        w.writerow(header + list(extra))
+        tails = ([[int(r)] for r in extra[ROUND_COLUMN]] if extra else [[]] * x.shape[0])
+        for xi, ui, yi, tail in zip(x, u, x_next, tails):
+            w.writerow([repr(float(v)) for v in xi] + [ui] + [repr(float(v)) for v in yi] + tail)
 

@@ -46,7 +46,7 @@ import numpy as np
 from robust_imdp.bounds import methods
 from robust_imdp.errors import InvalidInputError, ProblemFileError
 from robust_imdp.io.data_file import (
-    _check_samples_possible, _read_data, _read_text, _warn_few_samples,
+    _check_samples_possible, _read_data, _read_text, _warn_few_samples, refuse_adaptive_iid,
 )
 from robust_imdp.pipeline.problem import BOUND_MAX_BOXES, BOUND_TOL, GUARANTEES  # the one definition of these
 
@@ -571,6 +571,7 @@ def load_problem(path):
     names = list(spec["modes"])
     n = spec["lower"].shape[0]
     x, u, x_next, _, rows = _read_data(spec["data_file"], names, n, origin=f"[data].path in {path}")
+    refuse_adaptive_iid(spec["data_file"], spec["learning"].get("iid_noise", False))
     missing = [names[i] for i in range(len(names)) if not np.any(u == i)]
     if missing:
         raise ProblemFileError(
