@@ -10,9 +10,10 @@
    name and renamed: the file is never half-written);
 4. **check** the assumption with *all* the data (new data may refute the RKHS bound B);
 5. **re-bound** only the cells whose certificates the new points can change: with local weights
-   the cells whose pool of nearest points now holds a new point, otherwise the cells within
-   :data:`AFFECT_LENGTHSCALES` kernel lengthscales of a new point; each new box is intersected
-   with the cell's previous box;
+   the cells whose pool of nearest points now holds a new point, otherwise the cells whose error
+   radius the new points shrink by more than :data:`REBOUND_TOL` of the cell's half-width (the power
+   function of ``synthesis.suggest``, with and without them); each new box is intersected with the
+   cell's previous box;
 6. **re-abstract** the rows of the re-bounded cells (a row depends only on its own cell's image
    box and the partition: ``abstraction.rows.abstract_rows``) and **re-solve**.
 
@@ -42,11 +43,15 @@ import numpy as np
 
 from robust_imdp.errors import DimensionError, InvalidInputError
 
-__all__ = ["ImproveRound", "ImproveResult", "improve", "AFFECT_LENGTHSCALES", "STATE_FILE", "DATA_FILE"]
+__all__ = ["ImproveRound", "ImproveResult", "improve", "REBOUND_TOL", "STATE_FILE", "DATA_FILE"]
 
-#: Without local weights, the cells within this many kernel lengthscales of a new point are re-bounded
-#: (farther ones keep their box: sound for any subset of the data, and the new point barely moves them).
-AFFECT_LENGTHSCALES = 3.0
+#: Without local weights, a cell is re-bounded when the new points lower the RKHS term of its error
+#: radius at its centre by more than this fraction of its smallest half-width (the power-function
+#: estimate of ``synthesis.suggest``, eq. S2); the others keep their box: sound for any subset of the
+#: data, and the new points barely move them.
+REBOUND_TOL = 0.01
+#: Most points of a mode used for that estimate (an evenly spaced subset beyond it, as in suggest).
+MAX_POWER_POINTS = 2000
 #: The loop's saved state (cell boxes, last complete round) and its data file, in the output directory.
 STATE_FILE = "improve-state.npz"
 DATA_FILE = "data.csv"
@@ -219,33 +224,44 @@ def _read_loop_data(out: Path, problem):
 
 
 # ---------------------------------------------------------------------------------------------- re-bounding
+def _power(points, data, inv_l2, lam: float) -> np.ndarray:
+    """The power function ``k(x,x) - k_x^T (K + lam I)^-1 k_x`` at ``points`` (``synthesis.suggest``'s, diagonal only)."""
+    from robust_imdp.synthesis.suggest import _kernel
+
+    if data.shape[0] > MAX_POWER_POINTS:
+        data = data[np.unique(np.linspace(0, data.shape[0] - 1, MAX_POWER_POINTS).round().astype(int))]
+    L = np.linalg.cholesky(_kernel(data, data, inv_l2) + lam * np.eye(data.shape[0]))
+    V = np.linalg.solve(L, _kernel(data, points, inv_l2))
+    return np.maximum(1.0 - np.sum(V * V, axis=0), 0.0)
+
+
 def _affected(problem, partition, data, n_old: int) -> list:
     """Per mode: the cells whose certificate the samples ``n_old..`` of ``data`` can change (module step 5)."""
     from robust_imdp.bounds.rkhs_local import local_pools
-    from robust_imdp.pipeline.bound_rkhs import _base_settings, _local_settings
-    from robust_imdp.pipeline.bound_stage import _residual_data, _failure_budget
-    from robust_imdp.pipeline.bound_rkhs import _data_noise_bound
+    from robust_imdp.pipeline.bound_rkhs import _base_settings, _data_noise_bound, _local_settings
+    from robust_imdp.pipeline.bound_stage import _failure_budget, _residual_data
     from robust_imdp.synthesis.suggest import _assumption
 
     res = _residual_data(problem)
     local = _local_settings(problem, res, partition, _data_noise_bound(problem, res, _failure_budget(problem)[0]))
-    _, inv_l2, _ = _assumption(problem)
+    B, inv_l2, floor = _assumption(problem)
     lo, up = partition.cells_lower, partition.cells_upper
-    centre, half = 0.5 * (lo + up), 0.5 * (up - lo)
+    centre, tol = 0.5 * (lo + up), REBOUND_TOL * 0.5 * np.min(up - lo, axis=1)
     new = np.arange(data.u.shape[0]) >= n_old
     out = []
     for u in range(len(problem.mode_names)):
-        fresh = np.flatnonzero(new[data.u == u]) if np.any(data.u == u) else np.zeros(0, np.int64)
-        hit = np.zeros(partition.n_cells, dtype=bool)
-        if fresh.size and local[u] is not None:  # the cells whose pool gained a point
-            pools = local_pools(res[u][0], lo, up, _base_settings(problem)["lengthscale"], local[u][0])
-            hit = np.any(pools >= fresh.min(), axis=1)
-        elif fresh.size:
-            scale = np.sqrt(inv_l2[u])
-            for p in res[u][0][fresh]:  # distance from the point to the cell box, in lengthscales
-                gap = np.maximum(np.abs(centre - p) - half, 0.0) * scale
-                hit |= np.sum(gap * gap, axis=1) <= AFFECT_LENGTHSCALES ** 2
-        out.append(np.flatnonzero(hit))
+        x = res[u][0]
+        fresh = np.flatnonzero(new[data.u == u])
+        if fresh.size == 0 or B[u] <= 0:
+            out.append(np.zeros(0, np.int64))
+        elif local[u] is not None:  # the cells whose pool gained a point
+            pools = local_pools(x, lo, up, _base_settings(problem)["lengthscale"], local[u][0])
+            out.append(np.flatnonzero(np.any(pools >= fresh.min(), axis=1)))
+        else:
+            lam = max((floor[u] / B[u]) ** 2, 1e-10)
+            before = np.sqrt(_power(centre, x[:fresh.min()], inv_l2[u], lam))
+            after = np.sqrt(_power(centre, x, inv_l2[u], lam))
+            out.append(np.flatnonzero(B[u] * (before - after) > tol))
     return out
 
 
@@ -422,7 +438,8 @@ def _per_round(budget: int, rounds: int, rnd: int) -> int:
 
 
 def improve(problem, true_system, budget: int, *, rounds: int = 1, out=None, seed: int = 0, progress: bool = True,
-            allow_outside: bool = False, keep_history: bool = False, workers: int | None = None) -> ImproveResult:
+            allow_outside: bool = False, keep_history: bool = False, workers: int | None = None,
+            on_round=None) -> ImproveResult:
     """Collect ``budget`` samples in ``rounds`` rounds where they help most, re-bounding incrementally.
 
     Parameters
@@ -444,6 +461,8 @@ def improve(problem, true_system, budget: int, *, rounds: int = 1, out=None, see
         Accept next states outside X (otherwise refused as a simulator error).
     keep_history : bool
         Keep every round's image boxes in ``ImproveResult.history`` (for tests and benchmarks).
+    on_round : callable ``(ImproveRound, Result) -> None``, optional
+        Called after every completed round (round 0 included), after its files are written.
 
     Returns
     -------
@@ -492,6 +511,8 @@ def improve(problem, true_system, budget: int, *, rounds: int = 1, out=None, see
             loop.problem = problem
         if keep_history:
             history.append((loop.cell_bounds.image_lower.copy(), loop.cell_bounds.image_upper.copy()))
+        if on_round is not None:
+            on_round(loop.rounds[-1], loop.result)
         stopped = "budget spent"
         names = list(problem.mode_names)
         for rnd in range(last + 1, rounds + 1):
@@ -520,6 +541,8 @@ def improve(problem, true_system, budget: int, *, rounds: int = 1, out=None, see
             loop.record(rnd, len(us), rebound, timer)
             if keep_history:
                 history.append((loop.cell_bounds.image_lower.copy(), loop.cell_bounds.image_upper.copy()))
+            if on_round is not None:
+                on_round(loop.rounds[-1], loop.result)
     finally:
         run.close()
     return ImproveResult(result=loop.result, cell_bounds=loop.cell_bounds, rounds=tuple(loop.rounds), stopped=stopped,
