@@ -6,6 +6,7 @@
     robust-imdp export DIR --format drn --out F   the abstraction (or --product: with the DFA) for Storm / PRISM
     robust-imdp example NAME --out DIR            write a case study's problem file and data
     robust-imdp suggest DIR --problem P --budget N  where to sample next: N (x, mode) requests as CSV
+    robust-imdp improve P --true-system S --budget N  the sampling loop: suggest, simulate, re-bound, re-solve
     robust-imdp --version
 
 ``simulate`` exits with status 1 when more cells are flagged than chance allows (the result's
@@ -191,6 +192,22 @@ def _parser() -> argparse.ArgumentParser:
     sg.add_argument("--budget", type=_at_least(1), required=True, help="number of sample requests")
     sg.add_argument("--out", type=Path, default=None, help="CSV file (default: DIR/suggestions.csv)")
     sg.add_argument("--cache", type=Path, default=None, help="the run's cache directory (default: DIR/cache)")
+
+    im = sub.add_parser("improve", parents=[common], help="the sampling loop: suggest, simulate, re-bound, re-solve",
+                        description="Collect --budget samples in --rounds rounds from the true system where they "
+                                    "help most (robust_imdp.improve): each round suggests requests, simulates one "
+                                    "step from each, appends them to OUT/data.csv (column round), re-bounds only "
+                                    "the cells near the new data and re-solves; prints Q_yes / Q_no / Q_? per round "
+                                    "and keeps the rounds in OUT/result.json. Interrupted, the same command resumes.")
+    im.add_argument("problem", type=Path, help="TOML problem file (its data are the starting data)")
+    im.add_argument("--true-system", required=True, help="a case study name, or FILE.py:NAME (a class or object with "
+                                                         "mode_names and step(x, modes, rng))")
+    im.add_argument("--budget", type=_at_least(1), required=True, help="samples to add in all")
+    im.add_argument("--rounds", type=_at_least(1), default=1, help="rounds (default 1)")
+    im.add_argument("--out", type=Path, default=Path("improve"), help="output directory (default ./improve)")
+    im.add_argument("--seed", type=int, default=0, help="random seed of the simulations (default 0)")
+    im.add_argument("--allow-outside", action="store_true", help="accept next states outside X")
+    im.add_argument("--quiet", action="store_true", help="no progress lines (the per-round lines stay)")
 
     ex = sub.add_parser("example", parents=[common], help="write a case study's problem file and data",
                         description="Generate the data of a paper case study with a fixed seed "
@@ -537,6 +554,12 @@ def _cmd_suggest(args) -> int:
     return Exit.OK
 
 
+def _cmd_improve(args) -> int:
+    from robust_imdp.improve import command
+
+    return command(args, _load_true_system(args.true_system))
+
+
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
     """Warnings read like the errors: ``robust-imdp: warning: <message>``, no source line."""
     print(f"robust-imdp: warning: {message}", file=sys.stderr if file is None else file, flush=True)
@@ -546,7 +569,7 @@ def main(argv=None) -> int:
     """Entry point of ``robust-imdp``; returns the exit status."""
     args = _parser().parse_args(argv)
     commands = {"run": _cmd_run, "simulate": _cmd_simulate, "export": _cmd_export, "example": _cmd_example,
-                "suggest": _cmd_suggest}
+                "suggest": _cmd_suggest, "improve": _cmd_improve}
     try:
         with warnings.catch_warnings():
             if not args.debug:  # --debug keeps Python's format, with the source line

@@ -554,3 +554,18 @@ def _first(data, m: int):
     from robust_imdp.models.system import Dataset
 
     return Dataset(data.x[:m], data.u[:m], data.x_next[:m], modes=data.mode_names)
+
+
+def command(args, true_system) -> int:
+    """``robust-imdp improve``: the loop with the command's options; one line per round on stdout."""
+    from robust_imdp.io.files import load_problem
+
+    problem = load_problem(args.problem)
+    args.interrupt_note = (f"interrupted; the completed rounds are saved in {args.out}: run the same command "
+                           "again to resume")
+    out = improve(problem, true_system, args.budget, rounds=args.rounds, out=args.out, seed=args.seed,
+                  progress=not args.quiet, allow_outside=args.allow_outside,
+                  on_round=lambda r, _: print(r.line(), flush=True))
+    print(f"improve stopped ({out.stopped}) after round {out.rounds[-1].round}; wrote {args.out / 'result.json'} "
+          f"and {out.data_file}")
+    return 0
