@@ -2,4 +2,4 @@
 
 from robust_imdp._lazy import exports
 
-__getattr__, __dir__ = exports(__name__, ["cell_bounds", "probabilities", "targets", "rows"])
+__getattr__, __dir__ = exports(__name__, ["cell_bounds", "probabilities", "periodic", "targets", "rows"])

@@ -66,6 +66,11 @@ from ``Im ⊕ e_f`` along some axis, so ``1 - P_g(eps_f) P_v(eta_f)`` is a valid
 all of them: the row's ``floor``. The floor pair takes, per dimension, the smallest level
 ``>= 0.99`` with ``p_i P[|v_i| <= eta_i] >= 1 - floor_tol/d`` (else the best level).
 
+Periodic dimensions (``partition.periodic``, see docs/periodic.md): a target cell is the union of its
+translates by whole periods, so gaps and margins along a periodic axis are those on the circle
+(``abstraction.periodic``), and the outside state is reached only through the non-periodic axes:
+in the corollary a periodic axis contributes the factors ``p = P_v = 1`` and never separates.
+
 Rounding: all computed bounds go through :mod:`robust_imdp._fp` (error bound + ``np.nextafter``):
 probabilities of good events down, upper bounds up; margins/gaps down, expansions up.
 """
@@ -80,6 +85,7 @@ import numpy as np
 
 from robust_imdp._fp import U, down, up
 from robust_imdp.abstraction.cell_bounds import CellBounds, CellErrors, confidence_cell_bounds
+from robust_imdp.abstraction.periodic import circle_margin
 from robust_imdp.abstraction.probabilities import EPS_LEVELS, _combine_down, _complement_up, _Mode, _separated_best
 from robust_imdp.abstraction.targets import targets_of
 from robust_imdp.errors import DimensionError, InvalidInputError, SoundnessError
@@ -367,7 +373,7 @@ def _block_rows(out: _RowArrays, u, md, rows, cell_bounds, entries, partition, c
     b = cell_bounds.image_upper[u, rows]
     er, cols = entries.row, entries.cell
     low_c, cont = _containing(out, u, md, rows, a, b, entries, partition, combine)
-    up_out, low_out = _outside_bounds(md, rows, a, b, partition.space, combine)
+    up_out, low_out = _outside_bounds(md, rows, a, b, partition.space, combine, getattr(partition, "periodic", None))
     # -- listed cells: the separation bound of every entry (Thm 1, eq. upper-bound)
     G = np.zeros(er.size)
     P0, PV0 = md.top(rows)
@@ -402,7 +408,12 @@ def _containing(out: _RowArrays, u, md, rows, a, b, entries, partition, combine)
     tlo, thi = partition.cells_lower, partition.cells_upper
     B, d = a.shape
     m = np.empty((er.size, d))
+    periodic = getattr(partition, "periodic", None)
     for j in range(d):
+        if periodic is not None and periodic[j]:  # inside one translate of the cell
+            m[:, j] = circle_margin(tlo[cols, j], thi[cols, j], a[er, j], b[er, j], float(partition.space.lower[j]),
+                                    float(partition.space.upper[j]))
+            continue
         m[:, j] = down(np.minimum(a[er, j] - tlo[cols, j], thi[cols, j] - b[er, j]))
     hit = np.flatnonzero(np.all(m > 0, axis=1))  # at most one entry per row
     rin = er[hit]
@@ -422,17 +433,21 @@ def _containing(out: _RowArrays, u, md, rows, a, b, entries, partition, combine)
     return low_c, cont
 
 
-def _outside_bounds(md, rows, a, b, space, combine):
+def _outside_bounds(md, rows, a, b, space, combine, periodic=None):
     """Bounds of the transition to the outside state (the corollary of Thm 1): ``(upper, lower)``, (B,) each.
 
     ``upper = 1 - P_g P_v 1[Im ⊕ e ⊆ X]`` (margins to X's faces) and ``lower = P_g P_v 1[Im ⊕ e ∩ X = ∅]``
-    (the best axis separating the image from X, every other axis at its top candidates).
+    (the best axis separating the image from X, every other axis at its top candidates). A periodic
+    axis is never left: the event needs no good event there (factors 1) and it separates nothing.
     """
     Xlo, Xhi = space.lower, space.upper
     B, d = a.shape
     PX, PVX = np.zeros((B, d)), np.zeros((B, d))
     g_out = np.zeros(B)
     for j in range(d):
+        if periodic is not None and periodic[j]:
+            PX[:, j], PVX[:, j] = 1.0, 1.0
+            continue
         mX = down(np.minimum(a[:, j] - Xlo[j], Xhi[j] - b[:, j]))
         PX[:, j], PVX[:, j], _, _ = md.split(mX, rows, j, paper_candidate=True)
         gX = down(np.maximum(Xlo[j] - b[:, j], a[:, j] - Xhi[j]))

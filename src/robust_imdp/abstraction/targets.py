@@ -14,6 +14,9 @@ listed entry does not:
 Both give, per listed entry, the same floats: the gap along axis j is
 ``max(lo_j(q') - b_j, a_j - hi_j(q'))`` rounded down, and ``split`` is elementwise, so a
 ``BoxPartition`` whose cells are a grid gives the same numbers as the ``Partition`` of that grid.
+
+Periodic dimensions (``partition.periodic``): there the listed intervals are a cyclic run and the
+gap is the one on the circle (``abstraction.periodic``); the other axes are computed as above.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from robust_imdp._fp import down
+from robust_imdp.abstraction.periodic import arc_pieces, circle_gap, intervals_on_circle
 from robust_imdp.models.geometry import BoxPartition, intervals_meeting
 
 __all__: list = []
@@ -48,16 +52,27 @@ def _gap(lo_t, hi_t, a, b):
     return down(np.maximum(lo_t - b, a - hi_t))
 
 
+def _axis_gap(space, periodic, j, lo_t, hi_t, a, b):
+    """The gap along axis ``j``: :func:`_gap`, or the gap on the circle on a periodic axis."""
+    if periodic is not None and periodic[j]:
+        return circle_gap(lo_t, hi_t, a, b, float(space.lower[j]), float(space.upper[j]))
+    return _gap(lo_t, hi_t, a, b)
+
+
 class _GridTargets:
     """Targets in a rectilinear grid: per axis, the intervals a row's box meets."""
 
     def __init__(self, partition):
         self.breakpoints = partition.breakpoints
         self.shape = partition.shape
+        self.space, self.periodic = partition.space, getattr(partition, "periodic", None)
 
     def list(self, lo, hi):
         """``(n_listed (N,), listing)``: the cells meeting each closed box ``[lo[q], hi[q]]``."""
         first, count = intervals_meeting(self.breakpoints, lo, hi)
+        for j in np.flatnonzero(self.periodic or ()):  # a cyclic run of intervals on a periodic axis
+            first[:, j], count[:, j] = intervals_on_circle(self.breakpoints[j], lo[:, j], hi[:, j],
+                                                           float(self.space.lower[j]), float(self.space.upper[j]))
         n_listed = np.prod(count, axis=1)  # 0 when the box misses X
         count[n_listed == 0] = 0
         return n_listed, (first, count)
@@ -74,8 +89,10 @@ class _GridTargets:
             off = np.zeros(B + 1, dtype=np.int64)
             np.cumsum(c[:, j], out=off[1:])
             ell = first[rows, j][rr] + (np.arange(rr.size) - off[rr])
-            sp, spv, _, _ = mode.split(_gap(bp[ell], bp[ell + 1], a[rr, j], b[rr, j]), rows[rr], j,
-                                       paper_candidate=False)
+            if self.periodic is not None and self.periodic[j]:
+                ell = ell % (bp.size - 1)
+            gap = _axis_gap(self.space, self.periodic, j, bp[ell], bp[ell + 1], a[rr, j], b[rr, j])
+            sp, spv, _, _ = mode.split(gap, rows[rr], j, paper_candidate=False)
             per_axis.append((off, ell, sp, spv))
         E = int(n_listed.sum())
         er = np.repeat(np.arange(B), n_listed)  # block-local row of each entry
@@ -104,14 +121,43 @@ class _BoxTargets:
     def __init__(self, partition: BoxPartition):
         self.partition = partition
         self.lower, self.upper = partition.cells_lower, partition.cells_upper
+        self.space, self.periodic = partition.space, getattr(partition, "periodic", None)
 
     def list(self, lo, hi):
         """``(n_listed (N,), listing)``: the cells meeting each closed box ``[lo[q], hi[q]]``."""
-        qq, cc = self.partition.intersecting(lo, hi)
+        if self.periodic is None:
+            qq, cc = self.partition.intersecting(lo, hi)
+        else:
+            qq, cc = self._intersecting_on_circle(lo, hi)
         n_listed = np.bincount(qq, minlength=lo.shape[0])
         off = np.zeros(lo.shape[0] + 1, dtype=np.int64)
         np.cumsum(n_listed, out=off[1:])
         return n_listed, (off, cc)
+
+    def _intersecting_on_circle(self, lo, hi):
+        """:meth:`BoxPartition.intersecting` of the boxes cut into pieces inside X on the periodic axes.
+
+        Per periodic axis a box is at most two intervals in X (``arc_pieces``); the pieces' products
+        are queried and every (row, cell) pair is kept once, rows ascending, cells ascending.
+        """
+        queries = [(lo.copy(), hi.copy(), np.ones(lo.shape[0], dtype=bool))]
+        for j in np.flatnonzero(self.periodic):
+            pieces = arc_pieces(lo[:, j], hi[:, j], float(self.space.lower[j]), float(self.space.upper[j]))
+            nxt = []
+            for qlo, qhi, ok in queries:
+                for plo, phi, pok in pieces:
+                    l2, h2 = qlo.copy(), qhi.copy()
+                    l2[:, j], h2[:, j] = plo, phi
+                    nxt.append((l2, h2, ok & pok))
+            queries = nxt
+        rows, cells = [], []
+        for qlo, qhi, ok in queries:
+            idx = np.flatnonzero(ok)
+            q, c = self.partition.intersecting(qlo[idx], qhi[idx])
+            rows.append(idx[q])
+            cells.append(c)
+        pairs = np.unique(np.stack([np.concatenate(rows), np.concatenate(cells)], axis=1), axis=0)
+        return pairs[:, 0].astype(np.int64), pairs[:, 1].astype(np.int64)
 
     def entries(self, listing, mode, rows, a, b, n_listed) -> _Entries:
         """The entries of the block ``rows`` (image boxes ``[a, b]``, ``n_listed`` entries per row)."""
@@ -121,7 +167,7 @@ class _BoxTargets:
         cells = cc[off[rows[0]]:off[rows[0]] + E]
         gap_p, gap_pv = [], []
         for j in range(a.shape[1]):
-            gap = _gap(self.lower[cells, j], self.upper[cells, j], a[er, j], b[er, j])
+            gap = _axis_gap(self.space, self.periodic, j, self.lower[cells, j], self.upper[cells, j], a[er, j], b[er, j])
             sp, spv, _, _ = mode.split(gap, rows[er], j, paper_candidate=False)
             gap_p.append(sp)
             gap_pv.append(spv)

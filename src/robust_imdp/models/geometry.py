@@ -22,6 +22,11 @@ Conventions
   uses half-open intervals ``[b_k, b_{k+1})`` except that the last interval of
   each dimension is closed at the upper end of X.
 * The absorbing outside-X state is ``outside_state == n_cells``.
+* Periodic dimensions (``periodic[j]``, the problem file's ``[space].periodic``): X is a circle
+  along ``j``, of period ``upper_j - lower_j``. Points are wrapped into ``[lower_j, upper_j)``
+  before they are located (:func:`wrap_points`), a point never leaves X along ``j``, and a region
+  box may cross the seam (``lower_j < X.lower_j`` or ``upper_j > X.upper_j``, width at most the
+  period): it is cut into the pieces inside X (:func:`wrap_region_boxes`). See docs/periodic.md.
 """
 
 from __future__ import annotations
@@ -34,7 +39,7 @@ import numpy as np
 from robust_imdp.errors import DimensionError, InvalidInputError, OutsideDomainError
 
 __all__ = ["Box", "Region", "Partition", "BoxPartition", "partition_from_dict", "dimension_text",
-           "region_overlaps"]
+           "region_overlaps", "check_periodic", "wrap_points", "wrap_region_boxes"]
 
 # Relative tolerance (w.r.t. the cell size) under which a region boundary is
 # considered to coincide with a uniform tick; the region's exact value is then
@@ -211,6 +216,85 @@ def _normalise_regions(regions) -> tuple:
     return regions
 
 
+# ============================================================================ periodic dimensions
+def check_periodic(periodic, d: int, where: str = "periodic"):
+    """``periodic`` as a tuple of d bools, or None when no dimension is periodic (the default).
+
+    ``where`` names the argument (or file and key) in the message of a list of the wrong length.
+    """
+    if periodic is None:
+        return None
+    if isinstance(periodic, (str, bytes)) or not isinstance(periodic, Iterable):
+        raise InvalidInputError(f"{where} must be a list of {d} booleans, one per dimension; got {periodic!r}")
+    flags = list(periodic)
+    if len(flags) != d or not all(isinstance(v, (bool, np.bool_)) for v in flags):
+        raise DimensionError(f"{where} must be a list of {d} booleans, one per dimension; got {flags!r}"
+                             + (f" ({len(flags)} values)" if len(flags) != d else ""))
+    flags = tuple(bool(v) for v in flags)
+    return flags if any(flags) else None
+
+
+def wrap_points(x, lower, upper, periodic) -> np.ndarray:
+    """``x`` (``(k, d)`` or ``(d,)``) with every periodic coordinate moved into ``[lower_j, upper_j)``.
+
+    The representative is ``lower_j + ((x_j - lower_j) mod period)``; a float result equal to
+    ``upper_j`` (rounding) becomes ``lower_j``, the same point of the circle. Non-periodic
+    coordinates (and ``periodic=None``) are returned unchanged, as a copy.
+    """
+    x = np.array(x, dtype=float)
+    if periodic is None:
+        return x
+    flat = np.atleast_2d(x)
+    for j in np.flatnonzero(periodic):
+        lo, hi = float(lower[j]), float(upper[j])
+        w = lo + np.mod(flat[:, j] - lo, hi - lo)
+        flat[:, j] = np.where((w >= hi) | (w < lo), lo, w)
+    return flat.reshape(x.shape)
+
+
+def wrap_region_boxes(regions, space: Box, periodic, names=None) -> tuple:
+    """Regions with every box that crosses the seam of a periodic dimension cut into boxes inside X.
+
+    A box with ``lower_j < X.lower_j`` or ``upper_j > X.upper_j`` on a periodic ``j`` is moved by a
+    whole number of periods so that its lower end lies in ``[X.lower_j, X.upper_j)``, then cut at
+    ``X.upper_j`` into ``[lower_j, X.upper_j]`` and ``[X.lower_j, upper_j - period]`` (up to two
+    boxes per periodic dimension). A box wider than the period there is refused. Boxes inside X
+    are kept exactly (no arithmetic), so a problem without seam-crossing regions is unchanged.
+    """
+    regions = _normalise_regions(regions)
+    if periodic is None:
+        return regions
+    out = []
+    for r in regions:
+        boxes = list(r.boxes)
+        for j in np.flatnonzero(periodic):
+            lo_x, hi_x = float(space.lower[j]), float(space.upper[j])
+            period = hi_x - lo_x
+            cut = []
+            for b in boxes:
+                lo, hi = float(b.lower[j]), float(b.upper[j])
+                if lo >= lo_x and hi <= hi_x:
+                    cut.append(b)
+                    continue
+                if hi - lo > period:
+                    raise InvalidInputError(
+                        f"region {r.name!r} box {b} is {hi - lo:g} wide in {dimension_text(j, names)}, which is "
+                        f"periodic with period {period:g}; a region box may be at most one period wide")
+                k = np.floor((lo - lo_x) / period)
+                lo, hi = lo - k * period, hi - k * period
+                pieces = [(max(lo, lo_x), min(hi, hi_x))]
+                if hi > hi_x:
+                    pieces.append((lo_x, min(hi - period, hi_x)))
+                for a, c in pieces:
+                    if c > a:
+                        bl, bu = b.lower.copy(), b.upper.copy()
+                        bl[j], bu[j] = a, c
+                        cut.append(Box(bl, bu))
+            boxes = cut
+        out.append(r if boxes == list(r.boxes) else Region(r.name, tuple(boxes)))
+    return tuple(out)
+
+
 def region_overlaps(regions) -> list:
     """Where two different regions overlap: every pair of their boxes sharing interior points.
 
@@ -253,6 +337,8 @@ class Partition:
         Regions of interest (closed unions of boxes), each inside X.
     names : sequence of d str, optional
         Names of the dimensions (``[space].names``), used in messages only.
+    periodic : sequence of d bool, optional
+        Periodic dimensions (``[space].periodic``; default none): see the module's conventions.
 
     Attributes
     ----------
@@ -265,9 +351,10 @@ class Partition:
     atoms : tuple of str, region names in the given order
     labels : (n_cells,) int64, bit ``i`` set iff the cell lies inside ``atoms[i]``
     outside_state : int, ``n_cells`` (the absorbing outside-X state)
+    periodic : tuple of d bool, or None when no dimension is periodic
     """
 
-    def __init__(self, space: Box, cell_size, regions=None, *, names=None):
+    def __init__(self, space: Box, cell_size, regions=None, *, names=None, periodic=None):
         if not isinstance(space, Box):
             raise InvalidInputError(f"space must be a Box; got {type(space).__name__}")
         d = space.dim
@@ -285,7 +372,8 @@ class Partition:
             raise InvalidInputError(f"cell_size must be finite and > 0; got {h.tolist()}")
         self.space = space
         self.cell_size = h
-        self.regions = _normalise_regions(regions)
+        self.periodic = check_periodic(periodic, d)
+        self.regions = wrap_region_boxes(regions, space, self.periodic, names)
         for r in self.regions:
             if r.dim != d:
                 raise DimensionError(f"region {r.name!r} has dimension {r.dim}; X has dimension {d}")
@@ -359,11 +447,17 @@ class Partition:
         return [frozenset(a for i, a in enumerate(self.atoms) if (lab >> i) & 1) for lab in self.labels.tolist()]
 
     def contains(self, x) -> np.ndarray:
-        """``(k,)`` bool: points in X (closed)."""
-        return self.space.contains(x)
+        """``(k,)`` bool: points in X (closed; every coordinate of a periodic dimension is in X)."""
+        if self.periodic is None:
+            return self.space.contains(x)
+        return self.space.contains(self.wrap(x))
+
+    def wrap(self, x) -> np.ndarray:
+        """``x`` with its periodic coordinates moved into X (:func:`wrap_points`; a copy)."""
+        return wrap_points(x, self.space.lower, self.space.upper, self.periodic)
 
     def locate(self, x) -> np.ndarray:
-        """Cell index of each point.
+        """Cell index of each point (periodic coordinates wrapped first).
 
         Parameters
         ----------
@@ -380,6 +474,8 @@ class Partition:
             raise DimensionError(f"x must have shape (k, {self.dim}); got {np.shape(x)}")
         if np.any(np.isnan(x)):
             raise InvalidInputError("x must not contain NaN")
+        if self.periodic is not None:
+            x = self.wrap(x)
         multi = np.empty(x.shape, dtype=np.int64)
         for j, bp in enumerate(self.breakpoints):
             k = np.searchsorted(bp, x[:, j], side="right") - 1
@@ -397,15 +493,19 @@ class Partition:
     # ------------------------------------------------------------------ serialisation
     def to_dict(self) -> dict:
         """JSON-able description; :meth:`from_dict` rebuilds an identical partition."""
-        return {
+        out = {
             "space": self.space.to_dict(),
             "cell_size": self.cell_size.tolist(),
             "regions": [r.to_dict() for r in self.regions],
         }
+        if self.periodic is not None:  # only then: descriptions without periodic dimensions are unchanged
+            out["periodic"] = list(self.periodic)
+        return out
 
     @classmethod
     def from_dict(cls, d: Mapping) -> "Partition":
-        return cls(Box.from_dict(d["space"]), d["cell_size"], [Region.from_dict(r) for r in d["regions"]])
+        return cls(Box.from_dict(d["space"]), d["cell_size"], [Region.from_dict(r) for r in d["regions"]],
+                   periodic=d.get("periodic"))
 
     def __repr__(self) -> str:
         return f"Partition(shape={self.shape}, n_cells={self.n_cells}, atoms={self.atoms})"
@@ -473,6 +573,7 @@ class BoxPartition:
             raise InvalidInputError(f"base must be a Partition; got {type(base).__name__}")
         self.base = base
         self.space, self.regions, self.atoms, self.dim = base.space, base.regions, base.atoms, base.dim
+        self.periodic = base.periodic
         nb = base.n_cells
         if _tree is None:  # one leaf per base cell
             _tree = (np.full(nb, -1, dtype=np.int64), np.full(nb, np.nan), np.full(nb, -1, dtype=np.int64),
@@ -604,8 +705,12 @@ class BoxPartition:
         return [frozenset(a for i, a in enumerate(self.atoms) if (lab >> i) & 1) for lab in self.labels.tolist()]
 
     def contains(self, x) -> np.ndarray:
-        """``(k,)`` bool: points in X (closed)."""
-        return self.space.contains(x)
+        """``(k,)`` bool: points in X (closed; periodic coordinates are always in X)."""
+        return self.base.contains(x)
+
+    def wrap(self, x) -> np.ndarray:
+        """``x`` with its periodic coordinates moved into X (:meth:`Partition.wrap`)."""
+        return self.base.wrap(x)
 
     def cell_box(self, index: int) -> Box:
         """The closed box of cell ``index``."""
@@ -632,6 +737,8 @@ class BoxPartition:
         """
         x = np.atleast_2d(np.asarray(x, dtype=float))
         out = self.base.locate(x)  # checks the shape and NaN
+        if self.periodic is not None:
+            x = self.wrap(x)
         inside = np.flatnonzero(out >= 0)
         node = out[inside]
         while True:  # one level of the trees per pass, vectorised over points
