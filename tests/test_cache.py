@@ -190,7 +190,7 @@ def test_the_eta_after_a_resume_uses_the_rate_of_this_process(problem, tmp_path,
     for module in (pl_runtime, pl_bound_rkhs):  # the stage's clock and the progress line's
         monkeypatch.setattr(module, "time", SimpleNamespace(perf_counter=lambda: clock[0]))
     monkeypatch.setattr(pl_bound_stage, "_check_assumption",
-                        lambda problem, data, log, cache_dir=None: ((rkhs.NormCheck(0, 0, 0.1, 30),), np.array([0.01])))
+                        lambda problem, data, log, cache_dir=None, run=None: ((rkhs.NormCheck(0, 0, 0.1, 30),), np.array([0.01])))
 
     def fake_task(X, Y, A, b, lower, upper, local, *, threads=1, **settings):
         clock[0] += 10.0

@@ -307,7 +307,7 @@ def bound_mode_chunk(X, Y, A, b, cells_lower, cells_upper, local, mode: dict, *,
 
 # ============================================================================ the assumption check
 def check_modes(data, settings: Settings, noise_bound, *, mode_names, sample_index=None, max_points: int = 300,
-                solver: bool = True, refuse: bool = True) -> tuple:
+                solver: bool = True, refuse: bool = True, norms=None) -> tuple:
     """The assumption check per mode and component (``rkhs.check_assumption`` for each setting).
 
     Parameters
@@ -318,6 +318,8 @@ def check_modes(data, settings: Settings, noise_bound, *, mode_names, sample_ind
         The data-noise allowance of each mode and component (noise bound plus rounding bound).
     mode_names, sample_index
         For messages (``sample_index[u]``: the data rows of mode u's samples).
+    norms : callable, optional
+        Runs the per-component jobs (``rkhs_check.check_assumption``'s ``norms``; default in this process).
 
     Returns
     -------
@@ -329,22 +331,24 @@ def check_modes(data, settings: Settings, noise_bound, *, mode_names, sample_ind
         Naming ``[learning].rkhs_bound``, the mode, the component and the sample (or the data-implied
         minimum), for the worst refuted component.
     """
-    from robust_imdp.bounds.rkhs import NormCheck, min_rkhs_norm, refutation_reason
+    from robust_imdp.bounds.rkhs_check import NormCheck, refutation_reason, serial_norms
 
     nb = np.asarray(noise_bound, float)
-    checks, bad = [], []
+    jobs, where = [], []
     for u, (X, Y) in enumerate(data):
         Y = np.asarray(Y, float).reshape(np.shape(X)[0], -1)
         for i in range(Y.shape[1]):
             B, tau = float(settings.rkhs_bound[u, i]), float(settings.misspecification[u, i])
-            r = min_rkhs_norm(X, Y[:, i], settings.lengthscale[u, i], float(nb[u, i]), tau, max_points=max_points,
-                              solver=solver and B > 0)
-            s = r["sample"]
-            row = int(sample_index[u][s]) if sample_index is not None else int(s)
-            c = NormCheck(u, i, r["minimum"], r["n_points"], row, r["single_minimum"], float(Y[s, i]))
-            checks.append(c)
-            if c.minimum > B:
-                bad.append((c, B, tau, float(nb[u, i])))
+            jobs.append((X, Y[:, i], settings.lengthscale[u, i], float(nb[u, i]), tau, max_points, solver and B > 0))
+            where.append((u, i, Y, B, tau))
+    checks, bad = [], []
+    for (u, i, Y, B, tau), r in zip(where, (norms or serial_norms)(jobs)):
+        s = r["sample"]
+        row = int(sample_index[u][s]) if sample_index is not None else int(s)
+        c = NormCheck(u, i, r["minimum"], r["n_points"], row, r["single_minimum"], float(Y[s, i]))
+        checks.append(c)
+        if c.minimum > B:
+            bad.append((c, B, tau, float(nb[u, i])))
     if refuse and bad:
         c, B, tau, nbi = max(bad, key=lambda t: t[0].minimum - t[1])
         name = mode_names[c.mode]

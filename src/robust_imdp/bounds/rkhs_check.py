@@ -17,8 +17,6 @@ from robust_imdp.errors import AssumptionError
 log = logging.getLogger("robust_imdp.bounds.rkhs")
 
 
-
-
 # ============================================================================ the assumption
 @dataclass(frozen=True)
 class NormCheck:
@@ -108,9 +106,21 @@ def min_rkhs_norm(X, y, lengthscale, noise_bound: float, misspecification: float
     return {"minimum": best, "n_points": n_used, "sample": i_best, "single_minimum": single_min}
 
 
+def norm_task(X, y, lengthscale, noise_bound: float, misspecification: float, max_points, solver: bool, *,
+              threads: int = 1) -> dict:
+    """One component's :func:`min_rkhs_norm`, as a scheduler task (``pipeline.parallel``: ``threads`` is
+    not used, the SOCP runs on one core)."""
+    return min_rkhs_norm(X, y, lengthscale, noise_bound, misspecification, max_points=max_points, solver=solver)
+
+
+def serial_norms(jobs: Sequence[tuple]) -> list:
+    """The :func:`norm_task` of every job (its positional arguments), in this process, in order."""
+    return [norm_task(*a) for a in jobs]
+
+
 def check_assumption(data, *, lengthscale, rkhs_bound: float, noise_bound, misspecification: float = 0.0,
                      mode_names: Sequence[str] | None = None, sample_index=None, max_points: int | None = 300,
-                     solver: bool = True, refuse: bool = True) -> tuple:
+                     solver: bool = True, refuse: bool = True, norms=None) -> tuple:
     """Compute the data-implied minimum norm of every component; refuse a refuted ``rkhs_bound``.
 
     Parameters
@@ -127,6 +137,10 @@ def check_assumption(data, *, lengthscale, rkhs_bound: float, noise_bound, missp
         Row of each sample in the user's data (for messages).
     refuse : bool
         Raise :class:`AssumptionError` when the data refute the assumption.
+    norms : callable, optional
+        ``norms(jobs) -> results``: the :func:`norm_task` of every job (a tuple of its positional
+        arguments), in the jobs' order; default :func:`serial_norms` (the pipeline passes one that runs
+        them on its scheduler: the same computations, so the same bits).
 
     Returns
     -------
@@ -135,17 +149,19 @@ def check_assumption(data, *, lengthscale, rkhs_bound: float, noise_bound, missp
     n = len(np.atleast_1d(noise_bound))
     nb = np.broadcast_to(np.asarray(noise_bound, float), (n,))
     names = mode_names or [str(u) for u in range(len(data))]
-    checks = []
+    jobs, where = [], []
     for u, (X, Y) in enumerate(data):
         Y = np.asarray(Y, float).reshape(np.shape(X)[0], -1)
         for i in range(Y.shape[1]):
-            r = min_rkhs_norm(X, Y[:, i], lengthscale, float(nb[i]), misspecification,
-                              max_points=max_points, solver=solver)
-            s = r["sample"]
-            row = int(sample_index[u][s]) if sample_index is not None else int(s)
-            checks.append(NormCheck(u, i, r["minimum"], r["n_points"], row, r["single_minimum"], float(Y[s, i])))
-            log.info("assumption check: mode %s output %d: data need ||g|| >= %.4g (B = %.4g, %d points)",
-                     names[u], i, r["minimum"], rkhs_bound, r["n_points"])
+            jobs.append((X, Y[:, i], lengthscale, float(nb[i]), misspecification, max_points, solver))
+            where.append((u, i, Y))
+    checks = []
+    for (u, i, Y), r in zip(where, (norms or serial_norms)(jobs)):
+        s = r["sample"]
+        row = int(sample_index[u][s]) if sample_index is not None else int(s)
+        checks.append(NormCheck(u, i, r["minimum"], r["n_points"], row, r["single_minimum"], float(Y[s, i])))
+        log.info("assumption check: mode %s output %d: data need ||g|| >= %.4g (B = %.4g, %d points)",
+                 names[u], i, r["minimum"], rkhs_bound, r["n_points"])
     if refuse:
         bad = [c for c in checks if c.minimum > float(rkhs_bound)]
         if bad:

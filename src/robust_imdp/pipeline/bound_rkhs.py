@@ -303,7 +303,7 @@ def learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" =
     from robust_imdp.bounds.rkhs import hoeffding_factor
 
     run = run if run is not None else _Run()
-    data, known_ranges, checks, check_noise = _prepare(problem, partition, log, cache_dir)
+    data, known_ranges, checks, check_noise = _prepare(problem, partition, log, cache_dir, run)
     data_fail, iid_delta = _failure_budget(problem)
     noise_bound = _data_noise_bound(problem, data, data_fail)
     M, n, N = len(problem.mode_names), len(problem.space_lower), partition.n_cells

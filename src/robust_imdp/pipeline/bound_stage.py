@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from robust_imdp.bounds.methods import get as _method
+from robust_imdp.models.geometry import wrap_residuals
 from robust_imdp.pipeline.problem import (
     CHECK_DELTA,
     Problem,
@@ -29,7 +30,10 @@ def _residual_data(problem: Problem):
     out = []
     for m in range(len(problem.mode_names)):
         x, xn = problem.data.by_mode(m)
-        out.append((x, xn - problem.maps[m](x), np.flatnonzero(u == m)))
+        y = xn - problem.maps[m](x)
+        if getattr(problem, "periodic", None) is not None:  # modulo the period: docs/periodic.md
+            y = wrap_residuals(y, 0.0, problem.space_lower, problem.space_upper, problem.periodic)[0]
+        out.append((x, y, np.flatnonzero(u == m)))
     return out
 
 
@@ -52,7 +56,9 @@ def _noise_allowance(problem: Problem, noise_bound) -> np.ndarray:
     for u, m in enumerate(problem.maps):
         x, xn = problem.data.by_mode(u)
         if x.shape[0]:
-            rb = m.residuals(x, xn).bound.max(axis=0)
+            r = m.residuals(x, xn)  # on a periodic dimension the wrap's float error joins the bound
+            rb = wrap_residuals(r.y, r.bound, problem.space_lower, problem.space_upper,
+                                getattr(problem, "periodic", None))[1].max(axis=0)
             out[u] = np.nextafter(out[u] + rb, np.inf)
     return out
 
@@ -107,7 +113,27 @@ def _failure_budget(problem: Problem):
     return (fail / 2, fail / 2) if problem.iid_noise else (fail, 0.0)
 
 
-def _check_assumption(problem: Problem, data, log: _Log, cache_dir=None):
+def _scheduled_norms(run: "_Run | None", log: _Log):
+    """The check's ``norms`` (``rkhs_check.check_assumption``): one task per mode and component on the run's
+    scheduler, the results in the jobs' order (the same SOCPs as in this process, so the same bits); without
+    a run (None) in this process."""
+    if run is None:
+        return None
+    from robust_imdp.bounds.rkhs_check import norm_task
+
+    def norms(jobs):
+        sched = run.scheduler(log)
+        out = [None] * len(jobs)
+        for i, r in sched.run(norm_task, jobs):
+            out[i] = r
+        return out
+
+    return norms
+
+
+def _check_assumption(problem: Problem, data, log: _Log, cache_dir=None, run: "_Run | None" = None):
+    """The assumption check (``(checks, noise bound)``), reused from the cache when it passed before; its
+    components run as tasks on ``run``'s scheduler (None: in this process)."""
     from robust_imdp.bounds.rkhs import check_assumption, noise_bound_at_confidence
 
     m_total = sum(x.shape[0] for x, _, _ in data)
@@ -125,12 +151,14 @@ def _check_assumption(problem: Problem, data, log: _Log, cache_dir=None):
                                           lengthscale=problem.gp_options.get("lengthscale", 1.0),
                                           rkhs_bound=problem.rkhs_bound, noise_bound=_shared_allowance(problem, nb),
                                           misspecification=problem.misspecification, mode_names=problem.mode_names,
-                                          sample_index=[idx for _, _, idx in data])
+                                          sample_index=[idx for _, _, idx in data],
+                                          norms=_scheduled_norms(run, log))
             else:  # per mode and component, with the residuals' rounding in the noise allowance
                 from robust_imdp.bounds.assumptions import check_modes
 
                 checks = check_modes([(x, y) for x, y, _ in data], _settings(problem), _noise_allowance(problem, nb),
-                                     mode_names=problem.mode_names, sample_index=[idx for _, _, idx in data])
+                                     mode_names=problem.mode_names, sample_index=[idx for _, _, idx in data],
+                                     norms=_scheduled_norms(run, log))
         if check_file is not None:
             _write_json_entry(check_file, {"checks": [asdict(c) for c in checks], "noise_bound": nb})
     worst = max(checks, key=lambda c: c.minimum)
@@ -199,16 +227,17 @@ def _assumption_diagnostics(problem: Problem, n: int) -> dict:
             "misspecification": float(st.misspecification.max()), "per_component": st.to_rows(problem.mode_names)}
 
 
-def _prepare(problem: Problem, partition, log: _Log, cache_dir=None):
+def _prepare(problem: Problem, partition, log: _Log, cache_dir=None, run: "_Run | None" = None):
     """What every method's bound stage does first: ``(data, known_ranges, checks, check_noise)``.
 
     The residual data (:func:`_residual_data`), the known parts' certified ranges over the grid's cells
     (a function undefined on part of X is refused before the long stages: ``ExpressionDomainError``
-    names the mode, the component and the box), then the assumption check (:func:`_check_assumption`).
+    names the mode, the component and the box), then the assumption check (:func:`_check_assumption`, on
+    ``run``'s scheduler when given).
     """
     data = _residual_data(problem)
     known_ranges = _known_ranges(problem, partition.cells_lower, partition.cells_upper)
-    checks, check_noise = _check_assumption(problem, data, log, cache_dir)
+    checks, check_noise = _check_assumption(problem, data, log, cache_dir, run)
     return data, known_ranges, checks, check_noise
 
 
