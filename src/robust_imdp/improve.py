@@ -483,7 +483,7 @@ def improve(problem, true_system, budget: int, *, rounds: int = 1, out=None, see
     dfa = to_dfa(problem.formula)
     _check_atoms(dfa, problem)
     partition = Partition(Box(problem.space_lower, problem.space_upper), problem.cell_size, _region_objects(problem),
-                          names=problem.dim_names)
+                          names=problem.dim_names, periodic=problem.periodic)
     M, n = len(problem.mode_names), len(problem.space_lower)
     resume = None if out is None else _load_state(out, M, partition.n_cells, n)
     if resume is not None:

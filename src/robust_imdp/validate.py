@@ -168,6 +168,8 @@ def simulate(result, true_system, x0, *, max_steps: int = MAX_STEPS, rng=None, r
         if np.any(modes < 0):
             raise InvalidInputError("result strategy is undefined (-1) for a reachable (cell, DFA state)")
         x_new = _checked_step(true_system, x[run], to_sys[modes], rng, t)
+        if res.periodic is not None:  # the state lives on the circle there (docs/periodic.md)
+            x_new = res.wrap(x_new)
         x[run] = x_new
         steps[run] += 1
         q_new = locate(x_new)

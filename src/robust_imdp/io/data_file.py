@@ -98,6 +98,11 @@ def _check_samples_possible(spec, noise, x, u, x_next, rows) -> None:
             r_all = part.residuals(x[sel], x_next[sel])
             res = r_all.y
             nb_m = np.nextafter(nb + r_all.bound.max(axis=0), np.inf)
+        if spec.get("periodic") is not None and sel.size:  # modulo the period, as the pipeline (docs/periodic.md)
+            from robust_imdp.models.geometry import wrap_residuals
+
+            res, rb = wrap_residuals(r_all.y, r_all.bound, spec["lower"], spec["upper"], spec["periodic"])
+            nb_m = np.nextafter(nb + rb.max(axis=0), np.inf)
         for i in range(res.shape[1]):
             B, tau = float(st.rkhs_bound[m, i]), float(st.misspecification[m, i])
             lengthscale = st.lengthscale[m, i] if not st.uniform else learning.get("lengthscale", 1.0)

@@ -69,7 +69,7 @@ LEARNING_TABLE = "learning"
 OLD_LEARNING_TABLE = "gp"
 # table -> (required keys, optional keys)
 _SCHEMA: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
-    "space": (("lower", "upper", "cell_size"), ("names",)),
+    "space": (("lower", "upper", "cell_size"), ("names", "periodic")),
     "spec": (("formula", "threshold"), ("horizon",)),
     "data": (("path",), ()),
     "noise": (("kind",), ("sigma", "bound")),
@@ -204,7 +204,8 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
     _check_tables(doc, learning, where)
     lower, upper, cell_size, dim_names = _parse_space(doc["space"], where)
     n = lower.shape[0]
-    regions = _parse_regions(doc["regions"], lower, upper, where)
+    periodic = _parse_periodic(doc["space"], n, where)
+    regions = _parse_regions(doc["regions"], lower, upper, where, periodic)
     formula, threshold, horizon = _parse_spec(doc["spec"], where)
     data_path = doc["data"]["path"]
     if not isinstance(data_path, str) or not data_path:
@@ -220,7 +221,7 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
         "lower": lower, "upper": upper, "cell_size": cell_size, "names": dim_names, "regions": regions,
         "formula": formula, "threshold": threshold, "horizon": horizon,
         "data_path": data_path, "modes": modes, "noise": noise, "learning": gp, "learning_table": learning,
-        "abstraction": ab, "refine": refine,
+        "abstraction": ab, "refine": refine, "periodic": periodic,
     }
 
 
@@ -246,8 +247,22 @@ def _parse_space(sp: dict, where: str):
     return lower, upper, cell_size, dim_names
 
 
-def _parse_regions(doc_regions, lower, upper, where: str) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
-    """``[[regions.NAME]]``: name -> list of (lower, upper) boxes inside the space."""
+def _parse_periodic(sp: dict, n: int, where: str):
+    """``[space].periodic``: a tuple of n bools, or None (absent, or no dimension periodic)."""
+    flags = sp.get("periodic")
+    if flags is None:
+        return None
+    if not isinstance(flags, list) or len(flags) != n or not all(isinstance(v, bool) for v in flags):
+        raise ProblemFileError(
+            f"{where}: [space].periodic must be a list of {n} booleans (true = periodic, period upper - lower), "
+            f"one per dimension; got {flags!r}" + (f" ({len(flags)} values)" if isinstance(flags, list) else ""))
+    return tuple(flags) if any(flags) else None
+
+
+def _parse_regions(doc_regions, lower, upper, where: str, periodic=None) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
+    """``[[regions.NAME]]``: name -> list of (lower, upper) boxes inside the space.
+
+    On a periodic dimension a box may cross the seam (at most one period wide; ``Partition`` cuts it)."""
     n = lower.shape[0]
     regions: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}
     if not isinstance(doc_regions, dict) or not doc_regions:
@@ -275,7 +290,16 @@ def _parse_regions(doc_regions, lower, upper, where: str) -> dict[str, list[tupl
                     f"{where}: [{tname}] needs lower < upper; got lower={blo.tolist()}, "
                     f"upper={bup.tolist()}"
                 )
-            if np.any(blo < lower) or np.any(bup > upper):
+            if periodic is not None:
+                wide = [k for k in range(n) if periodic[k] and bup[k] - blo[k] > upper[k] - lower[k]]
+                if wide:
+                    k = wide[0]
+                    raise ProblemFileError(
+                        f"{where}: [{tname}] is {bup[k] - blo[k]:g} wide in dimension {k + 1}, which is periodic "
+                        f"with period {upper[k] - lower[k]:g}; a region box may be at most one period wide")
+            out = [k for k in range(n) if (blo[k] < lower[k] or bup[k] > upper[k])
+                   and not (periodic is not None and periodic[k])]
+            if out:
                 raise ProblemFileError(
                     f"{where}: [{tname}] = [{blo.tolist()}, {bup.tolist()}] lies outside the "
                     f"space [{lower.tolist()}, {upper.tolist()}]"
@@ -602,7 +626,7 @@ def load_problem(path):
         bound_tol=bound_tol, bound_max_boxes=bound_max_boxes, eta=ab["eta"], eps_rule=ab["eps_rule"], combine=ab["combine"],
         guarantee=ab["guarantee"], confidence=ab["confidence"], error_bound=error_bound,
         misspecification=misspecification, iid_noise=iid_noise, local_points=local_points,
-        refine=spec["refine"], dim_names=spec["names"],
+        refine=spec["refine"], dim_names=spec["names"], periodic=spec.get("periodic"),
     )
 
 
@@ -616,7 +640,7 @@ def _check_known_domains(spec) -> None:
     from robust_imdp.models.geometry import Box, Partition, Region
 
     regions = [Region(name, [Box(lo, up) for lo, up in boxes]) for name, boxes in spec["regions"].items()]
-    part = Partition(Box(spec["lower"], spec["upper"]), spec["cell_size"], regions)
+    part = Partition(Box(spec["lower"], spec["upper"]), spec["cell_size"], regions, periodic=spec.get("periodic"))
     for m in nonlinear:
         m.image_bounds(part.cells_lower, part.cells_upper, form="natural")
 

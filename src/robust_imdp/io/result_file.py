@@ -64,7 +64,8 @@ def result_to_dict(result) -> dict[str, Any]:
         ``"robust_imdp.result/1"``.
     space : {"lower", "upper", "names"?}
         The compact set X; leaving it is a violation. ``names``: the dimension names
-        (``[space].names``), only when the problem gives them.
+        (``[space].names``), only when the problem gives them. ``periodic``: d booleans, only when a
+        dimension is periodic (states wrap there and never leave X through it; docs/periodic.md).
     cells : {"lower", "upper"}
         Per cell (index order), lists of n floats.
     labels : list of list of str
@@ -125,6 +126,8 @@ def result_to_dict(result) -> dict[str, Any]:
     space = {"lower": result.space_lower, "upper": result.space_upper}
     if getattr(result, "dim_names", None) is not None:
         space["names"] = list(result.dim_names)
+    if getattr(part, "periodic", None) is not None:  # only then: results without periodic dimensions are unchanged
+        space["periodic"] = list(part.periodic)
     return _jsonable({
         "format": RESULT_FORMAT,
         "space": space,
@@ -266,6 +269,7 @@ class ResultFile:
     timings: dict = field(default_factory=dict)
     strategy_by_time: np.ndarray | None = None
     dim_names: tuple | None = None
+    periodic: tuple | None = None
 
     @property
     def n_cells(self) -> int:
@@ -318,6 +322,7 @@ class ResultFile:
                 timings=dict(doc.get("timings") or {}),
                 strategy_by_time=by_time,
                 dim_names=None if doc["space"].get("names") is None else tuple(doc["space"]["names"]),
+                periodic=None if not any(doc["space"].get("periodic") or ()) else tuple(doc["space"]["periodic"]),
             )
         except (KeyError, TypeError, IndexError, ValueError) as exc:
             raise InvalidInputError(
@@ -362,6 +367,8 @@ class ResultFile:
 
         def locate(x):
             x = np.atleast_2d(np.asarray(x, dtype=float))
+            if self.periodic is not None:
+                x = self.wrap(x)
             inside = np.all((x >= slo) & (x <= sup), axis=1)
             idx = [np.clip(np.searchsorted(bps[i], x[:, i], side="right") - 1, 0, shape[i] - 1)
                    for i in range(n)]
@@ -369,6 +376,12 @@ class ResultFile:
             return np.where(inside, cell, -1)
 
         return locate
+
+    def wrap(self, x) -> np.ndarray:
+        """``x`` with its periodic coordinates moved into X (``geometry.wrap_points``); a copy."""
+        from robust_imdp.models.geometry import wrap_points
+
+        return wrap_points(x, self.space_lower, self.space_upper, self.periodic)
 
 
 def as_result_file(result) -> "ResultFile":

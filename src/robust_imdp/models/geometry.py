@@ -39,7 +39,7 @@ import numpy as np
 from robust_imdp.errors import DimensionError, InvalidInputError, OutsideDomainError
 
 __all__ = ["Box", "Region", "Partition", "BoxPartition", "partition_from_dict", "dimension_text",
-           "region_overlaps", "check_periodic", "wrap_points", "wrap_region_boxes"]
+           "region_overlaps", "check_periodic", "wrap_points", "wrap_region_boxes", "wrap_residuals"]
 
 # Relative tolerance (w.r.t. the cell size) under which a region boundary is
 # considered to coincide with a uniform tick; the region's exact value is then
@@ -250,6 +250,32 @@ def wrap_points(x, lower, upper, periodic) -> np.ndarray:
         w = lo + np.mod(flat[:, j] - lo, hi - lo)
         flat[:, j] = np.where((w >= hi) | (w < lo), lo, w)
     return flat.reshape(x.shape)
+
+
+def wrap_residuals(y, bound, lower, upper, periodic):
+    """Residuals ``y`` (``(k, d)``) on the periodic dimensions taken modulo the period: ``(y_w, bound_w)``.
+
+    The representative nearest 0, ``y_j - k T`` with ``k = round(y_j / T)``. It is the true
+    ``g_j + v_j`` only if ``|g_j + v_j| < T / 2`` (an assumption on the dynamics, docs/periodic.md).
+    ``bound`` (broadcast to ``y``) bounds ``|y - y_exact|``; ``bound_w`` adds the wrap's float error
+    (``T = fl(upper - lower)``, ``k T`` and the difference: three roundings, ``gamma(4)`` with a
+    margin), rounded up. Where ``k = 0`` both are returned unchanged.
+    """
+    from robust_imdp._fp import gamma, up
+
+    y = np.array(y, dtype=float)
+    bound = np.array(np.broadcast_to(np.asarray(bound, dtype=float), y.shape))
+    if periodic is None or y.size == 0:
+        return y, bound
+    for j in np.flatnonzero(periodic):
+        period = float(upper[j]) - float(lower[j])
+        k = np.round(y[:, j] / period)
+        s = k * period
+        yw = y[:, j] - s
+        err = gamma(4) * (np.abs(s) + np.abs(y[:, j]) + np.abs(yw))
+        bound[:, j] = np.where(k == 0, bound[:, j], up(bound[:, j] + err))
+        y[:, j] = np.where(k == 0, y[:, j], yw)
+    return y, bound
 
 
 def wrap_region_boxes(regions, space: Box, periodic, names=None) -> tuple:

@@ -63,8 +63,14 @@ def bounds_key(problem: Problem) -> str:
         int(problem.bound_max_boxes), problem.error_bound, _setting_value(problem.misspecification),
         bool(problem.iid_noise), float(problem.confidence) if problem.method.confidence_in_bounds else None,
         problem.local_points,
-    ])
+    ] + _periodic_key(problem))
     return h.hexdigest()[:20]
+
+
+def _periodic_key(problem: Problem) -> list:
+    """``[("periodic", flags)]`` when a dimension is periodic, else ``[]`` (keys without one are unchanged)."""
+    periodic = getattr(problem, "periodic", None)
+    return [] if periodic is None else [("periodic", list(periodic))]
 
 
 def abstraction_key(problem: Problem) -> str:
@@ -247,7 +253,7 @@ def check_key(problem: Problem) -> str:
         list(problem.mode_names), [_map_key(m) for m in problem.maps],
         problem.noise, problem.gp_options.get("lengthscale", 1.0), _setting_value(problem.rkhs_bound),
         _setting_value(problem.misspecification), CHECK_DELTA,
-    ])
+    ] + _periodic_key(problem))
     return h.hexdigest()[:20]
 
 

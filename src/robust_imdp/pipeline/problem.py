@@ -40,6 +40,7 @@ class SpaceConfig:
     upper: np.ndarray
     cell_size: np.ndarray
     names: tuple | None
+    periodic: tuple | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -154,6 +155,10 @@ class Problem:
     dim_names : tuple of n str, or None
         Names of the dimensions (the problem file's ``[space].names``): figure axes, messages and
         ``result.json``'s ``space.names``. None: ``x_1 .. x_n``.
+    periodic : tuple of n bool, or None
+        Periodic dimensions (``[space].periodic``; period ``upper - lower``): states wrap there,
+        X is left only through the other dimensions, residuals are taken modulo the period
+        (docs/periodic.md). None (the default, also for all False): no periodic dimension.
 
     :meth:`from_arrays` builds a Problem from numpy arrays (the Python counterpart of a problem
     file).
@@ -190,8 +195,13 @@ class Problem:
     local_points: int | None = None
     refine: Any = None
     dim_names: tuple | None = None
+    periodic: tuple | None = None
 
     def __post_init__(self):
+        if self.periodic is not None:
+            from robust_imdp.models.geometry import check_periodic
+
+            object.__setattr__(self, "periodic", check_periodic(self.periodic, int(np.size(self.space_lower))))
         if self.dim_names is not None:
             n = int(np.size(self.space_lower))
             names = self.dim_names
@@ -256,7 +266,7 @@ class Problem:
     # ----------------------------------------------------------------- views by table
     @property
     def space(self) -> SpaceConfig:
-        return SpaceConfig(self.space_lower, self.space_upper, self.cell_size, self.dim_names)
+        return SpaceConfig(self.space_lower, self.space_upper, self.cell_size, self.dim_names, self.periodic)
 
     @property
     def spec(self) -> SpecConfig:

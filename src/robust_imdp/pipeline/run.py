@@ -272,7 +272,7 @@ def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cac
 
     with log.stage("partition"):
         partition = Partition(Box(problem.space_lower, problem.space_upper), problem.cell_size,
-                              _region_objects(problem), names=problem.dim_names)
+                              _region_objects(problem), names=problem.dim_names, periodic=problem.periodic)
     log.info(f"partition: {partition.n_cells} cells")
 
     abstraction, from_cache, diagnostics, cell_bounds = None, False, {}, None

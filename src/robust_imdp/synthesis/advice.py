@@ -268,7 +268,7 @@ def _finer_grid(ctx: _Context, fits: FittedModes, rkhs_bound: float, say) -> Lev
     if n_fine > ctx.max_cells:
         return Lever("finer grid", setting, None, None, n_fine,
                      note=f"{n_fine:,} cells > {ctx.max_cells:,}: run it on a sub-box of X")
-    fine = Partition(partition.space, h2, partition.regions)
+    fine = Partition(partition.space, h2, partition.regions, periodic=getattr(partition, "periodic", None))
     parent = np.asarray(partition.locate(0.5 * (fine.cells_lower + fine.cells_upper)))
     glo, ghi = fits.grid_ranges(fine.breakpoints)
     ratio = None

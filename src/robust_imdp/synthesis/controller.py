@@ -25,7 +25,9 @@ in any language needs nothing else:
     of a letter is ``atoms[i]``), ``dfa`` {``initial``, ``accepting`` (list of states),
     ``delta`` (S lists of 2**len(atoms) successor states)}, ``modes`` (list of names or null),
     ``n_modes``, ``threshold``, ``horizon`` (null = unbounded), ``dim``, ``shape`` (intervals per
-    dimension), ``metadata`` (free JSON, e.g. the formula).
+    dimension), ``metadata`` (free JSON, e.g. the formula); ``periodic`` (list of d booleans, only
+    when some dimension is periodic: there a coordinate ``x_j`` is first replaced by
+    ``lower_j + ((x_j - lower_j) mod (upper_j - lower_j))``, so it never leaves X).
 ``<prefix>.npz`` (``numpy.savez``, no pickled objects)
     ``strategy`` int64 (n_cells, S) or (k, n_cells, S); ``cell_letters`` int64 (n_cells,) letters
     over ``atoms``; ``space_lower``, ``space_upper`` float64 (d,): the set X;
@@ -167,8 +169,11 @@ class Controller:
         p_up_star: Any = None,
         metadata: dict | None = None,
         cell_map: Any = None,
+        periodic: Sequence[bool] | None = None,
     ):
         self.atoms = tuple(atoms)
+        # periodic dimensions (docs/periodic.md): states are wrapped into X there before locating
+        self.periodic = None if periodic is None or not any(periodic) else tuple(bool(v) for v in periodic)
         self.dfa_delta = np.array(dfa_delta, dtype=np.int64)
         self.dfa_accepting = np.array(dfa_accepting, dtype=bool)
         S = self.dfa_delta.shape[0] if self.dfa_delta.ndim == 2 else -1
@@ -281,7 +286,7 @@ class Controller:
             result.strategy, dfa.delta, dfa.initial, dfa.accepting, dfa.atoms, result.labels,
             grid, partition.space.lower, partition.space.upper, cell_map=cell_map,
             modes=mode_names, threshold=result.threshold, p_low=result.p_low, p_up=result.p_up,
-            p_up_star=result.p_up_star, metadata=meta,
+            p_up_star=result.p_up_star, metadata=meta, periodic=getattr(partition, "periodic", None),
         )
 
     # ------------------------------------------------------------------ running
@@ -301,6 +306,8 @@ class Controller:
             raise DimensionError(f"x must have shape (k, {self.dim}) or ({self.dim},); got {np.shape(x)}")
         if np.any(np.isnan(x)):
             raise InvalidInputError("x must not contain NaN")
+        if self.periodic is not None:
+            x = self._wrap(x)
         inside = np.all((x >= self.space_lower) & (x <= self.space_upper), axis=1)
         multi = np.empty(x.shape, dtype=np.int64)
         for j, bp in enumerate(self.breakpoints):  # loop over dimensions, vectorised over points
@@ -311,6 +318,15 @@ class Controller:
             if self.cell_map is not None:  # cells of different sizes
                 out[inside] = self.cell_map.reshape(-1)[out[inside]]
         return out
+
+    def _wrap(self, x: np.ndarray) -> np.ndarray:
+        """``x`` with each periodic coordinate moved into ``[lower_j, upper_j)`` (as ``geometry.wrap_points``)."""
+        x = np.array(x, dtype=np.float64)
+        for j in np.flatnonzero(self.periodic):
+            lo, hi = float(self.space_lower[j]), float(self.space_upper[j])
+            w = lo + np.mod(x[:, j] - lo, hi - lo)
+            x[:, j] = np.where((w >= hi) | (w < lo), lo, w)
+        return x
 
     def _locate_one(self, x: Any) -> int:
         x = np.asarray(x, dtype=np.float64)
@@ -426,6 +442,8 @@ class Controller:
             "shape": list(self.shape),
             "metadata": self.metadata,
         }
+        if self.periodic is not None:  # only then: files without periodic dimensions are unchanged
+            doc["periodic"] = list(self.periodic)
         arrays = {
             "strategy": self.strategy,
             "cell_letters": self.cell_letters,
@@ -466,7 +484,7 @@ class Controller:
             doc["dfa"]["initial"], accepting, doc["atoms"], arr["cell_letters"], bps,
             arr["space_lower"], arr["space_upper"], modes=doc["modes"], threshold=doc["threshold"],
             p_low=arr["p_low"], p_up=arr["p_up"], p_up_star=arr["p_up_star"], metadata=doc["metadata"],
-            cell_map=arr.get("cell_map"),
+            cell_map=arr.get("cell_map"), periodic=doc.get("periodic"),
         )
 
     def __repr__(self) -> str:
