@@ -70,6 +70,7 @@ _INTERVALS = "src/robust_imdp/models/intervals.py"
 _EXPRESSIONS = "src/robust_imdp/models/expressions.py"
 _PIPE = "src/robust_imdp/pipeline/run.py"
 _ASSUME = "src/robust_imdp/bounds/assumptions.py"
+_PER = "src/robust_imdp/abstraction/periodic.py"
 
 _VI_RETURN = ("    return ReachabilityResult(lower=lo, upper=up, strategy=strat, iterations=it, "
               "precision=gap, converged=converged)")
@@ -93,6 +94,26 @@ MUTATIONS = [
          replacement="    return x",
          description="_fp.outward (the abstraction's probabilities and complements) returns x (outward rounding off)",
          tests=["tests/test_rounding.py", "tests/test_abstraction.py"]),
+    dict(name="periodic-copy-0-dropped", file=_PER,
+         original="_COPY_OFFSETS = (-1, 0, 1, 2)", replacement="_COPY_OFFSETS = (-1, 1, 2)",
+         description="periodic dimensions: the gap/margin on the circle skips the nearest copy of the target",
+         tests=["tests/test_periodic.py"]),
+    dict(name="periodic-rounding-off", file=_PER,
+         original="    return down((x + y) + z, gamma(2) * (np.abs(x) + np.abs(y) + np.abs(z)))",
+         replacement="    return (x + y) + z",
+         description="periodic dimensions: the gap/margin terms on the circle are not rounded down",
+         tests=["tests/test_periodic.py"]),
+    dict(name="periodic-shift-rounding-off", file=_PER,
+         original="    return np.where(k == 0, 0.0, down(s, err)), np.where(k == 0, 0.0, up(s, err))",
+         replacement="    return s, s",
+         description="periodic dimensions: the shift k * period is not enclosed (the terms' rounding still is)",
+         tests=["tests/test_periodic.py"]),
+    dict(name="periodic-outside-through-seam", file=_ABS,
+         original="            PX[:, j], PVX[:, j] = 1.0, 1.0\n            continue",
+         replacement="            PX[:, j], PVX[:, j] = 1.0, 1.0",
+         description="periodic dimensions: the outside state gets mass through a periodic axis (no gain in soundness: "
+                     "tightness check)",
+         tests=["tests/test_periodic.py"]),
     dict(name="floor-x0.99", file=_ABS, original=_FLOOR,
          replacement="        floors[u] = _complement_up(_combine_down(md.floor_p, md.floor_pv, combine)) * 0.99",
          description="every row's floor (upper bound of unlisted targets) x 0.99"),

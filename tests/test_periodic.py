@@ -240,3 +240,27 @@ def test_controller_and_result_file_wrap(tmp_path):
     plain = Controller(np.zeros((4, 1), dtype=np.int64), [[0, 0]], 0, [False], ["a"], np.zeros(4, dtype=np.int64),
                        part.breakpoints, [0.0], [1.0])
     assert plain.locate(np.array([[1.1]])).tolist() == [-1]
+
+
+def test_circle_gap_and_margin_are_lower_bounds_in_exact_arithmetic():
+    """Random targets on [0, 2 pi) and images up to 1e5 periods away: the computed gap and margin are
+    <= the exact ones (fractions.Fraction, the exact period fl(upper) - fl(lower)); catches rounding off."""
+    from fractions import Fraction as F
+
+    rng = np.random.default_rng(3)
+    L, H = 0.0, 2 * np.pi
+    bp = np.linspace(L, H, 17)
+    n = 400
+    ell = rng.integers(0, 16, n)
+    lo_t, hi_t = bp[ell], bp[ell + 1]
+    a = rng.uniform(L, H, n) + rng.integers(-100000, 100000, n) * (H - L)
+    b = a + rng.uniform(0, 0.5, n)
+    g = circle_gap(lo_t, hi_t, a, b, L, H)
+    m = circle_margin(lo_t, hi_t, a, b, L, H)
+    T = F(H) - F(L)
+    for i in range(n):
+        A, B, lo, hi = F(a[i]), F(b[i]), F(lo_t[i]), F(hi_t[i])
+        k0 = int(np.floor((a[i] + b[i] - lo_t[i] - hi_t[i]) / (2 * (H - L))))
+        ks = range(k0 - 3, k0 + 4)
+        assert F(g[i]) <= min(max(lo + k * T - B, A - hi - k * T) for k in ks)
+        assert F(m[i]) <= max(min(A - lo - k * T, hi + k * T - B) for k in ks)
