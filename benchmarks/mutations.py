@@ -470,6 +470,27 @@ def _apply(dest: Path, m: dict) -> None:
     path.write_text(text.replace(m["original"], m["replacement"], 1))
 
 
+def _warm(snapshot: Path) -> None:
+    """Compile the snapshot's numba kernels once (``python -m robust_imdp.warmup``) so that every
+    scratch copy starts with them cached: copies keep the sources' mtimes, which is what numba's
+    cache index checks. Mutated code is never loaded from this cache (:func:`_drop_kernel_caches`)."""
+    subprocess.run([sys.executable, "-m", "robust_imdp.warmup", "--quiet"], cwd=snapshot, env=_env(snapshot),
+                   capture_output=True, text=True)
+
+
+def _drop_kernel_caches(dest: Path, mutated: str) -> None:
+    """Delete the numba caches a mutation could make stale. numba keys a kernel's cache by its own
+    file only, and a kernel compiled with callees from another file keeps their old code; numba
+    kernels call each other only within one subpackage (and use the top-level helpers), so: the
+    mutated file's subpackage, or every cache when a top-level module is mutated."""
+    rel = Path(mutated).relative_to("src/robust_imdp")
+    root = dest / "src" / "robust_imdp"
+    where = root / rel.parts[0] if len(rel.parts) > 1 else root
+    for pattern in ("*.nbi", "*.nbc"):
+        for f in where.rglob(pattern):
+            f.unlink()
+
+
 def _env(dest: Path) -> dict:
     env = dict(os.environ)
     env["PYTHONPATH"] = str(dest / "src")
@@ -547,6 +568,7 @@ def run_one(m: dict | None, snapshot: Path, timeout: float, deselect=()) -> dict
         shutil.copytree(snapshot, dest, symlinks=True, dirs_exist_ok=True)  # copy2: mtimes kept
         if m is not None:
             _apply(dest, m)
+            _drop_kernel_caches(dest, m["file"])
         env = _env(dest)
         probe = subprocess.run([sys.executable, "-c", "import robust_imdp; print(robust_imdp.__file__)"],
                                cwd=dest, env=env, capture_output=True, text=True)
@@ -664,6 +686,7 @@ def main(argv=None) -> int:
         if problems:
             print("the mutation list is out of date:\n  " + "\n  ".join(problems), file=sys.stderr)
             return 2
+        _warm(snapshot)
         out = _run_all(args, selected, snapshot)
         if isinstance(out, int):
             return out
