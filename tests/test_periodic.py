@@ -242,18 +242,20 @@ def test_controller_and_result_file_wrap(tmp_path):
     assert plain.locate(np.array([[1.1]])).tolist() == [-1]
 
 
-def test_circle_gap_and_margin_are_lower_bounds_in_exact_arithmetic():
-    """Random targets on [0, 2 pi) and images up to 1e5 periods away: the computed gap and margin are
-    <= the exact ones (fractions.Fraction, the exact period fl(upper) - fl(lower)); catches rounding off."""
+@pytest.mark.parametrize("L,H,far", [(0.0, 2 * np.pi, 0), (0.0, 2 * np.pi, 100000), (0.1, 0.1 + 2 * np.pi, 100000),
+                                     (-3.3, 1e3 / 7, 10 ** 9)])
+def test_circle_gap_and_margin_are_lower_bounds_in_exact_arithmetic(L, H, far):
+    """Random targets and images up to ``far`` periods away: the computed gap and margin are <= the exact
+    ones (fractions.Fraction, the exact period fl(upper) - fl(lower)); catches rounding off."""
     from fractions import Fraction as F
 
     rng = np.random.default_rng(3)
-    L, H = 0.0, 2 * np.pi
     bp = np.linspace(L, H, 17)
+    bp[-1] = H
     n = 400
     ell = rng.integers(0, 16, n)
     lo_t, hi_t = bp[ell], bp[ell + 1]
-    a = rng.uniform(L, H, n) + rng.integers(-100000, 100000, n) * (H - L)
+    a = rng.uniform(L, H, n) + rng.integers(-far, far + 1, n) * (H - L)
     b = a + rng.uniform(0, 0.5, n)
     g = circle_gap(lo_t, hi_t, a, b, L, H)
     m = circle_margin(lo_t, hi_t, a, b, L, H)
