@@ -1,9 +1,14 @@
 """robust_imdp: formally guaranteed switching controllers from data.
 
-Pipeline (one module per stage, plain data between stages)::
+Pipeline (one subpackage per part, plain data between stages; layers in docs/ARCHITECTURE.md)::
 
-    learn (gp) -> bound (bounds) -> abstract (abstraction) -> specify (ltlf, dfa)
-    -> product -> solve -> synthesize (synthesis) -> controller / validate -> plot (plotting)
+    models (data, known parts, noise) -> bounds (certified cell ranges) -> abstraction (Thm 1)
+    -> spec (LTLf -> DFA) -> solvers (product, value iteration) -> synthesis (strategy, classes,
+    controller, refinement, advice, where to sample) -> pipeline (the run) -> io (files)
+    -> validate / improve / plotting / cli
+
+The flat layout's module paths (``robust_imdp.solve``, ``robust_imdp.rkhs``, ...) still import,
+with a DeprecationWarning naming the new one (``robust_imdp._compat``).
 
 The most used names are re-exported here (``__all__``; ``docs/api.md`` lists every module's).
 Heavy optional back-ends stay out of the import: cvxpy/clarabel (``robust_imdp.solvers.lp``),
@@ -41,6 +46,9 @@ and left of it the controller may still cross the pit's edge (``maybe``):
 'right'
 """
 
+import sys as _sys
+
+from robust_imdp._compat import OldPaths as _OldPaths
 from robust_imdp._lazy import lazy_names
 from robust_imdp.errors import *  # noqa: F401,F403
 from robust_imdp.errors import __all__ as _errors
@@ -74,6 +82,9 @@ from robust_imdp.pipeline.run import resynthesize, synthesize_from_data
 from robust_imdp.io.files import load_problem, load_result, save_result
 
 __version__ = "0.1.0"
+
+if not any(isinstance(f, _OldPaths) for f in _sys.meta_path):
+    _sys.meta_path.append(_OldPaths())  # last: only names no real module has
 
 #: Names imported on first use, with their modules: the default (RKHS) bound route and validation.
 #: ``validate`` is the module ``robust_imdp.validate`` (callable: it runs its ``validate`` function).
