@@ -34,6 +34,6 @@ def test_an_unknown_module_is_still_not_found():
 
 def test_old_paths_do_not_shadow_new_modules():
     # the finder comes after the path finder (real modules win) and knows only the old names
-    kinds = [type(f).__name__ for f in sys.meta_path]
+    kinds = [f.__name__ if isinstance(f, type) else type(f).__name__ for f in sys.meta_path]
     assert kinds.count("OldPaths") == 1 and kinds.index("OldPaths") > kinds.index("PathFinder")
     assert set(MOVED).isdisjoint(p.stem for p in __import__("pathlib").Path(robust_imdp.__file__).parent.glob("*.py"))
