@@ -266,3 +266,24 @@ def test_circle_gap_and_margin_are_lower_bounds_in_exact_arithmetic(L, H, far):
         ks = range(k0 - 3, k0 + 4)
         assert F(g[i]) <= min(max(lo + k * T - B, A - hi - k * T) for k in ks)
         assert F(m[i]) <= max(min(A - lo - k * T, hi + k * T - B) for k in ks)
+
+
+def test_shift_enclosure_contains_the_exact_multiple_of_the_period():
+    """``_shift_bounds`` encloses the REAL ``k (H - L)``, although it gets the float ``fl(H - L)`` and
+    rounds ``k T`` once (checked in exact rationals; an enclosure that keeps the float product misses
+    it whenever ``H - L`` or ``k T`` is inexact, which is most draws)."""
+    from fractions import Fraction
+
+    from robust_imdp.abstraction.periodic import _shift_bounds
+
+    rng = np.random.default_rng(11)
+    inexact = 0
+    for _ in range(3000):
+        L = float(rng.uniform(-10, 10))
+        H = float(L + rng.uniform(0.1, 10))
+        k = float(rng.integers(-10**6, 10**6))
+        lo, hi = _shift_bounds(np.array([k]), H - L)
+        exact = Fraction(k) * (Fraction(H) - Fraction(L))
+        assert Fraction(float(lo[0])) <= exact <= Fraction(float(hi[0]))
+        inexact += Fraction(k * (H - L)) != exact
+    assert inexact > 1000  # the draws do exercise the rounding
