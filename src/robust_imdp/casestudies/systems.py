@@ -15,6 +15,10 @@ part of each mode and the noise model.
   (omega = +0.3, 0, -0.3) and the position itself; unknown: the motion v (cos theta, sin theta)
   (v = 0.15) plus a cross current 0.04 sin p_y along p_x. Noise N(0, 0.005^2) truncated to
   +-0.01; 10,000 samples per mode; a 64^3 grid; reach ``goal`` while avoiding ``obs``.
+* ``unicycle_3d_known``: the same robot, data and regions, modelled as a robot: the kinematics
+  and heading update are the known part f_u (expressions), the heading is periodic (data wrapped
+  into [-pi, pi)), p_y and theta are known components (B = 0) and only the cross current
+  0.04 sin p_y along p_x is learned (benchmarks/unicycle_known.py compares the two).
 """
 
 from __future__ import annotations
@@ -304,6 +308,11 @@ class CaseStudy:
     rkhs_bound: float = 6.0
     misspecification: float = 0.001
     data_format: str = "csv"
+    # Optional, for case studies with a nonlinear known part (``[modes.NAME] f``) and periodic
+    # dimensions (docs/known_dynamics.md, docs/periodic.md); None writes A/b and no periodic key.
+    # ``rkhs_bound`` may then be a list per component (0 = a known component).
+    known_f: tuple | None = None  # per mode, n expression strings in x1..xn
+    periodic: tuple | None = None  # n bools
 
 
 _SIGMA = np.array([0.01, 0.01])
@@ -381,7 +390,33 @@ _UNICYCLE = CaseStudy(
     data_format="npz",
 )
 
-CASE_STUDIES = {c.name: c for c in (_THREE, _FOUR, _UNICYCLE)}
+# The same robot with its kinematics known: f_u = (p_x + v cos theta, p_y + v sin theta, theta + omega_u)
+# written as expressions, the heading periodic (its data wrapped into [-pi, pi)), and only the cross
+# current 0.04 sin p_y along p_x learned. p_y and theta are known components (B = 0, image = certified
+# range of f + tau). The drift depends on p_y alone, so its lengthscale is long in p_x and theta: the
+# 50 local points then spread along those dimensions and average the noise.
+_UNICYCLE_KNOWN_F = tuple(
+    ("x1 + 0.15*cos(x3)", "x2 + 0.15*sin(x3)", heading) for heading in ("x3 + 0.3", "x3", "x3 - 0.3")
+)
+_UNICYCLE_KNOWN = CaseStudy(
+    name="unicycle_3d_known",
+    system=_UNICYCLE.system,  # the same true robot; only what the problem file states as known differs
+    n_per_mode=_UNICYCLE.n_per_mode,
+    regions=_UNICYCLE.regions,
+    formulas=_UNICYCLE.formulas,
+    threshold=_UNICYCLE.threshold,
+    lower=_UNICYCLE.lower,
+    upper=_UNICYCLE.upper,
+    cell_size=_UNICYCLE.cell_size,
+    gp=(("lengthscale", [[100.0, 1.5, 100.0], 1.0, 1.0]), ("error_bound", "optimal"), ("local_points", 50)),
+    rkhs_bound=(0.1, 0.0, 0.0),
+    misspecification=0.001,
+    data_format="npz",
+    known_f=_UNICYCLE_KNOWN_F,
+    periodic=(False, False, True),
+)
+
+CASE_STUDIES = {c.name: c for c in (_THREE, _FOUR, _UNICYCLE, _UNICYCLE_KNOWN)}
 
 
 def get_case_study(name: str) -> CaseStudy:
@@ -439,6 +474,10 @@ def _toml_list(v) -> str:
     return "[" + ", ".join(_toml_list(e) if np.ndim(e) else repr(float(e)) for e in v) + "]"
 
 
+def _toml_strings(v) -> str:
+    return "[" + ", ".join(f'"{e}"' for e in v) + "]"
+
+
 def problem_toml(case: CaseStudy, formula: str, data_path: str, *, rkhs_bound: float | None = None,
                  eta=None) -> str:
     """The TOML problem file text for ``case`` with ``formula`` (see :mod:`robust_imdp.io.files`)."""
@@ -449,8 +488,10 @@ def problem_toml(case: CaseStudy, formula: str, data_path: str, *, rkhs_bound: f
         f"lower = {_toml_list(case.lower)}",
         f"upper = {_toml_list(case.upper)}",
         f"cell_size = {_toml_list(case.cell_size)}",
-        "",
     ]
+    if case.periodic is not None:
+        lines.append("periodic = [" + ", ".join("true" if p else "false" for p in case.periodic) + "]")
+    lines.append("")
     for name, boxes in case.regions.items():
         for lo, up in boxes:
             lines += [f"[[regions.{name}]]", f"lower = {_toml_list(lo)}", f"upper = {_toml_list(up)}"]
@@ -458,14 +499,20 @@ def problem_toml(case: CaseStudy, formula: str, data_path: str, *, rkhs_bound: f
               f"threshold = {case.threshold!r}", "", "[data]", f'path = "{data_path}"', ""]
     sysm = case.system
     for i, m in enumerate(sysm.mode_names):
-        lines += [f'[modes."{m}"]', f"A = {_toml_list(sysm.known_A[i])}",
-                  f"b = {_toml_list(sysm.known_b[i])}"]
+        if case.known_f is not None:
+            lines += [f'[modes."{m}"]', f"f = {_toml_strings(case.known_f[i])}"]
+        else:
+            lines += [f'[modes."{m}"]', f"A = {_toml_list(sysm.known_A[i])}",
+                      f"b = {_toml_list(sysm.known_b[i])}"]
+    b_text = _toml_list(rkhs_bound) if np.ndim(rkhs_bound) else f"{float(rkhs_bound)!r}"
     lines += ["", "[noise]", 'kind = "truncated_gaussian"', f"sigma = {_toml_list(sysm.sigma)}",
-              f"bound = {_toml_list(sysm.bound)}", "", "[learning]", f"rkhs_bound = {float(rkhs_bound)!r}"]
+              f"bound = {_toml_list(sysm.bound)}", "", "[learning]", f"rkhs_bound = {b_text}"]
     for key, value in case.gp:
-        if isinstance(value, str):
+        if isinstance(value, bool):
+            lines.append(f"{key} = {'true' if value else 'false'}")
+        elif isinstance(value, str):
             lines.append(f'{key} = "{value}"')
-        elif np.ndim(value):
+        elif isinstance(value, (list, tuple)) or np.ndim(value):
             lines.append(f"{key} = {_toml_list(value)}")
         else:
             lines.append(f"{key} = {value!r}")
@@ -493,6 +540,10 @@ def write_problem_files(name: str, directory, *, seed: int = 0, formula: str | N
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     x, u, x_next = case.system.sample_dataset(case.n_per_mode, case.lower, case.upper, seed)
+    if case.periodic is not None:  # a real robot reports its heading wrapped into [-pi, pi)
+        from robust_imdp.models.geometry import wrap_points
+
+        x_next = wrap_points(x_next, np.asarray(case.lower, float), np.asarray(case.upper, float), case.periodic)
     data_name = f"{name}_data.{case.data_format}"
     write_data_file(directory / data_name, x, u, x_next, modes=case.system.mode_names)
     path = directory / f"{name}.toml"
