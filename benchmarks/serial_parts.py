@@ -170,9 +170,10 @@ def summarise(runs: dict, identical: bool, args) -> dict:
             "medians": med, "runs": runs, "classes": runs["default"][0]["classes"]}
 
 
-def write_md(doc: dict) -> None:
+def write_md(doc: dict, path: Path | None = None) -> None:
     med = doc["medians"]
-    stages = list(dict.fromkeys([*med["default"]["stages"], *med["serial"]["stages"]]))
+    # the stages (Result.timings without its "total", which is the run's own sum)
+    stages = [k for k in dict.fromkeys([*med["default"]["stages"], *med["serial"]["stages"]]) if k != "total"]
     lines = [
         "# Serial parts of one run (`benchmarks/serial_parts.py`)", "",
         f"{doc['problem']}. {doc['machine']['cores']} cores; `uptime` at the start: "
@@ -191,8 +192,7 @@ def write_md(doc: dict) -> None:
     for k in stages:
         row(f"stage `{k}`", med["default"]["stages"].get(k, 0.0), med["serial"]["stages"].get(k, 0.0))
     row("rest of the run (outside the stages)",
-        med["default"]["run_s"] - sum(med["default"]["stages"].values()),
-        med["serial"]["run_s"] - sum(med["serial"]["stages"].values()))
+        *(med[c]["run_s"] - sum(med[c]["stages"].get(k, 0.0) for k in stages) for c in ("default", "serial")))
     row("**end to end**", med["default"]["end_to_end_s"], med["serial"]["end_to_end_s"])
     lines += ["",
               f"Speed-up end to end: **{doc['ratio']:.2f}x** (target >= {doc['target']}x); identical results "
@@ -203,7 +203,7 @@ def write_md(doc: dict) -> None:
               "The first call of a numba kernel in a process loads it from numba's cache (about 1 s); that "
               "time is inside the first stage that calls it (the check's single points, the bound stage's "
               "pre-flight one-cell call), not in the start-up line."]
-    (OUT / "serial_parts.md").write_text("\n".join(lines) + "\n")
+    (path or OUT / "serial_parts.md").write_text("\n".join(lines) + "\n")
 
 
 def main(argv=None) -> int:
@@ -215,7 +215,11 @@ def main(argv=None) -> int:
     ap.add_argument("--child", help=argparse.SUPPRESS)
     ap.add_argument("--config", default="default", help=argparse.SUPPRESS)
     ap.add_argument("--work", default=None, help="where the runs' outputs go (default: a temporary folder)")
+    ap.add_argument("--render", nargs=2, metavar=("JSON", "MD"), help="write the md of a saved json only")
     args = ap.parse_args(argv)
+    if args.render:
+        write_md(json.loads(Path(args.render[0]).read_text()), Path(args.render[1]))
+        return 0
     if args.child:
         return child(args)
     import tempfile
