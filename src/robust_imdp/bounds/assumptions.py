@@ -235,12 +235,11 @@ def known_component_ranges(A, b, cells_lower, cells_upper, tau) -> tuple:
     A = np.asarray(A, float)
     d = A.shape[1]
     # a square map with the rows of the components (the other rows 0): AffineMap.image_bounds
-    Af = np.zeros((d, d))
-    bf = np.zeros(d)
     k_out = A.shape[0]
     out_lo = np.empty((np.shape(cells_lower)[0], k_out))
     out_hi = np.empty_like(out_lo)
     for j in range(k_out):
+        Af, bf = np.zeros((d, d)), np.zeros(d)  # fresh per row: AffineMap makes its arrays read-only
         Af[0], bf[0] = A[j], float(np.asarray(b, float)[j])
         r = AffineMap(Af, bf).image_bounds(cells_lower, cells_upper)
         out_lo[:, j], out_hi[:, j] = r.lower[:, 0], r.upper[:, 0]
