@@ -166,6 +166,7 @@ def write_md(path: Path, data: dict) -> None:
                      f"{r['peak_rss_mb']:.0f} | {mc_text} |")
     lines += ["", "Targets (issue 21, item 4): new Q_yes >= 0.75 x its reference at 64^3 (aim 0.9 with iid), "
               "Monte-Carlo containment, end to end <= 3 min, peak memory <= 4 GB.", ""]
+    lines += [f"* {note}" for note in data.get("notes", [])] + ([""] if data.get("notes") else [])
     path.write_text("\n".join(lines))
 
 
