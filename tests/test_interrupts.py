@@ -51,9 +51,11 @@ def test_sigint_in_the_bound_stage_exits_130_with_the_interrupt_line(tmp_path):
     # "internal error (SystemError: CPUDispatcher(<function _optimal_cells ...>) returned a
     # result with an exception set)" and exit 3.
     _write_fine_problem(tmp_path)
+    # SIGINT back to its default in the child: a shell's background job (nohup, `cmd &`) inherits it
+    # ignored, and Python then installs no handler, so Ctrl-C would never arrive
     proc = subprocess.Popen([sys.executable, "-m", "robust_imdp.cli", "run", "p.toml", "--out", "out",
                              "--no-figures"], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
+                            text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     seen = []
     try:
         for line in proc.stderr:
