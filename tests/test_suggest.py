@@ -9,6 +9,7 @@ function, which is why the RKHS term scales with it); uniform random samples of 
 import numpy as np
 import pytest
 
+from robust_imdp._kernels import se_gram
 from robust_imdp.errors import InvalidInputError
 from robust_imdp.synthesis import suggest as sg
 
@@ -34,8 +35,8 @@ def test_power_function_is_the_optimal_ridge_objective():
     x = np.array([[0.3]])
     inv_l2, lam = np.array([2.0]), 1e-2
     P = sg._posterior_cov(x, data, inv_l2, lam)[0, 0]
-    K = sg._kernel(data, data, inv_l2)
-    k = sg._kernel(data, x, inv_l2)[:, 0]
+    K = se_gram(data, data, inv_l2)
+    k = se_gram(data, x, inv_l2)[:, 0]
     w = np.linalg.solve(K + lam * np.eye(12), k)
     objective = 1.0 - 2 * w @ k + w @ K @ w + lam * w @ w
     assert P == pytest.approx(objective, abs=1e-12)

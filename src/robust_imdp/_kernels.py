@@ -62,6 +62,13 @@ def se_kernel(A: np.ndarray, B: np.ndarray, lengthscale: np.ndarray, signal_vari
     return signal_variance * np.exp(-0.5 * sq)
 
 
+def se_gram(A: np.ndarray, B: np.ndarray, inv_l2: np.ndarray) -> np.ndarray:
+    """Unit-amplitude SE kernel ``exp(-0.5 * sum_j (a_j - b_j)^2 inv_l2_j)``, (p, q), in plain numpy: the
+    data-fitted function and the sample suggestions' power function (diagnostics, not bounds, so no
+    error bound; the certified evaluations are :func:`kernel_matrix` and :func:`se_kernel_with_error`)."""
+    return np.exp(-0.5 * np.sum((A[:, None, :] - B[None, :, :]) ** 2 * inv_l2, axis=2))
+
+
 @numba.njit(cache=True)
 def kernel_matrix(A, B, inv_l2):  # pragma: no cover - compiled
     """``exp(-z/2)``, ``z = sum_a (A_a - B_a)^2 inv_l2_a``, and the largest ``z`` met."""

@@ -225,14 +225,10 @@ def _read_loop_data(out: Path, problem):
 
 # ---------------------------------------------------------------------------------------------- re-bounding
 def _power(points, data, inv_l2, lam: float) -> np.ndarray:
-    """The power function ``k(x,x) - k_x^T (K + lam I)^-1 k_x`` at ``points`` (``synthesis.suggest``'s, diagonal only)."""
-    from robust_imdp.synthesis.suggest import _kernel
+    """The power function at ``points`` (:func:`robust_imdp.synthesis.suggest.power_function`)."""
+    from robust_imdp.synthesis.suggest import power_function
 
-    if data.shape[0] > MAX_POWER_POINTS:
-        data = data[np.unique(np.linspace(0, data.shape[0] - 1, MAX_POWER_POINTS).round().astype(int))]
-    L = np.linalg.cholesky(_kernel(data, data, inv_l2) + lam * np.eye(data.shape[0]))
-    V = np.linalg.solve(L, _kernel(data, points, inv_l2))
-    return np.maximum(1.0 - np.sum(V * V, axis=0), 0.0)
+    return power_function(points, data, inv_l2, lam, MAX_POWER_POINTS)
 
 
 def _affected(problem, partition, data, n_old: int) -> list:

@@ -11,9 +11,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from robust_imdp._kernels import se_gram
 from robust_imdp.errors import DimensionError, InvalidInputError
 
-__all__ = ["FittedModes", "fit_modes", "excess_radius", "FIT_POINTS"]
+__all__ = ["FittedModes", "fit_modes", "excess_radius", "evenly_spaced", "FIT_POINTS"]
 
 #: Data points per mode used by the fit (an evenly spaced subset of the mode's samples beyond it).
 FIT_POINTS = 500
@@ -136,6 +137,11 @@ class FittedModes:
         return v.min(axis=2), v.max(axis=2)
 
 
+def evenly_spaced(m: int, k: int) -> np.ndarray:
+    """Indices of an evenly spaced subset of about ``k`` of ``m`` samples (first and last included)."""
+    return np.unique(np.linspace(0, m - 1, int(k)).round().astype(int))
+
+
 def fit_modes(data, maps, lengthscale, regulariser, *, max_points: int = FIT_POINTS) -> FittedModes:
     """Kernel-ridge fit of every mode's residuals with the SE kernel of the assumption.
 
@@ -166,9 +172,9 @@ def fit_modes(data, maps, lengthscale, regulariser, *, max_points: int = FIT_POI
         if not np.all(np.isfinite(lam) & (lam > 0)):
             raise InvalidInputError(f"regulariser must be positive and finite; got {lam.tolist()}")
         if x.shape[0] > max_points:
-            keep = np.unique(np.linspace(0, x.shape[0] - 1, int(max_points)).round().astype(int))
+            keep = evenly_spaced(x.shape[0], max_points)
             x, y = x[keep], y[keep]
-        K = np.exp(-0.5 * np.sum((x[:, None, :] - x[None, :, :]) ** 2 * inv_l2, axis=2))
+        K = se_gram(x, x, inv_l2)
         al = np.empty_like(y)
         for i in range(y.shape[1]):
             al[:, i] = np.linalg.solve(K + lam[i] * np.eye(x.shape[0]), y[:, i])

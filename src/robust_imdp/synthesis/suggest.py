@@ -28,9 +28,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from robust_imdp._kernels import se_gram
+from robust_imdp.bounds.fit import evenly_spaced
 from robust_imdp.errors import InvalidInputError
 
-__all__ = ["SampleRequest", "suggest_samples", "write_requests"]
+__all__ = ["SampleRequest", "suggest_samples", "write_requests", "power_function"]
 
 #: Largest number of data points of a mode used for the power function (an evenly spaced subset
 #: beyond it: fewer points only make the power function larger, i.e. the gains look larger).
@@ -70,21 +72,29 @@ class SampleRequest:
     gain: float
 
 
-def _kernel(a: np.ndarray, b: np.ndarray, inv_l2: np.ndarray) -> np.ndarray:
-    d2 = np.sum((a[:, None, :] - b[None, :, :]) ** 2 * inv_l2, axis=2)
-    return np.exp(-0.5 * d2)
+def _whitened(points: np.ndarray, data: np.ndarray, inv_l2: np.ndarray, lam: float) -> np.ndarray:
+    """``V = L^-1 K_xc`` with ``L L^T = K + lam I``: ``k_i^T (K + lam I)^-1 k_j = (V^T V)_ij``."""
+    L = np.linalg.cholesky(se_gram(data, data, inv_l2) + lam * np.eye(data.shape[0]))
+    return np.linalg.solve(L, se_gram(data, points, inv_l2))
 
 
 def _posterior_cov(points: np.ndarray, data: np.ndarray, inv_l2: np.ndarray, lam: float) -> np.ndarray:
     """``Sigma(c_i, c_j) = k(c_i, c_j) - k_i^T (K + lam I)^-1 k_j`` over the candidate points."""
-    K_cc = _kernel(points, points, inv_l2)
+    K_cc = se_gram(points, points, inv_l2)
     if data.shape[0] == 0:
         return K_cc
-    K_xx = _kernel(data, data, inv_l2)
-    K_xc = _kernel(data, points, inv_l2)
-    L = np.linalg.cholesky(K_xx + lam * np.eye(data.shape[0]))
-    V = np.linalg.solve(L, K_xc)
+    V = _whitened(points, data, inv_l2, lam)
     return K_cc - V.T @ V
+
+
+def power_function(points: np.ndarray, data: np.ndarray, inv_l2: np.ndarray, lam: float,
+                   max_points: int = MAX_POINTS) -> np.ndarray:
+    """The power function ``P(x) = k(x,x) - k_x^T (K + lam I)^-1 k_x`` at ``points`` (the diagonal of
+    :func:`_posterior_cov`, without the full matrix), on at most ``max_points`` evenly spaced data points."""
+    if data.shape[0] > max_points:
+        data = data[evenly_spaced(data.shape[0], max_points)]
+    V = _whitened(points, data, inv_l2, lam)
+    return np.maximum(1.0 - np.sum(V * V, axis=0), 0.0)
 
 
 def _candidates(result):
@@ -170,7 +180,7 @@ def suggest_samples(result, n: int, *, data_points=None) -> list:
     for u in range(len(modes)):
         x = np.asarray(problem.data.by_mode(u)[0], float)
         if x.shape[0] > MAX_POINTS:
-            x = x[np.unique(np.linspace(0, x.shape[0] - 1, MAX_POINTS).round().astype(int))]
+            x = x[evenly_spaced(x.shape[0], MAX_POINTS)]
         lam.append(max((floor[u] / B[u]) ** 2, 1e-10) if B[u] > 0 else 1.0)
         sig.append(_posterior_cov(centres, x, inv_l2[u], lam[-1]))
     out = []
