@@ -200,3 +200,25 @@ def test_trajectory_markers_and_labels_read_on_every_class_colour():
     texts = ax.texts
     assert texts and all(to_rgba(t.get_color()) == to_rgba("black") and t.get_zorder() > 4 for t in texts)
     plt.close("all")
+
+
+def test_trajectories_are_cut_at_a_periodic_seam_and_only_there():
+    from matplotlib.collections import LineCollection
+
+    doc = grid_doc()
+    doc["space"]["periodic"] = [False, True]  # x2 wraps: period 4
+    # 1.8 -> -1.9 in x2 is a step of 0.3 across the seam (jump 3.7 > T/2 = 2): cut there;
+    # 0.5 -> -1.4 (jump 1.9 < 2) is an ordinary move: kept; x1 jumps never cut (not periodic).
+    path = np.array([[0.0, 1.2], [0.1, 1.8], [0.2, -1.9], [0.3, -1.4], [1.9, 0.5], [-1.9, -1.4]])
+    pieces = plotting.seam_segments(path, doc)
+    assert [len(p) for p in pieces] == [2, 4]
+    assert np.array_equal(np.vstack(pieces), path)  # nothing lost or added
+    doc_flat = grid_doc()
+    assert [len(p) for p in plotting.seam_segments(path, doc_flat)] == [6]  # no periodic dims: one piece
+    tr = Trajectories(paths=[path], outcome=np.array([1]), steps=np.array([5]))
+    ax = plotting.plot_trajectories(doc, tr)
+    lines = [c for c in ax.collections if isinstance(c, LineCollection)
+             and c.get_colors().tolist() == [[0.0, 0.0, 0.0, 0.8]]]
+    segs = [s for c in lines for s in c.get_segments()]
+    assert sorted(len(s) for s in segs) == [2, 4]  # the seam jump is not drawn
+    plt.close("all")

@@ -50,6 +50,7 @@ __all__ = [
     "resolve_slice",
     "best_slice_value",
     "threshold_segments",
+    "seam_segments",
     "save_figures",
 ]
 
@@ -261,6 +262,26 @@ _END_STYLES = {  # outcome code of validate.simulate -> marker style (legend ord
 }
 
 
+def seam_segments(path, result) -> list:
+    """``path`` ((k, d) states) cut into pieces that do not jump across a periodic seam.
+
+    A periodic coordinate wraps (docs/periodic.md), so a step from just below ``upper`` to just
+    above ``lower`` is a short move, not a line across the whole plot. The path is cut between
+    two consecutive states whose periodic coordinate changes by more than half the period (a
+    true step of the system moves less than that: the residual convention of docs/periodic.md
+    assumes |g + v| < T/2 per step). Without periodic dimensions: ``[path]``.
+    """
+    res = _result(result, dims=None)
+    p = np.asarray(path, dtype=float)
+    if res.periodic is None or not any(res.periodic) or len(p) < 2:
+        return [p]
+    per = np.flatnonzero(np.asarray(res.periodic, dtype=bool)[: p.shape[1]])
+    half = 0.5 * (np.asarray(res.space_upper, dtype=float)[per] - np.asarray(res.space_lower, dtype=float)[per])
+    jump = np.any(np.abs(np.diff(p[:, per], axis=0)) > half, axis=1)
+    cuts = np.flatnonzero(jump) + 1
+    return np.split(p, cuts)
+
+
 def plot_trajectories(result, trajectories, ax=None, *, title: str | None = None,
                       max_paths: int = 40):
     """Simulated paths over the classification, with start (o) and end (*) markers."""
@@ -268,7 +289,8 @@ def plot_trajectories(result, trajectories, ax=None, *, title: str | None = None
     ax = plot_classes(res, ax, legend=False, title=title or "Simulated runs of the true system")
     paths = trajectories.paths[:max_paths]
     outcome = np.asarray(trajectories.outcome)[:max_paths]
-    ax.add_collection(LineCollection([p for p in paths if len(p) > 1], colors="black",
+    segments = [seg for p in paths for seg in seam_segments(p, res)]
+    ax.add_collection(LineCollection([s for s in segments if len(s) > 1], colors="black",
                                      linewidths=0.8, alpha=0.8))
     starts = np.array([p[0] for p in paths])
     ends = np.array([p[-1] for p in paths])
