@@ -8,7 +8,12 @@
    or states outside X is refused with a message naming the round and the request;
 3. **append** the samples to the loop's data file with their ``round`` (written under a temporary
    name and renamed: the file is never half-written);
-4. **check** the assumption with *all* the data (new data may refute the RKHS bound B);
+4. **check** the assumption with *all* the data (new data may refute the RKHS bound B), incrementally
+   (:class:`IncrementalCheck`): per mode and component, a *witness* -- a function of certified RKHS norm
+   <= B that fits every sample within the check's noise allowance -- proves that the full check would
+   pass; last round's witness is kept when it fits the new samples, else a new one is fitted to all the
+   data (kernel ridge, certified), else the component gets the full check (the SOCP minimum norm), whose
+   refusal is the full check's, message included;
 5. **re-bound** only the cells whose certificates the new points can change: with local weights
    the cells whose pool of nearest points now holds a new point, otherwise the cells whose error
    radius the new points shrink by more than :data:`REBOUND_TOL` of the cell's half-width (the power
@@ -43,7 +48,7 @@ import numpy as np
 
 from robust_imdp.errors import DimensionError, InvalidInputError
 
-__all__ = ["ImproveRound", "ImproveResult", "improve", "REBOUND_TOL", "STATE_FILE", "DATA_FILE"]
+__all__ = ["ImproveRound", "ImproveResult", "IncrementalCheck", "improve", "REBOUND_TOL", "STATE_FILE", "DATA_FILE"]
 
 #: Without local weights, a cell is re-bounded when the new points lower the RKHS term of its error
 #: radius at its centre by more than this fraction of its smallest half-width (the power-function
@@ -61,6 +66,12 @@ ROUND_CHUNK = 256
 ADAPTIVE_NOTE = ("; inputs of rounds > 0 were chosen from earlier data (robust-imdp improve): the deterministic "
                  "bound holds for any inputs, and a cell's box kept from an earlier round was certified from a "
                  "subset of the data")
+
+#: What the diagnostics say about the incremental check's numbers.
+INCREMENTAL_NOTE = ("min_norm.minimum is a certified lower bound of the data-implied minimum RKHS norm (the last full "
+                    "check's, or the single points' on all data); witness_norm_upper is the certified norm of a "
+                    "function of norm <= rkhs_bound that fits all data within the check's allowance: an upper bound "
+                    "of that minimum, which shows that the data do not refute rkhs_bound")
 
 
 @dataclass(frozen=True)
@@ -223,6 +234,156 @@ def _read_loop_data(out: Path, problem):
     return Dataset(x, u, xn, modes=tuple(names)), read_rounds(out / DATA_FILE)
 
 
+# ---------------------------------------------------------------------------------------------- the check
+def _check_jobs(problem, res, nb) -> list:
+    """Per mode and component: ``(u, i, norm_task arguments, B)``, the very jobs of the full check
+    (``pipeline.bound_stage._check_assumption``: ``rkhs_check.check_assumption`` with one setting,
+    ``assumptions.check_modes`` per mode and component)."""
+    from robust_imdp.pipeline.bound_stage import _noise_allowance, _one_setting, _shared_allowance
+    from robust_imdp.pipeline.problem import _settings
+
+    jobs = []
+    one = _one_setting(problem)
+    if one:
+        shared = _shared_allowance(problem, nb)
+        ls, tau, B = problem.gp_options.get("lengthscale", 1.0), problem.misspecification, float(problem.rkhs_bound)
+    else:
+        st, allow = _settings(problem), _noise_allowance(problem, nb)
+    for u, (X, Y, _) in enumerate(res):
+        Y = np.asarray(Y, float).reshape(np.shape(X)[0], -1)
+        for i in range(Y.shape[1]):
+            if one:  # check_assumption's job: max_points 300, the SOCP always
+                jobs.append((u, i, (X, Y[:, i], ls, float(shared[i]), tau, 300, True), B))
+            else:  # check_modes's job: the SOCP only for B > 0
+                Bu = float(st.rkhs_bound[u, i])
+                jobs.append((u, i, (X, Y[:, i], st.lengthscale[u, i], float(allow[u, i]),
+                                    float(st.misspecification[u, i]), 300, Bu > 0), Bu))
+    return jobs
+
+
+@dataclass
+class _Component:
+    """What the incremental check keeps of one mode and component between rounds."""
+
+    dbar: float          # the allowance it was checked with (rkhs_check.data_allowance)
+    x: np.ndarray        # the points it was checked at (a later round's first rows must be these)
+    y: np.ndarray
+    witness: object      # rkhs_check.Witness fitting (x, y), or None (the full check passed without one)
+    minimum: float       # a certified lower bound of the minimum norm of (x, y) at dbar
+    n_points: int        # the points behind ``minimum``
+
+
+class IncrementalCheck:
+    """The assumption check of a growing data set, with the full check's decision (module step 4).
+
+    Call it with the problem (its data: last round's samples first, in the same order, then the new
+    ones) and the residual data ``pipeline.bound_stage._residual_data(problem)``; it returns
+    ``(checks, noise_bound, report)`` like ``_check_assumption`` plus one report row per component.
+
+    Per mode and component, with the full check's allowance ``dbar'`` (``rkhs_check.data_allowance``)
+    and bound B:
+
+    1. **kept**: last round's witness h (``rkhs_check.Witness``, ``||h|| <= norm_upper <= B``) fitted
+       last round's points within ``dbar'``; when the earlier points and ``dbar'`` are unchanged and h
+       fits the new points within ``dbar'`` (``rkhs_check.witness_residuals``, rounded outward), h fits
+       all the data;
+    2. **refitted**: otherwise a new witness fitted to all the data (``rkhs_check.fit_witness``: kernel
+       ridge fits, then, with ``socp_witness``, the minimum-norm function within 0.99 dbar');
+    3. **full check**: otherwise the component's own job of the full check (``rkhs_check.norm_task``).
+
+    Why the decision is the full check's: the full check refuses B when a certified lower bound of
+    ``min { ||f|| : |f(x_i) - y_i| <= dbar' }`` (over a subset of the points) exceeds B. With a witness
+    h that fits all the points, that minimum is ``<= ||h|| <= B``, so the full check passes too. A
+    component of step 3 gets the full check's own result. When one of them exceeds B, the full check
+    runs on all the data and raises its own ``AssumptionError`` (the same message).
+
+    Honest numbers: a component's ``NormCheck.minimum`` stays a certified *lower* bound of the minimum
+    norm -- the largest of the last full check's (more data only raise the minimum; kept while
+    ``dbar'`` is unchanged) and the single points' bound on all the data (``min_rkhs_norm(solver=False)``).
+    A witness's norm is reported apart, as ``witness_norm_upper``, an *upper* bound of the minimum norm.
+    """
+
+    def __init__(self, socp_witness: bool = True):
+        self.state: dict = {}
+        self.socp_witness = bool(socp_witness)  # step 2 may solve one SOCP for a witness (rkhs_check.fit_witness)
+
+    def seed(self, problem, res, checks=None, min_norm_rows=None) -> None:
+        """Start from a full check of ``problem``'s data (its NormChecks, or the diagnostics' ``min_norm``
+        rows) without a witness: the next call fits one."""
+        from robust_imdp.bounds.rkhs import noise_bound_at_confidence
+        from robust_imdp.bounds.rkhs_check import data_allowance
+        from robust_imdp.pipeline.problem import CHECK_DELTA
+
+        nb, _ = noise_bound_at_confidence(problem.noise, sum(x.shape[0] for x, _, _ in res), CHECK_DELTA)
+        mins = {}
+        if checks is not None:
+            mins = {(c.mode, c.output): (float(c.minimum), int(c.n_points)) for c in checks}
+        elif min_norm_rows is not None:
+            names = list(problem.mode_names)
+            mins = {(names.index(r["mode"]), int(r["component"]) - 1): (float(r["minimum"]), int(r["n_points"]))
+                    for r in min_norm_rows}
+        for u, i, (X, y, _, noise, tau, _, _), _ in _check_jobs(problem, res, nb):
+            lo, k = mins.get((u, i), (0.0, 0))
+            self.state[(u, i)] = _Component(data_allowance(noise, tau), X.copy(), np.array(y), None, lo, k)
+
+    def __call__(self, problem, res, log):
+        from robust_imdp.bounds.rkhs import noise_bound_at_confidence
+        from robust_imdp.bounds.rkhs_check import (NormCheck, data_allowance, fit_witness, min_rkhs_norm,
+                                                   serial_norms, witness_residuals)
+        from robust_imdp.pipeline.bound_stage import _check_assumption
+        from robust_imdp.pipeline.problem import CHECK_DELTA
+
+        nb, _ = noise_bound_at_confidence(problem.noise, sum(x.shape[0] for x, _, _ in res), CHECK_DELTA)
+        jobs = _check_jobs(problem, res, nb)
+        how, wit, full, same = {}, {}, [], {}
+        for u, i, args, B in jobs:
+            X, y, ls, noise, tau = args[:5]
+            dbar = data_allowance(noise, tau)
+            prev = self.state.get((u, i))
+            n0 = 0 if prev is None else prev.x.shape[0]
+            same[(u, i)] = (prev is not None and prev.dbar == dbar and n0 <= X.shape[0]
+                            and np.array_equal(prev.x, X[:n0]) and np.array_equal(prev.y, y[:n0]))
+            if same[(u, i)] and prev.witness is not None and B >= prev.witness.norm_upper:
+                try:  # step 1: h fitted the first n0 points within dbar'; does it fit the new ones?
+                    if np.all(witness_residuals(prev.witness, X[n0:], y[n0:]) <= dbar):
+                        how[(u, i)], wit[(u, i)] = "witness kept", prev.witness
+                        continue
+                except InvalidInputError:  # a new point too far from the centres for the certified kernel
+                    pass
+            w = fit_witness(X, y, ls, noise, tau, B, socp=self.socp_witness)  # step 2
+            if w is not None:
+                how[(u, i)], wit[(u, i)] = "witness refitted", w
+            else:
+                how[(u, i)] = "full check"
+                full.append((u, i, args, B))
+        results = dict(zip([(u, i) for u, i, _, _ in full], serial_norms([a for _, _, a, _ in full])))
+        if any(results[(u, i)]["minimum"] > B for u, i, _, B in full):
+            log.info("assumption check: a component fails; the full check on all the data decides")
+            return (*_check_assumption(problem, res, log, None), None)  # raises its AssumptionError
+        checks, report = [], []
+        for u, i, args, B in jobs:
+            X, y, ls, noise, tau = args[:5]
+            dbar, prev, idx = data_allowance(noise, tau), self.state.get((u, i)), res[u][2]
+            if (u, i) in results:
+                r = results[(u, i)]
+                lo, k = r["minimum"], r["n_points"]
+            else:  # the single points on all data, and the last full check's bound if still at this allowance
+                r = min_rkhs_norm(X, y, ls, noise, tau, solver=False)
+                lo, k = r["minimum"], 1
+                if same[(u, i)] and prev.minimum > lo:  # a bound for a subset of the points, same allowance
+                    lo, k = prev.minimum, prev.n_points
+            s = r["sample"]
+            checks.append(NormCheck(u, i, lo, k, int(idx[s]), r["single_minimum"], float(y[s])))
+            w = wit.get((u, i))
+            self.state[(u, i)] = _Component(dbar, X.copy(), np.array(y), w, lo, k)
+            report.append({"mode": problem.mode_names[u], "component": i + 1, "how": how[(u, i)],
+                           "witness_norm_upper": None if w is None else w.norm_upper, "rkhs_bound": B})
+        worst = max(checks, key=lambda c: c.minimum)
+        log.info(f"assumption check (incremental): {sum(h != 'full check' for h in how.values())} of {len(jobs)} "
+                 f"components by a witness; the data need RKHS norm >= {worst.minimum:.4g}")
+        return tuple(checks), nb, report
+
+
 # ---------------------------------------------------------------------------------------------- re-bounding
 def _power(points, data, inv_l2, lam: float) -> np.ndarray:
     """The power function at ``points`` (:func:`robust_imdp.synthesis.suggest.power_function`)."""
@@ -328,6 +489,7 @@ class _Loop:
     run: object
     out: Path | None
     cell_bounds: object = None
+    check: IncrementalCheck = field(default_factory=IncrementalCheck)
     rows: object = None
     rounds: list = field(default_factory=list)
     diagnostics: dict = field(default_factory=dict)
@@ -371,7 +533,7 @@ class _Loop:
 def _start(loop: _Loop, resume) -> int:
     """Round 0 (bound the grid, abstract, solve) or the interrupted loop's state; returns the last round."""
     from robust_imdp.abstraction.rows import abstract_rows
-    from robust_imdp.pipeline.bound_stage import _learn_and_bound
+    from robust_imdp.pipeline.bound_stage import _learn_and_bound, _residual_data
 
     problem = loop.problem
     timer: dict = {}
@@ -381,6 +543,7 @@ def _start(loop: _Loop, resume) -> int:
         loop.cell_bounds, _, diag = _learn_and_bound(problem, loop.partition, loop.log, loop.run, cache)
         timer["bound"] = time.perf_counter() - t0
         loop.diagnostics = dict(diag)
+        loop.check.seed(problem, _residual_data(problem), min_norm_rows=diag.get("assumption", {}).get("min_norm"))
         last, added = 0, 0
     else:
         loop.cell_bounds, last, _, loop.rounds, loop.diagnostics = resume
@@ -396,13 +559,13 @@ def _start(loop: _Loop, resume) -> int:
 
 def _update(loop: _Loop, data, n_old: int, rnd: int, timer: dict) -> int:
     """Steps 4-6 for the samples ``n_old..`` of ``data``: check, re-bound, re-abstract, re-solve."""
-    from robust_imdp.pipeline.bound_stage import _check_assumption, _diagnostics, _residual_data, _failure_budget
+    from robust_imdp.pipeline.bound_stage import _diagnostics, _residual_data, _failure_budget
     from robust_imdp.pipeline.bound_rkhs import _data_noise_bound, _statement
 
     problem = loop.problem = loop.problem.replace(data=data)
     t0 = time.perf_counter()
     res = _residual_data(problem)
-    checks, check_noise = _check_assumption(problem, res, loop.log, None)  # all data: new ones may refute B
+    checks, check_noise, report = loop.check(problem, res, loop.log)  # all data: new ones may refute B
     timer["check"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     cells = _affected(problem, loop.partition, data, n_old)
@@ -416,6 +579,7 @@ def _update(loop: _Loop, data, n_old: int, rnd: int, timer: dict) -> int:
     statement = _statement(1.0 - data_fail, _data_noise_bound(problem, res, data_fail), data_fail, 0.0)
     loop.diagnostics = _diagnostics(problem, loop.partition, loop.cell_bounds, res, checks, check_noise,
                                     1.0 - data_fail, statement + ADAPTIVE_NOTE)
+    loop.diagnostics["assumption"]["incremental_check"] = {"note": INCREMENTAL_NOTE, "components": report}
     timer["diagnostics"] = time.perf_counter() - t0
     loop.solve(timer)
     return rebound

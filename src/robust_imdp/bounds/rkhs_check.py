@@ -1,4 +1,5 @@
-"""The data-implied minimum RKHS norm and the assumption check (does any function of norm <= B fit the data?)."""
+"""The data-implied minimum RKHS norm and the assumption check (does any function of norm <= B fit the data?);
+witnesses (a function of certified norm <= B fitting the data) that let a growing data set skip the check."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from robust_imdp._fp import U as _U, down as _down, gamma as _gamma, up as _up
+from robust_imdp._fp import U as _U, down as _down, gamma as _gamma, up as _up, up_rounded as _up_rounded
 from robust_imdp._kernels import norm_inflation as _norm_inflation
 from robust_imdp.bounds.rkhs_model import KernelModel
 from robust_imdp.errors import AssumptionError
@@ -48,6 +49,12 @@ class NormCheck:
     residual: float = 0.0
 
 
+def data_allowance(noise_bound: float, misspecification: float = 0.0) -> float:
+    """``dbar' >= noise_bound + tau``, rounded up: the tolerance ``|h(x_i) - y_i| <= dbar'`` of every
+    assumption check (:func:`min_rkhs_norm`) and of the witnesses that stand in for it (:func:`witness_fits`)."""
+    return float(_up(float(noise_bound) + float(misspecification)))
+
+
 def min_rkhs_norm(X, y, lengthscale, noise_bound: float, misspecification: float = 0.0, *,
                   max_points: int | None = 300, rng: Any = 0, solver: bool = True) -> dict:
     """Certified lower bound of ``min { ||h|| : |h(x_i) - y_i| <= noise_bound + tau }`` (section 4).
@@ -77,7 +84,7 @@ def min_rkhs_norm(X, y, lengthscale, noise_bound: float, misspecification: float
     """
     X = np.ascontiguousarray(X, float)
     y = np.ascontiguousarray(y, float)
-    dbar = float(_up(float(noise_bound) + float(misspecification)))
+    dbar = data_allowance(noise_bound, misspecification)
     infl = _norm_inflation(X.shape[1])
     single = _down(np.abs(y) - dbar)
     i_best = int(np.argmax(single))
@@ -184,3 +191,171 @@ def refutation_reason(c, rkhs_bound: float, noise_bound: float, tau: float) -> s
                 f"|g| <= B + noise bound + misspecification = {rkhs_bound + noise_bound + tau:.6g} everywhere")
     return (f"no function of RKHS norm <= {rkhs_bound:g} fits its {c.n_points} samples within "
             f"the noise bound {noise_bound:g}" + (f" + misspecification {tau:g}" if tau else ""))
+
+
+# ============================================================================ witnesses (the incremental check)
+#: Most centres of a witness: beyond it an evenly spaced subset of the points (its fit is still checked at
+#: every point, so any subset gives a valid witness).
+WITNESS_CENTRES = 400
+#: Ridge parameters tried for a witness (:func:`fit_witness`), largest (smoothest function) first.
+WITNESS_RIDGES = tuple(10.0 ** -k for k in range(1, 10))
+#: The SOCP witness fits within this fraction of the allowance (a margin far above the solver's accuracy).
+WITNESS_SOCP_SHRINK = 0.99
+
+
+@dataclass(frozen=True, eq=False)
+class Witness:
+    """A function ``h = sum_j alpha_j k(c_j, .)`` of the assumption's SE kernel, with a certified norm bound.
+
+    If ``|h(x_i) - y_i| <= dbar'`` at every data point (:func:`witness_fits`, with the check's allowance
+    :func:`data_allowance`) and ``norm_upper <= B``, the data are consistent with ``||g|| <= B``: the
+    assumption check's certified minimum (:func:`min_rkhs_norm`, on any subset of these points) is a lower
+    bound of ``||f||`` for *every* f that fits within ``dbar'``, so of ``||h|| <= norm_upper <= B``, and the
+    check cannot refuse B. ``norm_upper`` is an *upper* bound of the data-implied minimum norm.
+
+    Attributes
+    ----------
+    centres : (c, d) float array
+    alpha : (c,) float array
+    lengthscale : (d,) float array
+        The assumption's lengthscales (the exact kernel ``exp(-sum_a (x_a - x'_a)^2 / (2 l_a^2))``).
+    norm_upper : float
+        Upper bound of ``||h||`` in that kernel's RKHS (eq. N of :func:`_norm_upper`), rounded up.
+    """
+
+    centres: np.ndarray
+    alpha: np.ndarray
+    lengthscale: np.ndarray
+    norm_upper: float
+
+
+def _norm_upper(K, rel: float, alpha) -> float:
+    """Eq. N: ``||h||`` for ``h = sum_j alpha_j k(c_j, .)`` from the computed Gram matrix ``K`` of the centres
+    (``|K - K_exact| <= rel K_exact`` entrywise, :func:`robust_imdp._kernels.se_kernel_with_error`), rounded up.
+
+    ``||h||^2 = alpha^T K_exact alpha``. With ``r = rel / (1 - rel)``, ``|K - K_exact| <= r K`` (K >= 0), so
+    ``|alpha^T (K - K_exact) alpha| <= r A`` with ``A = |alpha|^T K |alpha|``; the two inner products of the
+    computed ``q = alpha . (K alpha)`` are off by at most ``(2 gamma_c + gamma_c^2) A <= gamma_{2c+2} A``
+    (Higham, ASNA, eq. 3.5). Hence ``||h||^2 <= q + (gamma_{2c+2} + r) A``, A rounded up.
+    """
+    c = alpha.size
+    if c == 0:
+        return 0.0
+    r = float(_up_rounded(rel / (1.0 - rel), 3))
+    aa = np.abs(alpha)
+    A = float(_up_rounded(aa @ (K @ aa), 2 * c))  # non-negative terms: 2c roundings in sequence at most
+    q = float(alpha @ (K @ alpha))
+    sq = float(_up(q, float(_up_rounded((_gamma(2 * c + 2) + r) * A, 2))))
+    return float(_up(math.sqrt(max(sq, 0.0))))  # sqrt is correctly rounded: one ulp up bounds it
+
+
+def _residual_upper(Kx, rel: float, alpha, y) -> np.ndarray:
+    """Eq. R: upper bounds of ``|h(x_i) - y_i|`` from the computed kernel values ``Kx`` (p, c) between the
+    points and the centres (``|Kx - Kx_exact| <= rel Kx_exact``).
+
+    ``h(x_i) = (Kx_exact alpha)_i``; the computed ``v = Kx alpha`` is within ``(gamma_c + r) (Kx |alpha|)_i``
+    of it (the inner product's rounding, ASNA eq. 3.5, and the kernel values' error, ``r = rel / (1 - rel)``),
+    and ``fl(v_i - y_i)`` is within one rounding of ``v_i - y_i``.
+    """
+    y = np.asarray(y, float)
+    if alpha.size == 0:
+        return np.abs(y)  # h = 0: |y_i| is exact
+    c = alpha.size
+    r = float(_up_rounded(rel / (1.0 - rel), 3))
+    spread = _up_rounded(Kx @ np.abs(alpha), c)
+    err = _up_rounded((_gamma(c) + r) * spread, 2)
+    return _up(_up_rounded(np.abs(Kx @ alpha - y), 1), err)
+
+
+def witness_norm_upper(centres, alpha, lengthscale) -> float:
+    """Certified upper bound of the RKHS norm of ``sum_j alpha_j k(c_j, .)`` (eq. N)."""
+    from robust_imdp._kernels import check_lengthscale, se_kernel_with_error
+
+    centres = np.ascontiguousarray(centres, float)
+    alpha = np.ascontiguousarray(alpha, float)
+    if alpha.size == 0:
+        return 0.0
+    K, rel = se_kernel_with_error(centres, centres, check_lengthscale(lengthscale, centres.shape[1]))
+    return _norm_upper(K, rel, alpha)
+
+
+def witness_residuals(witness: Witness, X, y) -> np.ndarray:
+    """(m,) certified upper bounds of ``|h(x_i) - y_i|`` of the witness at the points ``X`` (eq. R).
+
+    Raises ``InvalidInputError`` (from ``se_kernel_with_error``) for points more than ~37 lengthscales
+    from a centre."""
+    from robust_imdp._kernels import se_kernel_with_error
+
+    X = np.ascontiguousarray(X, float).reshape(-1, witness.lengthscale.size)
+    if witness.alpha.size == 0 or X.shape[0] == 0:
+        return np.abs(np.asarray(y, float))
+    Kx, rel = se_kernel_with_error(X, witness.centres, witness.lengthscale)
+    return _residual_upper(Kx, rel, witness.alpha, y)
+
+
+def witness_fits(witness: Witness, X, y, noise_bound: float, misspecification: float = 0.0) -> bool:
+    """True when the witness fits every ``(X_i, y_i)`` within the check's allowance ``dbar' >= noise_bound +
+    tau`` (:func:`data_allowance`: the same float as :func:`min_rkhs_norm`'s)."""
+    dbar = data_allowance(noise_bound, misspecification)
+    return bool(np.all(witness_residuals(witness, X, y) <= dbar))
+
+
+def fit_witness(X, y, lengthscale, noise_bound: float, misspecification: float, rkhs_bound: float, *,
+                socp: bool = True):
+    """A :class:`Witness` with ``norm_upper <= rkhs_bound`` fitting every point within the allowance, or None.
+
+    Kernel-ridge fits ``alpha = (K + lambda I)^{-1} y`` (centres: the points, or an evenly spaced subset of
+    :data:`WITNESS_CENTRES` of them with the normal equations ``(K_cx K_xc + lambda K_cc) alpha = K_cx y``),
+    for the ridge parameters of :data:`WITNESS_RIDGES`, largest first; the first whose certified norm
+    (eq. N) and residuals at *every* point (eq. R) pass is returned. If none does (a ridge fit needs a
+    larger norm than the minimum to meet every constraint) and ``socp`` (at most :data:`WITNESS_CENTRES`
+    points), the minimum-norm function within ``WITNESS_SOCP_SHRINK dbar'`` (one SOCP). The fits are
+    heuristics; only the certified checks decide. None also for points too far apart for the certified
+    kernel (the caller then runs the full check).
+    """
+    from robust_imdp._kernels import check_lengthscale, se_kernel_with_error
+    from robust_imdp.errors import InvalidInputError
+
+    X = np.ascontiguousarray(X, float)
+    y = np.ascontiguousarray(y, float)
+    ls = check_lengthscale(lengthscale, X.shape[1])
+    dbar = data_allowance(noise_bound, misspecification)
+    m = X.shape[0]
+    if m == 0 or float(rkhs_bound) <= 0.0 or np.all(np.abs(y) <= dbar):  # h = 0 fits: norm 0
+        zero = Witness(np.zeros((0, X.shape[1])), np.zeros(0), ls, 0.0)
+        return zero if np.all(np.abs(y) <= dbar) else None
+    pick = np.arange(m) if m <= WITNESS_CENTRES else np.unique(np.linspace(0, m - 1, WITNESS_CENTRES).round().astype(int))
+    C = X[pick]
+    try:
+        Kx, rel_x = se_kernel_with_error(X, C, ls)
+        Kc, rel_c = (Kx, rel_x) if pick.size == m else se_kernel_with_error(C, C, ls)
+    except InvalidInputError:
+        return None
+    c = pick.size
+    for lam in WITNESS_RIDGES:
+        try:
+            if c == m:
+                alpha = np.linalg.solve(Kc + lam * np.eye(c), y)
+            else:
+                alpha = np.linalg.solve(Kx.T @ Kx + lam * Kc + 1e-12 * np.eye(c), Kx.T @ y)
+        except np.linalg.LinAlgError:
+            continue
+        if not np.all(np.isfinite(alpha)):
+            continue
+        norm = _norm_upper(Kc, rel_c, alpha)
+        if norm <= float(rkhs_bound) and np.all(_residual_upper(Kx, rel_x, alpha, y) <= dbar):
+            return Witness(np.ascontiguousarray(C), alpha, ls, norm)
+    if socp and c == m and m >= 2:
+        # The minimum-norm function within WITNESS_SOCP_SHRINK dbar' (solvers.lp.rkhs_min_norm_socp): by the
+        # SOCP's stationarity, beta = ||beta|| M^T w, so h = sum_i alpha_i k(x_i, .) with alpha = value * w
+        # (w: its dual weights). It meets its constraints only to the solver's accuracy, hence the margin;
+        # eqs. N and R decide, as for the ridge fits.
+        from robust_imdp.solvers.lp import rkhs_min_norm_socp
+
+        w, value = rkhs_min_norm_socp(Kc, y, WITNESS_SOCP_SHRINK * dbar)
+        alpha = float(value) * np.asarray(w, float)
+        if np.isfinite(value) and np.all(np.isfinite(alpha)):
+            norm = _norm_upper(Kc, rel_c, alpha)
+            if norm <= float(rkhs_bound) and np.all(_residual_upper(Kx, rel_x, alpha, y) <= dbar):
+                return Witness(np.ascontiguousarray(C), alpha, ls, norm)
+    return None
