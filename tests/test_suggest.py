@@ -179,3 +179,26 @@ rkhs_bound = 0.3
 lengthscale = 1.0
 misspecification = 0.001
 """
+
+
+def test_site_subset_keeps_the_full_gain_algebra(starved, monkeypatch):
+    # With every candidate a site the block algorithm is the full-matrix one: the same requests as with a
+    # site limit above the candidates; with fewer sites every request is one of the kept sites and the
+    # block's rank-one updates equal the posterior recomputed with the requested points (eq. S1).
+    all_sites = sg.suggest_samples(starved, 5)
+    monkeypatch.setattr(sg, "MAX_SITES", 10 ** 6)
+    assert [(r.cell, r.mode) for r in sg.suggest_samples(starved, 5)] == [(r.cell, r.mode) for r in all_sites]
+    cells, weights, _ = sg._candidates(starved)
+    monkeypatch.setattr(sg, "MAX_SITES", max(2, cells.size // 4))
+    few = sg.suggest_samples(starved, 5)
+    assert len(few) == 5 and len({(r.cell, r.mode) for r in few}) == 5
+    rng = np.random.default_rng(3)
+    data, cand = rng.uniform(0, 2, (15, 2)), rng.uniform(0, 2, (12, 2))
+    inv_l2, lam, sites = np.array([1.0, 4.0]), 1e-3, np.array([1, 5, 8])
+    S, p = sg._posterior_block(cand, data, inv_l2, lam, sites)
+    full = sg._posterior_cov(cand, data, inv_l2, lam)
+    assert np.max(np.abs(S - full[:, sites])) < 1e-12 and np.max(np.abs(p - np.diag(full))) < 1e-12
+    c = 1  # site 5
+    S1 = S - np.outer(S[:, c], S[5, :]) / (S[5, c] + lam)  # row 5: Sigma(site 5, sites)
+    again = sg._posterior_cov(cand, np.vstack([data, cand[5:6]]), inv_l2, lam)
+    assert np.max(np.abs(S1 - again[:, sites])) < 1e-9  # float64 Cholesky, condition ~1e5: as above

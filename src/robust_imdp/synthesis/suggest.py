@@ -39,6 +39,10 @@ __all__ = ["SampleRequest", "suggest_samples", "write_requests", "power_function
 MAX_POINTS = 2000
 #: Largest number of candidate cells (those with the largest weights are kept).
 MAX_CANDIDATES = 3000
+#: Largest number of candidate *sites* (cells whose centre may be requested): the candidates with the
+#: largest weighted RKHS term ``w B sqrt(P)`` at their centre. The gains are still summed over every
+#: candidate cell; the greedy step costs O(candidates x sites) instead of O(candidates^2).
+MAX_SITES = 500
 #: Weight of a mode other than the strategy's in an undecided cell, and of a reached cell.
 OTHER_MODE_WEIGHT = 0.5
 REACHED_WEIGHT = 0.5
@@ -85,6 +89,18 @@ def _posterior_cov(points: np.ndarray, data: np.ndarray, inv_l2: np.ndarray, lam
         return K_cc
     V = _whitened(points, data, inv_l2, lam)
     return K_cc - V.T @ V
+
+
+def _posterior_block(points: np.ndarray, data: np.ndarray, inv_l2: np.ndarray, lam: float, sites=None):
+    """``(Sigma[:, sites], diag Sigma)``: the columns of :func:`_posterior_cov` at the points ``sites``
+    indexes (default all) and its diagonal over all points (``k(x, x) = 1``)."""
+    cols = points if sites is None else points[sites]
+    K_cs = se_gram(points, cols, inv_l2)
+    if data.shape[0] == 0:
+        return K_cs, np.ones(points.shape[0])
+    V = _whitened(points, data, inv_l2, lam)
+    Vs = V if sites is None else V[:, sites]
+    return K_cs - V.T @ Vs, 1.0 - np.sum(V * V, axis=0)
 
 
 def power_function(points: np.ndarray, data: np.ndarray, inv_l2: np.ndarray, lam: float,
@@ -176,36 +192,54 @@ def suggest_samples(result, n: int, *, data_points=None) -> list:
     centres = 0.5 * (np.asarray(part.cells_lower)[cells] + np.asarray(part.cells_upper)[cells])
     B, inv_l2, floor = _assumption(problem)
     modes = problem.mode_names
-    sig, lam = [], []
+    xs, lam = [], []
     for u in range(len(modes)):
         x = np.asarray(problem.data.by_mode(u)[0], float)
         if x.shape[0] > MAX_POINTS:
             x = x[evenly_spaced(x.shape[0], MAX_POINTS)]
+        xs.append(x)
         lam.append(max((floor[u] / B[u]) ** 2, 1e-10) if B[u] > 0 else 1.0)
-        sig.append(_posterior_cov(centres, x, inv_l2[u], lam[-1]))
+    sites = None
+    if cells.size > MAX_SITES:  # the sites with the largest weighted RKHS term at their centre
+        score = np.zeros(cells.size)
+        for u in range(len(modes)):
+            if B[u] > 0:
+                P = power_function(centres, xs[u], inv_l2[u], lam[u])
+                score = np.maximum(score, weights[u] * B[u] * np.sqrt(P))
+        sites = np.sort(np.argsort(-score, kind="stable")[:MAX_SITES])
+    site_index = np.arange(cells.size) if sites is None else sites
+    sig, var = [], []
+    for u in range(len(modes)):
+        S, p = _posterior_block(centres, xs[u], inv_l2[u], lam[u], sites)
+        sig.append(S)
+        var.append(p)
     out = []
     for _ in range(int(n)):
         best = None
         for u in range(len(modes)):
             if B[u] <= 0 or not np.any(weights[u] > 0):
                 continue
-            S = sig[u]
-            p = np.maximum(np.diag(S), 0.0)
-            drop = S * S / (p[None, :] + lam[u])  # drop[q, c]: decrease of P(q) from a sample at c (eq. S1)
+            S = sig[u]  # (candidates, sites)
+            p = np.maximum(var[u], 0.0)
+            ps = p[site_index]
+            drop = S * S / (ps[None, :] + lam[u])  # drop[q, c]: decrease of P(q) from a sample at site c (eq. S1)
             change = B[u] * (np.sqrt(p)[:, None] - np.sqrt(np.maximum(p[:, None] - drop, 0.0)))  # (eq. S2)
             gain = weights[u] @ change
             c = int(np.argmax(gain))
             if best is None or gain[c] > best[0]:
-                best = (float(gain[c]), u, c, float(change[c, c]))
+                best = (float(gain[c]), u, c, float(change[site_index[c], c]))
         if best is None or best[0] <= 0:
             break
         g, u, c, own = best
-        q = int(cells[c])
-        out.append(SampleRequest(x=centres[c].copy(), mode=str(modes[u]), cell=q,
+        k = int(site_index[c])  # the site's index among the candidates
+        q = int(cells[k])
+        out.append(SampleRequest(x=centres[k].copy(), mode=str(modes[u]), cell=q,
                                  reason=reason.get(q, "undecided (Q_?)"), radius_change=own, gain=g))
         S = sig[u]
-        col = S[:, c].copy()
-        sig[u] = S - np.outer(col, col) / (col[c] + lam[u])  # the request's sample joins the data (eq. S1)
+        col = S[:, c].copy()  # Sigma(., site): the request's sample joins the data (eq. S1)
+        denom = col[k] + lam[u]
+        sig[u] = S - np.outer(col, col[site_index]) / denom
+        var[u] = var[u] - col * col / denom
     return out
 
 
