@@ -2,4 +2,4 @@
 
 from robust_imdp._lazy import exports
 
-__getattr__, __dir__ = exports(__name__, ["systems", "certificate"])
+__getattr__, __dir__ = exports(__name__, ["vehicle", "systems", "certificate"])
