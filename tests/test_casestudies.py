@@ -89,6 +89,8 @@ def sampled(request):
 def test_g_terms_are_the_unknown_part(name):
     """The separable form g_terms sums to g at random points (so the boxes bound the real g)."""
     system = true_system(name)
+    if system.g_terms is None:  # vehicle_4d: own exact boxes (tests/test_vehicle.py), no separable form
+        pytest.skip(f"{name} has no separable form g_terms")
     n = len(system.sigma)
     rng = np.random.default_rng(0)
     x = rng.uniform(-5.0, 5.0, (1000, n))

@@ -28,6 +28,7 @@ from typing import Callable
 
 import numpy as np
 
+from robust_imdp.casestudies import vehicle as _vehicle
 from robust_imdp.errors import DimensionError, InvalidInputError
 
 __all__ = ["TrueSystem", "CaseStudy", "CASE_STUDIES", "get_case_study", "true_system",
@@ -416,7 +417,10 @@ _UNICYCLE_KNOWN = CaseStudy(
     periodic=(False, False, True),
 )
 
-CASE_STUDIES = {c.name: c for c in (_THREE, _FOUR, _UNICYCLE, _UNICYCLE_KNOWN)}
+# The 4-D vehicle (casestudies/vehicle.py: its true system has its own exact image boxes, no g_terms).
+_VEHICLE = CaseStudy(system=_vehicle.VEHICLE, **_vehicle.VEHICLE_CASE)
+
+CASE_STUDIES = {c.name: c for c in (_THREE, _FOUR, _UNICYCLE, _UNICYCLE_KNOWN, _VEHICLE)}
 
 
 def get_case_study(name: str) -> CaseStudy:
