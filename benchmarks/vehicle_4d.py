@@ -178,10 +178,13 @@ def _ratios(rows: list) -> None:
 def projection(rows: list, targets=(20, 30), workers=(1, 2, 16, 64)) -> list:
     """Per-cell cost of each stage of the largest learned row, scaled to ``targets`` cells per axis.
 
-    Linear in the number of cells for the bound and abstraction stages (independent per cell, so they
-    split over Dask workers); the solve is taken as linear in the stored transitions (value iteration
-    sweeps; the iteration count grows with the grid's diameter, so this is a lower estimate) and is not
-    split (one process). Transitions per cell are taken from the measured row.
+    The per-cell costs are those of this machine (2 cores, numba threads on both), so one "worker"
+    below is one such 2-core machine. Linear in the number of cells for the bound and abstraction
+    stages (independent per cell, so they split over Dask workers); the check (per mode and component,
+    on the data) does not grow with the grid; the solve is taken as linear in the stored transitions
+    times the grid's diameter (value-iteration sweeps x iterations) and is not split (one process).
+    Transitions per cell are taken from the measured row: a lower estimate, since an image spans more
+    cells of a finer grid (the cell shrinks, the image's spread from heading and speed does not).
     """
     learned = [r for r in rows if r.get("name") == "learned" and "stage_times_s" in r]
     if not learned:
@@ -195,6 +198,7 @@ def projection(rows: list, targets=(20, 30), workers=(1, 2, 16, 64)) -> list:
         m = k ** 4
         # the finer grid: fewer successors per row (images span fewer cells) is not assumed
         base = {s: per_cell[s] * m for s in STAGES}
+        base["check"] = r["stage_times_s"].get("check", 0.0)  # on the data, not on the cells
         scale = k / r["cells_per_axis"]  # value iteration: iterations ~ grid diameter
         base["synthesize"] *= scale
         entry = {"cells_per_axis": k, "n_cells": m, "from_cells_per_axis": r["cells_per_axis"],
@@ -245,8 +249,10 @@ def write_md(path: Path, data: dict) -> None:
     if proj:
         lines += ["", f"## Projection (from the measured per-cell costs of the {proj[0]['from_cells_per_axis']}^4 "
                   "learned row)", "",
-                  "Bound and abstraction split over Dask workers (independent per cell); check and solve do not "
-                  "(solve scaled by transitions x grid diameter). Per-cell costs as measured on the shared machine.", "",
+                  "A worker is one 2-core machine like this one (the per-cell costs were measured with numba threads on "
+                  "both cores). Bound and abstraction split over Dask workers (independent per cell); the check (on the "
+                  "data) and the solve (one process; scaled by transitions x grid diameter) do not. Transitions per "
+                  "cell as measured: a lower estimate, since an image spans more cells of a finer grid.", "",
                   "| grid | cells | transitions | IMDP GB | workers | check s | bound s | abstraction s | solve s | total s |",
                   "|---|---|---|---|---|---|---|---|---|---|"]
         for e in proj:
@@ -270,7 +276,7 @@ def _git_commit():
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cells", type=int, nargs="+", default=[8, 16], help="cells per axis (grids k^4)")
+    ap.add_argument("--cells", type=int, nargs="+", default=[16, 20], help="cells per axis (grids k^4)")
     ap.add_argument("--rows", nargs="+", default=list(ROWS), choices=ROWS)
     ap.add_argument("--mc-cells", type=int, default=1000, help="cells of the Monte-Carlo check (0: none)")
     ap.add_argument("--n-per-cell", type=int, default=4, help="Monte-Carlo runs per cell")
