@@ -240,3 +240,39 @@ def test_pipeline_end_to_end_small_grid(tmp_path):
     rep = validate(result, VEHICLE, n_per_cell=20, max_steps=200, rng=0,
                    cells=np.random.default_rng(0).choice(256, 100, replace=False))
     assert rep.passed
+
+
+def test_shipped_drag_assumption_is_honest():
+    """The case study's assumption for v (SE kernel, lengthscale (100, 100, 100, 0.5), B = 0.5, tau = 0.001)
+    holds for the true drag g(x) = -c v|v|: h(x) = sum_j alpha_j k(x, z_j) with centres z_j = (2, 2, 0, v_j)
+    has a certified norm (certificate.rkhs_norm_upper) <= 0.5 and sup_X |g - h| <= 0.001.
+
+    Sup error: h(x) = phi(p, theta) h_v(v), phi = exp(-((p_x-2)^2 + (p_y-2)^2 + theta^2) / (2 100^2)) in
+    [phi_min, 1] over X, so |g - h| <= |g - h_v| + (1 - phi_min) |h_v|. On v in [0, 0.8], |g - h_v| is bounded
+    from a grid of spacing s: between grid points e = g - h_v with |e''| <= M is within M s^2 / 8 of the larger
+    end value, M = 2c + sum_j |alpha_j| / l^2 (|k''| <= 1/l^2 for the SE kernel). Float error of the
+    evaluation (< 1e-12 here) is covered by adding 1e-9."""
+    from robust_imdp.casestudies.certificate import rkhs_norm_upper
+
+    ls = np.array([100.0, 100.0, 100.0, 0.5])
+    B, tau = VEHICLE_CASE["rkhs_bound"][3], VEHICLE_CASE["misspecification"]
+    assert tuple(VEHICLE_CASE["gp"][0][1]) == tuple(ls)
+    c, l_v = VEHICLE.drag, ls[3]
+    v_lo, v_hi = VEHICLE_CASE["lower"][3], VEHICLE_CASE["upper"][3]
+    z = np.linspace(v_lo - 0.05, v_hi + 0.05, 20)
+    K = np.exp(-(z[:, None] - z[None, :]) ** 2 / (2 * l_v ** 2))
+    alpha = np.linalg.solve(K + 1e-4 * np.eye(20), -c * z * np.abs(z))  # a proposal; certified below
+    centres = np.column_stack([np.full(20, 2.0), np.full(20, 2.0), np.zeros(20), z])
+    norm = rkhs_norm_upper(centres, alpha, ls)
+    s = 1e-5
+    v = np.linspace(v_lo, v_hi, int(round((v_hi - v_lo) / s)) + 1)
+    h_v = np.exp(-(v[:, None] - z[None, :]) ** 2 / (2 * l_v ** 2)) @ alpha
+    e = np.abs(-c * v * np.abs(v) - h_v)
+    M = 2 * c + np.sum(np.abs(alpha)) / l_v ** 2
+    sup_e = e.max() + M * s ** 2 / 8 + 1e-9
+    L, U = np.array(VEHICLE_CASE["lower"]), np.array(VEHICLE_CASE["upper"])
+    far = max(2.0 - L[0], U[0] - 2.0) ** 2 + max(2.0 - L[1], U[1] - 2.0) ** 2 + max(-L[2], U[2]) ** 2
+    phi_min = np.exp(-far / (2 * 100.0 ** 2))
+    sup_err = sup_e + (1 - phi_min) * np.abs(h_v).max() * (1 + 1e-9)
+    assert norm <= B and sup_err <= tau, (norm, sup_err)
+    assert norm > 0.2  # the fit is not trivial (||g|| is of this size): 0.2 < ~0.32 <= B = 0.5
