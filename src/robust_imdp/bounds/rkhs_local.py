@@ -9,7 +9,8 @@ import numpy as np
 
 from robust_imdp._fp import U as _U, up as _up
 from robust_imdp._kernels import inv_l2_up as _inv_l2, kernel_matrix as _kernel_matrix, kernel_rel_err_nb as _kernel_rel_err_nb, norm_inflation as _norm_inflation
-from robust_imdp.bounds.rkhs_model import (CELL_BLOCK, _blocks, _certified_norms, _certified_value, _certify, _check_cells,
+from robust_imdp.bounds.rkhs_model import (CELL_BLOCK, _blocks, _certified_norms, _certified_value, _certify, _certify_parts,
+                                           _check_cells, _weight_parts,
                                            _combine_vertices, _known_at_vertices, _vertex_b, _writable, cell_centres,
                                            split_counts, sub_boxes, vertex_signs)
 from robust_imdp.bounds.rkhs_weights import METHODS, _active_set, _chol_factor, _chol_solve
@@ -17,9 +18,120 @@ from robust_imdp.errors import InvalidInputError
 
 
 
+@numba.njit(cache=True)
+def _local_group_optimal(Xp, Yp, inv_l2, c, r, signs, q0, q1, lin, Kp, K_err, a1, G, max_iter, tol, S, sg, ws, nS,
+                         bidx, bw, Pw, Lw, val, sup):  # pragma: no cover - compiled
+    """Optimal local weights for the sub-boxes ``q0 .. q1-1`` of one cell (one pool), into ``val``/``sup``.
+
+    Per output and side: every vertex of every sub-box first gets the certified value of the last
+    weights found (none at first: ``w = 0``); sub-boxes are visited in the order of their best vertex
+    ``side (lin + value)``, and a sub-box or vertex whose value cannot exceed the best optimised vertex
+    so far keeps it (the cell's bound is the maximum over its sub-boxes and their vertices, eq. C on
+    each sub-box; any certified value is sound). The others get active-set weights (warm-started)
+    through the one certified evaluator, never worse than their previous value.
+    """
+    nbox = q1 - q0
+    V, d = signs.shape
+    k = Xp.shape[0]
+    n_out = Yp.shape[1]
+    Bg = np.empty((nbox, V, k))
+    EBg = np.empty((nbox, V, k))
+    s0g = np.empty((nbox, V))
+    v = np.empty(d)
+    for j in range(nbox):
+        for jv in range(V):
+            for a in range(d):
+                v[a] = signs[jv, a] * r[q0 + j, a]
+            z = _vertex_b(Xp, inv_l2, c[q0 + j], v, Bg[j, jv], EBg[j, jv])
+            kerr = _kernel_rel_err_nb(z, d)
+            for i in range(k):
+                EBg[j, jv, i] += abs(Bg[j, jv, i]) * kerr
+            t = 1.0
+            for a in range(d):
+                t += v[a] * v[a] * inv_l2[a]
+            s0g[j, jv] = t * (1.0 + (d + 8) * 2.220446049250313e-16)  # upper bound of <phi_v, phi_v>
+    ys = np.empty(k)
+    yo = np.empty(k)
+    lastS = np.zeros(k, dtype=np.int64)
+    lastw = np.zeros(k)
+    lastp = np.zeros(4)  # _weight_parts of the last weights
+    zero = np.zeros(4)
+    cheap = np.empty((nbox, V))
+    key = np.empty(nbox)
+    for o in range(n_out):
+        for i in range(k):
+            yo[i] = Yp[i, o]
+        for sd in range(2):
+            sgn = 1.0 if sd == 0 else -1.0
+            for i in range(k):
+                ys[i] = sgn * yo[i]
+            lastn = 0
+            lastp[:] = 0.0  # the parts of w = 0 (they must always be those of lastS, lastw, lastn)
+            for j in range(nbox):
+                top = -np.inf
+                for jv in range(V):
+                    cheap[j, jv] = _certify_parts(lastS, lastw, 0, yo, Bg[j, jv], EBg[j, jv], K_err, s0g[j, jv],
+                                                  a1[o], 0.0, G, sgn, zero)[0]
+                    if sgn * (lin[q0 + j, jv, o] + cheap[j, jv]) > top:
+                        top = sgn * (lin[q0 + j, jv, o] + cheap[j, jv])
+                key[j] = -top
+            border = np.argsort(key)
+            best = -np.inf
+            for jj in range(nbox):
+                j = border[jj]
+                qb = q0 + j
+                if best > -np.inf:
+                    top = -np.inf
+                    for jv in range(V):
+                        if sgn * (lin[qb, jv, o] + cheap[j, jv]) > top:
+                            top = sgn * (lin[qb, jv, o] + cheap[j, jv])
+                    if top <= best:  # no vertex of this sub-box can move the cell's bound
+                        for jv in range(V):
+                            val[qb, jv, o, sd] = cheap[j, jv]
+                            sup[qb, jv, o, sd] = 0
+                        continue
+                for jv in range(V):
+                    cv0 = _certify_parts(lastS, lastw, lastn, yo, Bg[j, jv], EBg[j, jv], K_err, s0g[j, jv], a1[o],
+                                         0.0, G, sgn, lastp)[0]
+                    if sgn * cv0 < sgn * cheap[j, jv]:
+                        cheap[j, jv] = cv0
+                order = np.argsort(-sgn * (lin[qb, :, o] + cheap[j]))
+                for kk in range(V):
+                    jv = order[kk]
+                    if best > -np.inf and sgn * (lin[qb, jv, o] + cheap[j, jv]) <= best:
+                        val[qb, jv, o, sd] = cheap[j, jv]
+                        sup[qb, jv, o, sd] = lastn
+                        continue
+                    res = _active_set(Kp, ys, Bg[j, jv], s0g[j, jv], a1[o], G, S[o, sd], sg[o, sd], ws[o, sd],
+                                      nS[o, sd], k, max_iter, tol, bidx, bw, Pw, Lw)
+                    nS[o, sd] = res[0] if (res[3] != 2 and res[3] != 3) else 0
+                    nb = res[1]
+                    # eq. W for the active-set weights (the one certified evaluator), or the previous value
+                    lastp[0], lastp[1], lastp[2], lastp[3] = _weight_parts(bidx, bw, nb, Kp)
+                    cv = _certify_parts(bidx, bw, nb, yo, Bg[j, jv], EBg[j, jv], K_err, s0g[j, jv], a1[o], 0.0, G, sgn,
+                                        lastp)[0]
+                    if sgn * cv > sgn * cheap[j, jv]:
+                        cv = cheap[j, jv]
+                    val[qb, jv, o, sd] = cv
+                    sup[qb, jv, o, sd] = nb
+                    if sgn * (lin[qb, jv, o] + cv) > best:
+                        best = sgn * (lin[qb, jv, o] + cv)
+                    lastn = nb
+                    for p in range(nb):
+                        lastS[p] = bidx[p]
+                        lastw[p] = bw[p]
+                    for k2 in range(kk + 1, V):  # the new weights certify the box's other vertices too
+                        j2 = order[k2]
+                        c2 = _certify_parts(lastS, lastw, lastn, yo, Bg[j, j2], EBg[j, j2], K_err, s0g[j, j2], a1[o],
+                                            0.0, G, sgn, lastp)[0]
+                        if sgn * c2 < sgn * cheap[j, j2]:
+                            cheap[j, j2] = c2
+
+
 # ============================================================================ local weights
 @numba.njit(cache=True, parallel=True)
-def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_iter, tol, ptr, group):  # pragma: no cover
+def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_iter, tol, ptr, group,
+                 lin):  # pragma: no cover
     """Certified bounds of ``<h, phi_v>`` (eq. W) with weights on each cell's pool of data points.
 
     ``pools[q]`` are the data points allowed to carry weight for cell q (any weights are sound;
@@ -27,9 +139,11 @@ def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_
     per cell, the same weights for every output: the radius does not involve y), or with
     ``optimal`` the active-set weights per output and side (warm-started across the cell's
     vertices). Consecutive boxes of the same ``group`` (the sub-boxes of one cell) share its pool:
-    one kernel matrix and factorisation, and the warm starts run on through them. Boxes
-    ``ptr[j] .. ptr[j+1]-1`` form one parallel work unit. Returns ``val (n, V, n_out, 2)``
-    (side 0 upper, 1 lower) and the support sizes.
+    one kernel matrix and factorisation, and the warm starts run on through them; with ``optimal``
+    they are pruned as in ``rkhs_weights._optimal_cells`` (:func:`_local_group_optimal`, using
+    ``lin (n, V, n_out)``, the float known part at the vertices). Boxes ``ptr[j] .. ptr[j+1]-1``
+    form one parallel work unit. Returns ``val (n, V, n_out, 2)`` (side 0 upper, 1 lower) and the
+    support sizes.
     """
     n, d = c.shape
     V = signs.shape[0]
@@ -59,7 +173,10 @@ def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_
         Kp = np.empty((k, k))
         K_err = 0.0
         ok = True
+        done_to = -1
         for q in range(ptr[ch], ptr[ch + 1]):
+            if q < done_to:  # a sub-box already bounded with its group
+                continue
             if not (q == ptr[ch] or group[q] != group[q - 1]):
                 pass  # the same pool as the previous box: keep its kernel matrix, factor and warm starts
             else:
@@ -76,6 +193,15 @@ def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_
                 for o in range(n_out):
                     for sd in range(2):
                         nS[o, sd] = 0  # a new pool: restart the warm starts
+                if optimal:
+                    q1 = q + 1
+                    while q1 < ptr[ch + 1] and group[q1] == group[q]:
+                        q1 += 1
+                    if q1 - q > 1:  # the sub-boxes of one cell: bounded together, pruned
+                        _local_group_optimal(Xp, Yp, inv_l2, c, r, signs, q, q1, lin, Kp, K_err, a1, G, max_iter, tol,
+                                             S, sg, ws, nS, bidx, bw, Pw, Lw, val, sup)
+                        done_to = q1
+                        continue
             for jv in range(V):
                 for a in range(d):
                     v[a] = signs[jv, a] * r[q, a]
@@ -166,7 +292,8 @@ def local_lambda(X, cells_lower, cells_upper, *, lengthscale, rkhs_bound: float,
     for lam in LOCAL_LAMBDAS:
         one = np.arange(c.shape[0], dtype=np.int64)
         val, _ = _local_cells(X, zeros, inv_l2, c, r, signs, pools, lam, np.array([noise_l1]), np.array([noise_l2]),
-                              float(rkhs_bound), False, 0, 0.0, _blocks(c.shape[0], one, c.shape[0], CELL_BLOCK), one)
+                              float(rkhs_bound), False, 0, 0.0, _blocks(c.shape[0], one, c.shape[0], CELL_BLOCK), one,
+                              np.zeros((c.shape[0], signs.shape[0], 1)))
         radius = float(np.median(val[:, :, 0, 0]))  # y = 0: the certified value is the radius
         if radius < best:
             best, best_lam = radius, lam
@@ -203,23 +330,25 @@ def _local_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_boun
         parent = np.arange(n_cells, dtype=np.int64)
         starts = parent
     ptr = _blocks(n_cells, starts, c.shape[0], CELL_BLOCK)
+    A = np.asarray(A, float)
+    b = np.asarray(b, float)
+    known = [_known_at_vertices(c, r, signs, A[i], float(b[i])) for i in range(n)]  # (lin_v, lin_err) per output
+    lin = np.ascontiguousarray(np.stack([kv[0] for kv in known], axis=-1))  # (N, V, n): orders and prunes only
     val, sup = _local_cells(X, Y, inv_l2, c, r, signs, pools, float(lam or 0.0), np.ascontiguousarray(dbar),
-                            np.zeros(n), G_eff, method == "optimal", 2000, 1e-9, ptr, parent)
+                            np.zeros(n), G_eff, method == "optimal", 2000, 1e-9, ptr, parent, lin)
     if iid_factor is not None:
         th = np.broadcast_to(np.asarray(iid_theta, float), (n,))
         a2 = _up(float(iid_factor) * th * (1 + 4 * _U))
         lam2 = local_lambda(X, lower, upper, lengthscale=lengthscale, rkhs_bound=rkhs_bound, noise_l1=tau,
                             noise_l2=float(a2.max()), k=k)
         iv, _ = _local_cells(X, Y, inv_l2, c, r, signs, pools, lam2, np.full(n, tau), np.ascontiguousarray(a2),
-                             G_eff, False, 0, 0.0, ptr, parent)
+                             G_eff, False, 0, 0.0, ptr, parent, lin)
         val[..., 0] = np.minimum(val[..., 0], iv[..., 0])  # both intervals hold: intersect
         val[..., 1] = np.maximum(val[..., 1], iv[..., 1])
     t_max = _up(np.sum(r * r * inv_l2, axis=1) * (1 + (d + 4) * _U))
-    A = np.asarray(A, float)
-    b = np.asarray(b, float)
     out = {key: np.empty((n_cells, n)) for key in ("lower", "upper", "eps")}
     for i in range(n):
-        lin_v, lin_err = _known_at_vertices(c, r, signs, A[i], float(b[i]))
+        lin_v, lin_err = known[i]
         su, sl = val[:, :, i, 0], val[:, :, i, 1]
         lo_i, up_i, taylor = _combine_vertices(lin_v, lin_err, su, sl, t_max, G_eff, tau)
         eps_i = np.max(0.5 * (su - sl), axis=1) + taylor

@@ -217,27 +217,19 @@ def vertex_problems(model: KernelModel, c, r, signs=None):
 
 # ============================================================================ certified evaluator
 @numba.njit(cache=True)
-def _certified_norms(idx, w, n, b, eb, K, K_err, s0):  # pragma: no cover - compiled
-    """Upper bounds of ``||w||_1``, ``||w||_2`` and ``||phi - Phi* w||`` (the y-free part of eq. W).
+def _weight_parts(idx, w, n, K):  # pragma: no cover - compiled
+    """The sums of (eq. W) that do not involve the functional: ``sum |w_i|``, ``sum w_i^2``, ``w.K w``
+    and ``sum |w_i| K_ij |w_j|`` (float, unrounded; :func:`_norms_from_parts` bounds their errors).
 
-    ``w`` is supported on ``idx[:n]``; ``b``/``eb`` are ``<k_{x_i}, phi>`` and their absolute
-    errors, ``K`` the kernel matrix with relative entry error ``K_err``, ``s0`` an upper bound
-    of ``<phi, phi>``.
+    One weight vector often certifies many functionals (the vertices of a cell, its sub-boxes): these
+    O(n^2) sums are then computed once.
     """
-    u = 1.1102230246251565e-16
     l1 = 0.0
     l2 = 0.0
-    bw = 0.0
-    bw_abs = 0.0
-    bw_err = 0.0
     for p in range(n):
-        i = idx[p]
         wi = w[p]
         l1 += abs(wi)
         l2 += wi * wi
-        bw += wi * b[i]
-        bw_abs += abs(wi * b[i])
-        bw_err += abs(wi) * eb[i]
     wKw = 0.0
     wKw_abs = 0.0
     for p in range(n):
@@ -250,6 +242,22 @@ def _certified_norms(idx, w, n, b, eb, K, K_err, s0):  # pragma: no cover - comp
             row_abs += kij * abs(w[q])
         wKw += w[p] * row
         wKw_abs += abs(w[p]) * row_abs
+    return l1, l2, wKw, wKw_abs
+
+
+@numba.njit(cache=True)
+def _norms_from_parts(idx, w, n, b, eb, K_err, s0, l1, l2, wKw, wKw_abs):  # pragma: no cover - compiled
+    """Upper bounds of ``||w||_1``, ``||w||_2`` and ``||phi - Phi* w||`` from :func:`_weight_parts`."""
+    u = 1.1102230246251565e-16
+    bw = 0.0
+    bw_abs = 0.0
+    bw_err = 0.0
+    for p in range(n):
+        i = idx[p]
+        wi = w[p]
+        bw += wi * b[i]
+        bw_abs += abs(wi * b[i])
+        bw_err += abs(wi) * eb[i]
     q2 = s0 - 2.0 * bw + wKw
     # Error of q2 against the exact <phi,phi> - 2 w.b + w.K w (exact b, K): summation
     # (2n + 6 terms deep, gamma bound on the sum of magnitudes), entry errors of b and K, and
@@ -267,6 +275,18 @@ def _certified_norms(idx, w, n, b, eb, K, K_err, s0):  # pragma: no cover - comp
     l1_up = l1 * (1.0 + g1) * (1.0 + 2.0 * u)
     l2_up = math.sqrt(l2 * (1.0 + g1)) * (1.0 + 2.0 * u)
     return l1_up, l2_up, r_up
+
+
+@numba.njit(cache=True)
+def _certified_norms(idx, w, n, b, eb, K, K_err, s0):  # pragma: no cover - compiled
+    """Upper bounds of ``||w||_1``, ``||w||_2`` and ``||phi - Phi* w||`` (the y-free part of eq. W).
+
+    ``w`` is supported on ``idx[:n]``; ``b``/``eb`` are ``<k_{x_i}, phi>`` and their absolute
+    errors, ``K`` the kernel matrix with relative entry error ``K_err``, ``s0`` an upper bound
+    of ``<phi, phi>``.
+    """
+    l1, l2, wKw, wKw_abs = _weight_parts(idx, w, n, K)
+    return _norms_from_parts(idx, w, n, b, eb, K_err, s0, l1, l2, wKw, wKw_abs)
 
 
 @numba.njit(cache=True)
@@ -297,6 +317,14 @@ def _certify(idx, w, n, y, b, eb, K, K_err, s0, a1, a2, G, side):  # pragma: no 
     the exact value for these weights, and the radius ``a1||w||_1 + a2||w||_2 + G r``.
     """
     l1_up, l2_up, r_up = _certified_norms(idx, w, n, b, eb, K, K_err, s0)
+    return _certified_value(idx, w, n, y, l1_up, l2_up, r_up, a1, a2, G, side)
+
+
+@numba.njit(cache=True)
+def _certify_parts(idx, w, n, y, b, eb, K_err, s0, a1, a2, G, side, parts):  # pragma: no cover - compiled
+    """:func:`_certify` with the weights' sums ``parts = _weight_parts(idx, w, n, K)`` computed once
+    (the same arithmetic, so the same bits)."""
+    l1_up, l2_up, r_up = _norms_from_parts(idx, w, n, b, eb, K_err, s0, parts[0], parts[1], parts[2], parts[3])
     return _certified_value(idx, w, n, y, l1_up, l2_up, r_up, a1, a2, G, side)
 
 

@@ -9,7 +9,7 @@ import numba
 import numpy as np
 
 from robust_imdp._kernels import kernel_rel_err_nb as _kernel_rel_err_nb
-from robust_imdp.bounds.rkhs_model import KernelModel, _certify, _vertex_b, vertex_problems
+from robust_imdp.bounds.rkhs_model import KernelModel, _certify, _certify_parts, _vertex_b, _weight_parts, vertex_problems
 
 #: Ways to choose the certificate weights (see ``bounds/rkhs.py``'s docstring, sections 1-3).
 METHODS = ("optimal", "ridge")
@@ -293,6 +293,18 @@ def optimal_weights(model: KernelModel, b, s0: float, *, noise: float, rkhs_boun
     return out, int(status)
 
 
+@numba.njit(cache=True)
+def _largest_group(group):  # pragma: no cover - compiled
+    """Length of the longest run of equal consecutive entries of ``group`` (most sub-boxes of one cell)."""
+    best = 1 if group.shape[0] > 0 else 0
+    run = 1
+    for q in range(1, group.shape[0]):
+        run = run + 1 if group[q] == group[q - 1] else 1
+        if run > best:
+            best = run
+    return best
+
+
 @numba.njit(cache=True, parallel=True)
 def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, tol, ptr, lin,
                    prune, group):  # pragma: no cover - compiled
@@ -304,9 +316,11 @@ def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, 
     so far keeps it (status 6): the cell's bound is a maximum (upper side) or a minimum (lower side)
     over vertices, so optimising it would not change the cell bound, and any certified value is
     sound. Consecutive boxes with the same ``group`` (the sub-boxes of one cell, whose bound is
-    the maximum over all of them) share that best value. Boxes ``ptr[j] .. ptr[j+1]-1`` form one
-    parallel work unit (warm starts run through it). Returns ``val (n, V, 2)`` (side 0: upper
-    bound, side 1: lower bound), ``support (n, V, 2)`` and ``status (n, V, 2)``.
+    the maximum over all of them) share that best value, and per side they are visited in the
+    order of their neighbour-weight values (largest first): the sub-box that decides the cell's
+    bound is optimised first and most of the others are pruned whole. Boxes ``ptr[j] .. ptr[j+1]-1``
+    form one parallel work unit (warm starts run through it). Returns ``val (n, V, 2)`` (side 0:
+    upper bound, side 1: lower bound), ``support (n, V, 2)`` and ``status (n, V, 2)``.
     """
     n, d = c.shape
     V = signs.shape[0]
@@ -315,6 +329,7 @@ def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, 
     sup = np.zeros((n, V, 2), dtype=np.int64)
     stat = np.zeros((n, V, 2), dtype=np.int64)
     n_chunks = ptr.shape[0] - 1
+    gmax = _largest_group(group)
     for ch in numba.prange(n_chunks):
         S = np.zeros((2, cap), dtype=np.int64)
         sg = np.zeros((2, cap))
@@ -323,75 +338,118 @@ def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, 
         lastS = np.zeros((2, cap), dtype=np.int64)
         lastw = np.zeros((2, cap))
         lastn = np.zeros(2, dtype=np.int64)
+        lastp = np.zeros((2, 4))  # _weight_parts of the last weights per side (w = 0: all zero)
+        newp = np.zeros(4)
         bidx = np.zeros(cap, dtype=np.int64)
         bw = np.zeros(cap)
         Pw = np.empty((cap, cap))  # workspaces of _active_set, once per chunk
         Lw = np.empty((cap, cap))
-        B = np.empty((V, m))
-        EB = np.empty((V, m))
-        s0 = np.empty(V)
-        cheap = np.empty(V)
+        B = np.empty((gmax, V, m))  # vertex functionals of every box of the current group
+        EB = np.empty((gmax, V, m))
+        s0 = np.empty((gmax, V))
+        cheap = np.empty((gmax, V))
+        key = np.empty(gmax)
+        border = np.zeros(gmax, dtype=np.int64)
         ys = np.empty(m)
         v = np.empty(d)
-        best_side = np.empty(2)
-        for q in range(ptr[ch], ptr[ch + 1]):
-            if q == ptr[ch] or group[q] != group[q - 1]:
-                best_side[0] = -np.inf
-                best_side[1] = -np.inf
-            for jv in range(V):
-                for a in range(d):
-                    v[a] = signs[jv, a] * r[q, a]
-                z = _vertex_b(X, inv_l2, c[q], v, B[jv], EB[jv])
-                kerr = _kernel_rel_err_nb(z, d)
-                for i in range(m):
-                    EB[jv, i] += abs(B[jv, i]) * kerr
-                t = 1.0
-                for a in range(d):
-                    t += v[a] * v[a] * inv_l2[a]
-                s0[jv] = t * (1.0 + (d + 8) * 2.220446049250313e-16)  # upper bound of <phi_v, phi_v>
+        q = ptr[ch]
+        while q < ptr[ch + 1]:
+            q1 = q + 1
+            while q1 < ptr[ch + 1] and group[q1] == group[q]:
+                q1 += 1
+            nbox = q1 - q
+            for j in range(nbox):
+                for jv in range(V):
+                    for a in range(d):
+                        v[a] = signs[jv, a] * r[q + j, a]
+                    z = _vertex_b(X, inv_l2, c[q + j], v, B[j, jv], EB[j, jv])
+                    kerr = _kernel_rel_err_nb(z, d)
+                    for i in range(m):
+                        EB[j, jv, i] += abs(B[j, jv, i]) * kerr
+                    t = 1.0
+                    for a in range(d):
+                        t += v[a] * v[a] * inv_l2[a]
+                    s0[j, jv] = t * (1.0 + (d + 8) * 2.220446049250313e-16)  # upper bound of <phi_v, phi_v>
             for side in range(2):
                 sgn = 1.0 if side == 0 else -1.0
                 for i in range(m):
                     ys[i] = sgn * y[i]
-                for jv in range(V):
-                    cheap[jv] = _certify(lastS[side], lastw[side], lastn[side], y, B[jv], EB[jv], K, K_err, s0[jv],
-                                         dbar, 0.0, G, sgn)[0]
-                order = np.argsort(-sgn * (lin[q] + cheap))
-                best = best_side[side]
-                for k in range(V):
-                    jv = order[k]
-                    if prune and best > -np.inf and sgn * (lin[q, jv] + cheap[jv]) <= best:
-                        val[q, jv, side] = cheap[jv]
-                        sup[q, jv, side] = lastn[side]
-                        stat[q, jv, side] = 6
-                        continue
-                    res = _active_set(K, ys, B[jv], s0[jv], dbar, G, S[side], sg[side], w[side], nS[side], cap,
-                                      max_iter, tol, bidx, bw, Pw, Lw)
-                    nS[side] = res[0]
-                    nb = res[1]
-                    stat[q, jv, side] = res[3]
-                    # the certificate: the best weights met (any weights are sound; none -> w = 0)
-                    cv = _certify(bidx, bw, nb, y, B[jv], EB[jv], K, K_err, s0[jv], dbar, 0.0, G, sgn)[0]
-                    if sgn * cv > sgn * cheap[jv]:  # the neighbour's weights were better: keep them
-                        cv = cheap[jv]
-                    val[q, jv, side] = cv
-                    sup[q, jv, side] = nb
-                    if sgn * (lin[q, jv] + cv) > best:
-                        best = sgn * (lin[q, jv] + cv)
-                    lastn[side] = nb
-                    for p in range(nb):
-                        lastS[side, p] = bidx[p]
-                        lastw[side, p] = bw[p]
-                    if prune:  # the weights just found certify the remaining vertices of this cell too
-                        for k2 in range(k + 1, V):
-                            j2 = order[k2]
-                            c2 = _certify(bidx, bw, nb, y, B[j2], EB[j2], K, K_err, s0[j2], dbar, 0.0, G, sgn)[0]
-                            if sgn * c2 < sgn * cheap[j2]:
-                                cheap[j2] = c2
-                    if res[3] == 2 or res[3] == 3:
-                        # inconsistent or ill-conditioned support: restart cold next time
-                        nS[side] = 0
-                best_side[side] = best
+                n_first = lastn[side]
+                if nbox > 1:
+                    # sub-boxes: certified values of the previous weights everywhere, boxes in the
+                    # order of their best vertex (any order is sound; this one prunes the most)
+                    for j in range(nbox):
+                        top = -np.inf
+                        for jv in range(V):
+                            cheap[j, jv] = _certify_parts(lastS[side], lastw[side], lastn[side], y, B[j, jv],
+                                                          EB[j, jv], K_err, s0[j, jv], dbar, 0.0, G, sgn,
+                                                          lastp[side])[0]
+                            if sgn * (lin[q + j, jv] + cheap[j, jv]) > top:
+                                top = sgn * (lin[q + j, jv] + cheap[j, jv])
+                        key[j] = -top
+                    border[:nbox] = np.argsort(key[:nbox])
+                else:
+                    border[0] = 0
+                best = -np.inf
+                for jj in range(nbox):
+                    j = border[jj]
+                    qb = q + j
+                    if nbox > 1 and prune and best > -np.inf:
+                        top = -np.inf
+                        for jv in range(V):
+                            if sgn * (lin[qb, jv] + cheap[j, jv]) > top:
+                                top = sgn * (lin[qb, jv] + cheap[j, jv])
+                        if top <= best:  # no vertex of this sub-box can raise the cell's bound
+                            for jv in range(V):
+                                val[qb, jv, side] = cheap[j, jv]
+                                sup[qb, jv, side] = n_first
+                                stat[qb, jv, side] = 6
+                            continue
+                    for jv in range(V):
+                        cv0 = _certify_parts(lastS[side], lastw[side], lastn[side], y, B[j, jv], EB[j, jv], K_err,
+                                             s0[j, jv], dbar, 0.0, G, sgn, lastp[side])[0]
+                        if nbox == 1 or sgn * cv0 < sgn * cheap[j, jv]:
+                            cheap[j, jv] = cv0
+                    order = np.argsort(-sgn * (lin[qb] + cheap[j]))
+                    for k in range(V):
+                        jv = order[k]
+                        if prune and best > -np.inf and sgn * (lin[qb, jv] + cheap[j, jv]) <= best:
+                            val[qb, jv, side] = cheap[j, jv]
+                            sup[qb, jv, side] = lastn[side]
+                            stat[qb, jv, side] = 6
+                            continue
+                        res = _active_set(K, ys, B[j, jv], s0[j, jv], dbar, G, S[side], sg[side], w[side], nS[side],
+                                          cap, max_iter, tol, bidx, bw, Pw, Lw)
+                        nS[side] = res[0]
+                        nb = res[1]
+                        stat[qb, jv, side] = res[3]
+                        # the certificate: the best weights met (any weights are sound; none -> w = 0)
+                        newp[0], newp[1], newp[2], newp[3] = _weight_parts(bidx, bw, nb, K)
+                        cv = _certify_parts(bidx, bw, nb, y, B[j, jv], EB[j, jv], K_err, s0[j, jv], dbar, 0.0, G, sgn,
+                                            newp)[0]
+                        if sgn * cv > sgn * cheap[j, jv]:  # the neighbour's weights were better: keep them
+                            cv = cheap[j, jv]
+                        val[qb, jv, side] = cv
+                        sup[qb, jv, side] = nb
+                        if sgn * (lin[qb, jv] + cv) > best:
+                            best = sgn * (lin[qb, jv] + cv)
+                        lastn[side] = nb
+                        for p in range(nb):
+                            lastS[side, p] = bidx[p]
+                            lastw[side, p] = bw[p]
+                        for p in range(4):
+                            lastp[side, p] = newp[p]
+                        if prune:  # the weights just found certify the remaining vertices of this box too
+                            for k2 in range(k + 1, V):
+                                j2 = order[k2]
+                                c2 = _certify_parts(bidx, bw, nb, y, B[j, j2], EB[j, j2], K_err, s0[j, j2], dbar, 0.0,
+                                                    G, sgn, newp)[0]
+                                if sgn * c2 < sgn * cheap[j, j2]:
+                                    cheap[j, j2] = c2
+                        if res[3] == 2 or res[3] == 3:
+                            # inconsistent or ill-conditioned support: restart cold next time
+                            nS[side] = 0
+            q = q1
     return val, sup, stat
 
 
