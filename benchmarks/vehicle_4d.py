@@ -139,14 +139,22 @@ def load_vehicle_problem(directory, seed: int = 0):
     return load_problem(path)
 
 
-def run_row(name: str, k: int, mc_cells: int, n_per_cell: int, seed: int) -> dict:
-    """One row in this process: the case study's problem at k^4 cells, run and timed."""
+def run_row(name: str, k: int, mc_cells: int, n_per_cell: int, seed: int, warm: bool = True) -> dict:
+    """One row in this process: the case study's problem at k^4 cells, run and timed (after a 4^4 warm-up:
+    a kernel file edited since the numba cache was written would otherwise put its compile time into a stage)."""
     load0 = os.getloadavg()
     with tempfile.TemporaryDirectory() as d:  # load_problem reads the data into memory
         problem = load_vehicle_problem(d, seed)
-    problem = problem.replace(cell_size=(problem.space_upper - problem.space_lower) / k)
+    span = problem.space_upper - problem.space_lower
+    t = time.perf_counter()
+    if warm:  # the same stages on 4^4 cells first: numba kernels compiled / loaded before the timed run
+        small = problem.replace(cell_size=span / 4)
+        _reference(small) if name == "reference" else _learned(small, 0, 0, seed)
+    warm_s = time.perf_counter() - t
+    problem = problem.replace(cell_size=span / k)
     t = time.perf_counter()
     row = _reference(problem) if name == "reference" else _learned(problem, mc_cells, n_per_cell, seed)
+    row["warm_up_s"] = warm_s
     row.update(name=name, cells_per_axis=k, n_cells=k ** 4, time_s=time.perf_counter() - t,
                peak_rss_mb=_peak_rss_mb(), load_before=list(load0), load_after=list(os.getloadavg()))
     return row
@@ -154,13 +162,13 @@ def run_row(name: str, k: int, mc_cells: int, n_per_cell: int, seed: int) -> dic
 
 def _subprocess_row(name: str, k: int, args) -> dict:
     cmd = [sys.executable, __file__, "--one", name, "--cells", str(k), "--mc-cells", str(args.mc_cells),
-           "--n-per-cell", str(args.n_per_cell), "--seed", str(args.seed)]
+           "--n-per-cell", str(args.n_per_cell), "--seed", str(args.seed)] + (["--no-warm"] if args.no_warm else [])
     t = time.perf_counter()
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         return {"name": name, "cells_per_axis": k, "error": proc.stderr.strip().splitlines()[-5:]}
     row = json.loads(proc.stdout.strip().splitlines()[-1])
-    row["end_to_end_s"] = time.perf_counter() - t  # process start, imports, data, run, validation
+    row["end_to_end_s"] = time.perf_counter() - t  # process start, imports, data, warm-up, run, validation
     return row
 
 
@@ -220,7 +228,9 @@ def write_md(path: Path, data: dict) -> None:
              "heading periodic, `rkhs_bound = [0, 0, 0, B]` (only the drag `-c_d v|v|` learned, lengthscale "
              "`[100, 100, 100, 0.5]`); `G !obs & F goal`, threshold 0.9. **reference**: the exact image boxes of the "
              "true system through our abstraction on the same periodic grid. Every row in its own process (peak RSS "
-             "its own); load = `os.getloadavg()` 1-min before / after the row.", "",
+             "its own); load = `os.getloadavg()` 1-min before / after the row. Each row first runs the same stages on "
+             "4^4 cells (warm-up: numba kernels loaded or compiled; its seconds are in the JSON as `warm_up_s` and in "
+             "'end to end', not in 'run').", "",
              f"Machine: {data['machine']}. Commit: {data.get('commit')}.", "",
              "| grid | row | Q_yes | (goal cells) | Q_no | Q_? | / reference | outside goal / ref | run s | end to end s "
              "| check / bound / abstraction / synthesis s | transitions | B / transition | peak RSS MB | load | "
@@ -281,6 +291,7 @@ def main(argv=None) -> int:
     ap.add_argument("--mc-cells", type=int, default=1000, help="cells of the Monte-Carlo check (0: none)")
     ap.add_argument("--n-per-cell", type=int, default=4, help="Monte-Carlo runs per cell")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--no-warm", action="store_true", help="no 4^4 warm-up before each row (compile time counts)")
     ap.add_argument("--one", choices=ROWS, help=argparse.SUPPRESS)  # a single row, JSON on stdout
     ap.add_argument("--out", type=Path, default=OUT / "vehicle_4d")
     ap.add_argument("--merge", action="store_true", help="add the rows to the existing JSON (same grid + row replaced)")
@@ -288,7 +299,8 @@ def main(argv=None) -> int:
     ap.add_argument("--note", action="append", default=[], help="a note for the markdown (repeatable)")
     args = ap.parse_args(argv)
     if args.one:
-        print(json.dumps(run_row(args.one, args.cells[0], args.mc_cells, args.n_per_cell, args.seed)))
+        print(json.dumps(run_row(args.one, args.cells[0], args.mc_cells, args.n_per_cell, args.seed,
+                                 warm=not args.no_warm)))
         return 0
     json_path = args.out.with_suffix(".json")
     if args.render:

@@ -15,8 +15,10 @@ component). What the problem file states as known (``[modes.NAME] f``) is everyt
 from the data (``rkhs_bound = [0, 0, 0, B]``, lengthscale long in every coordinate but ``v``).
 
 :class:`VehicleSystem` duck-types ``casestudies.systems.TrueSystem`` (``mode_names``, ``sigma``,
-``bound``, ``step``, ``sample_noise``, ``sample_dataset``, ``noise_model``, ``image_bounds``) so
-``validate``/``simulate`` and the known-dynamics reference take it as they are. Its kinematics are
+``bound``, ``known_A``, ``known_b``, ``g``, ``g_terms = None``, ``step``, ``sample_noise``,
+``sample_dataset``, ``noise_model``, ``image_bounds``) so ``validate``/``simulate``, the problem files
+and the known-dynamics reference (``systems.known_dynamics_cell_bounds("vehicle_4d", partition)``)
+take it as they are; ``systems`` registers it as ``CASE_STUDIES["vehicle_4d"]``. Its kinematics are
 not a sum of one-coordinate terms (``v cos theta``), so it has its own certified image boxes
 (:meth:`VehicleSystem.image_bounds`, eq. V1-V4 there).
 """
