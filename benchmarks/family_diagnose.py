@@ -37,29 +37,6 @@ from robust_imdp.spec.dfa import ltlf_to_dfa  # noqa: E402
 OUT = F.OUT / "family_diagnose.json"
 
 
-def optimal_boxes(sy: dict, grid: int) -> dict:
-    """Per mode, cell and output the max / min of the pointwise optimal bound over a grid in the cell."""
-    part, d = sy["partition"], sy["dim"]
-    P = F._cell_grid(part.cells_lower, part.cells_upper, grid)  # (N, g^d, d)
-    N, n_p, _ = P.shape
-    # neighbouring cells share their edge points: bound each distinct point once
-    flat, inv = np.unique(P.reshape(-1, d), axis=0, return_inverse=True)
-    flat = np.ascontiguousarray(flat)
-    inv = inv.reshape(-1)
-    M = len(sy["maps"])
-    lo = np.empty((M, N, d))
-    up = np.empty((M, N, d))
-    for u, (X, Y, _) in enumerate(sy["data"]):
-        A, b = sy["maps"][u]
-        for i in range(d):
-            model = rkhs.KernelModel(X, Y[:, i], sy["lengthscale"])
-            cr = rkhs.cell_ranges(model, flat, flat, rkhs_bound=sy["B"], noise_bound=sy["noise_bound"],
-                                  known_row=A[i], known_offset=float(b[i]))
-            lo[u, :, i] = cr.lower[inv].reshape(N, n_p).min(1)
-            up[u, :, i] = cr.upper[inv].reshape(N, n_p).max(1)
-    return {"lower": lo, "upper": up}
-
-
 def run(key: str, seed: int, grid: int | None, splits: dict) -> dict:
     c = next(c for c in F.configurations("full") if F.key_of(c) == key)
     sy = F.system(c, seed)
@@ -78,7 +55,7 @@ def run(key: str, seed: int, grid: int | None, splits: dict) -> dict:
     w_up = max(0.0, F._median(opt_s["opt_up"] - opt_s["true_up"]))
     out["widened"] = F.q_yes(sy, tb["outer_lo"] - w_lo, tb["outer_up"] + w_up)["yes"]
     t1 = time.perf_counter()
-    ob = optimal_boxes(sy, g)
+    ob = F.optimal_boxes(sy, g)
     out["optimal_seconds"] = time.perf_counter() - t1
     out["optimal"] = F.q_yes(sy, ob["lower"], ob["upper"])["yes"]
     exc = np.concatenate([(ob["upper"] - tb["inner_up"]).ravel(), (tb["inner_lo"] - ob["lower"]).ravel()])
