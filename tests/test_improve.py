@@ -184,3 +184,59 @@ def test_cli_improve_prints_rounds(tmp_path, capsys):
     # a wall the model does not know: the new samples refute B, and the all-data check of the round says so
     assert main(args + ["--true-system", f"{tmp_path / 'robot.py'}:Clipped", "--out", str(tmp_path / "c")]) == 1
     assert "is refuted by the data" in capsys.readouterr().err
+
+
+def test_a_re_bounded_box_is_exactly_the_intersection_of_the_kept_and_the_new_box():
+    # Oracle: the new box of the same cells from the same data, bounded alone (previous box +-1e300); the loop's
+    # box must be max / min of it and the kept box, bit for bit (both contain the image, so does their
+    # intersection; anything smaller is unsound, anything larger wastes the kept box)
+    from robust_imdp.abstraction.rows import CellBounds
+    from robust_imdp.improve import _affected, _append, _rebound
+    from robust_imdp.models.geometry import Box, Partition
+    from robust_imdp.pipeline.bound_stage import _learn_and_bound
+    from robust_imdp.pipeline.preflight import _region_objects
+    from robust_imdp.pipeline.runtime import _Log, _Run
+
+    p0 = _problem()
+    part = Partition(Box(p0.space_lower, p0.space_upper), p0.cell_size, _region_objects(p0))
+    log, run = _Log(False), _Run(workers=None)
+    try:
+        kept, _, _ = _learn_and_bound(p0, part, log, run, None)
+        rng = np.random.default_rng(9)
+        xs = rng.uniform(0, 3, (8, 2))
+        us = np.arange(8) % 2
+        data = _append(p0.data, xs, us, Robot().step(xs, us, rng))
+        p1 = p0.replace(data=data)
+        cells = _affected(p1, part, data, p0.data.u.shape[0])
+        assert sum(c.size for c in cells) > 0
+        new, n = _rebound(p1, part, kept, cells, log, run)
+        inf = np.full_like(kept.image_lower, 1e300)  # CellBounds must be finite: 1e300 stands for R
+        alone, _ = _rebound(p1, part, CellBounds(-inf, inf, None), cells, log, run)
+    finally:
+        run.close()
+    tighter_new = 0
+    for u, q in enumerate(cells):
+        np.testing.assert_array_equal(new.image_lower[u, q], np.maximum(kept.image_lower[u, q], alone.image_lower[u, q]))
+        np.testing.assert_array_equal(new.image_upper[u, q], np.minimum(kept.image_upper[u, q], alone.image_upper[u, q]))
+        tighter_new += int(np.sum(alone.image_lower[u, q] > kept.image_lower[u, q]))
+    assert tighter_new > 0  # the new data tighten some sides: the test sees the new box
+    others = np.ones(kept.image_lower.shape[:2], bool)
+    for u, q in enumerate(cells):
+        others[u, q] = False
+    np.testing.assert_array_equal(new.image_lower[others], kept.image_lower[others])  # not re-bounded: kept
+    np.testing.assert_array_equal(new.image_upper[others], kept.image_upper[others])
+
+
+def test_the_incremental_check_reports_a_lower_and_an_upper_bound_of_the_minimum_norm(loop):
+    import json
+
+    _, out = loop
+    a = json.loads((out / "result.json").read_text())["diagnostics"]["assumption"]
+    inc = a["incremental_check"]
+    assert "lower bound" in inc["note"] and "upper bound" in inc["note"]
+    assert [(r["mode"], r["component"]) for r in inc["components"]] == [(r["mode"], r["component"])
+                                                                        for r in a["min_norm"]]
+    assert {r["how"] for r in inc["components"]} <= {"witness kept", "witness refitted", "full check"}
+    for r, m in zip(inc["components"], a["min_norm"]):
+        if r["witness_norm_upper"] is not None:  # certified lower <= minimum norm <= witness's norm <= B
+            assert m["minimum"] <= r["witness_norm_upper"] <= r["rkhs_bound"]
