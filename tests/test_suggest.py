@@ -202,3 +202,28 @@ def test_site_subset_keeps_the_full_gain_algebra(starved, monkeypatch):
     S1 = S - np.outer(S[:, c], S[5, :]) / (S[5, c] + lam)  # row 5: Sigma(site 5, sites)
     again = sg._posterior_cov(cand, np.vstack([data, cand[5:6]]), inv_l2, lam)
     assert np.max(np.abs(S1 - again[:, sites])) < 1e-9  # float64 Cholesky, condition ~1e5: as above
+
+
+def test_the_power_function_uses_the_learned_components_lengthscales(starved):
+    # component 2 known (B = 0) with a short lengthscale: the data's influence is that of component 1's
+    # lengthscales (5, 0.5); a mode whose components are all known keeps the shortest over them
+    p = starved.problem.replace(rkhs_bound=[0.3, 0.0], gp_options={"lengthscale": [[5.0, 0.5], [0.1, 0.1]]})
+    B, inv_l2, _ = sg._assumption(p)
+    np.testing.assert_array_equal(B, [0.3, 0.3])
+    np.testing.assert_allclose(inv_l2, 1.0 / np.array([[5.0, 0.5], [5.0, 0.5]]) ** 2)
+    p0 = starved.problem.replace(rkhs_bound=0.0, gp_options={"lengthscale": [[5.0, 0.5], [0.1, 0.2]]})
+    np.testing.assert_allclose(sg._assumption(p0)[1], 1.0 / np.array([[0.1, 0.2], [0.1, 0.2]]) ** 2)
+
+
+def test_beyond_max_candidates_the_closest_to_the_threshold_are_kept(starved, monkeypatch):
+    cells, _, _ = sg._candidates(starved)
+    monkeypatch.setattr(sg, "MAX_CANDIDATES", max(1, cells.size // 3))
+    kept, _, _ = sg._candidates(starved)
+    c = np.asarray(starved.class_names)
+    gap = np.maximum(starved.threshold - np.asarray(starved.p_low), 0.0)
+    und = kept[c[kept] == "maybe"]
+    dropped = np.setdiff1d(cells, kept)
+    dropped_und = dropped[c[dropped] == "maybe"]
+    assert kept.size == sg.MAX_CANDIDATES and und.size > 0
+    if dropped_und.size:  # every kept undecided cell is at least as close as every dropped one
+        assert gap[und].max() <= gap[dropped_und].min()

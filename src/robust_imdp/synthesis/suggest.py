@@ -37,7 +37,8 @@ __all__ = ["SampleRequest", "suggest_samples", "write_requests", "power_function
 #: Largest number of data points of a mode used for the power function (an evenly spaced subset
 #: beyond it: fewer points only make the power function larger, i.e. the gains look larger).
 MAX_POINTS = 2000
-#: Largest number of candidate cells (those with the largest weights are kept).
+#: Largest number of candidate cells (beyond it, those whose lower bound -- or that of the undecided cell
+#: reaching them -- is closest to the threshold, then those with the largest weights).
 MAX_CANDIDATES = 3000
 #: Largest number of candidate *sites* (cells whose centre may be requested): the candidates with the
 #: largest weighted RKHS term ``w B sqrt(P)`` at their centre. The gains are still summed over every
@@ -128,6 +129,11 @@ def _candidates(result):
     init = np.asarray(syn.initial_dfa_state)
     chosen = strategy[np.arange(n_cells), init]
     imdp = result.abstraction.imdp
+    # how far each undecided cell's lower bound is from the threshold (a reached cell: that of the closest
+    # undecided cell reaching it); orders the candidates when there are more than MAX_CANDIDATES
+    gap_q = np.maximum(float(result.threshold) - np.asarray(result.p_low, float), 0.0)
+    gap = np.full(n_cells, np.inf)
+    gap[undecided] = gap_q[undecided]
     for q in undecided:
         weights[:, q] = OTHER_MODE_WEIGHT
         weights[chosen[q], q] = 1.0
@@ -139,13 +145,14 @@ def _candidates(result):
             if t >= n_cells or classes[t] == "maybe" or p <= 0:
                 continue
             w = REACHED_WEIGHT * float(p)
+            gap[t] = min(gap[t], gap_q[q])
             if w > weights[chosen[t], t]:
                 weights[chosen[t], t] = w
                 reason[t] = f"reached from undecided cell {int(q)} (upper probability {float(p):.2f})"
     cells = np.flatnonzero(weights.max(axis=0) > 0)
-    if cells.size > MAX_CANDIDATES:
-        cells = cells[np.argsort(-weights[:, cells].max(axis=0), kind="stable")[:MAX_CANDIDATES]]
-        cells.sort()
+    if cells.size > MAX_CANDIDATES:  # the closest to being decided first, then by weight
+        order = np.lexsort((-weights[:, cells].max(axis=0), gap[cells]))
+        cells = np.sort(cells[order[:MAX_CANDIDATES]])
     return cells, weights[:, cells], reason
 
 
@@ -157,7 +164,11 @@ def _assumption(problem):
     st = resolve(problem.rkhs_bound, problem.gp_options.get("lengthscale"), problem.misspecification,
                  problem.mode_names, int(np.size(problem.space_lower)))
     B = st.rkhs_bound.max(axis=1)  # (n_modes,): the largest over the components
-    ls = st.lengthscale.min(axis=1)  # (n_modes, d): the shortest (the most local data influence)
+    # (n_modes, d): the shortest (the most local data influence) over the learned components (B > 0; a known
+    # component's lengthscale plays no part), over all of them in a mode without one
+    learned = st.rkhs_bound > 0
+    ls_all = np.where(learned[:, :, None], st.lengthscale, np.inf).min(axis=1)
+    ls = np.where(np.isfinite(ls_all), ls_all, st.lengthscale.min(axis=1))
     noise = np.asarray(problem.noise.bound if getattr(problem.noise, "bound", None) is not None
                        else problem.noise.sigma, float).reshape(-1)
     tau = st.misspecification.max(axis=1)
