@@ -220,3 +220,13 @@ def test_witness_norm_bound_holds_under_cancellation():
                  for i in range(2) for j in range(2))
         A = sum(abs(float(alpha[i] * alpha[j])) * _exact_kernel(C[i], C[j], ls) for i in range(2) for j in range(2))
         assert up >= mpmath.sqrt(sq) and up ** 2 - sq <= 1e-13 * A  # sound; slack ~ the error term only
+
+
+def test_fit_witness_accepts_a_ridge_fit_only_within_the_allowance():
+    # One point, y = 11 * 1.0005 dbar': the ridge fit with lambda = 0.1 is alpha = y / 1.1, residual
+    # y * 0.1 / 1.1 = 1.0005 dbar' (just outside: must be rejected); lambda = 0.01 fits (residual 0.109 dbar')
+    dbar = data_allowance(0.01, 0.002)
+    X, y = np.zeros((1, 2)), np.array([11 * 1.0005 * dbar])
+    w = fit_witness(X, y, 1.0, 0.01, 0.002, 10.0, socp=False)
+    assert w is not None and witness_fits(w, X, y, 0.01, 0.002)
+    assert float(w.alpha[0]) == pytest.approx(y[0] / 1.01, rel=1e-12)  # the lambda = 0.01 fit, not 0.1
