@@ -71,3 +71,33 @@ def test_old_case_studies_problem_text_unchanged():
     for name, digest in expected.items():
         c = get_case_study(name)
         assert hashlib.sha256(problem_toml(c, c.formulas[0], "d.csv").encode()).hexdigest() == digest, name
+
+
+def test_shipped_assumption_is_certified_for_the_true_drift():
+    """B and tau of p_x hold for the true drift 0.04 sin p_y (the note at systems._UNICYCLE_KNOWN).
+
+    h(x) = h_y(p_y) k_lx(p_x, 2) k_lt(theta, 0): a product of functions of separate coordinates, so
+    ||h|| = ||h_y|| ||k_lx(., 2)|| ||k_lt(., 0)|| = ||h_y|| (unit-amplitude kernels), and
+    |g - h| <= |0.04 sin - h_y| + |h_y| (1 - k_lx k_lt) with 1 - k_lx k_lt <= (2^2 / lx^2 + pi^2 / lt^2) / 2
+    on X = [0, 4] x [0, 4] x [-pi, pi] (1 - e^-s <= s). ||h_y|| and sup |0.04 sin - h_y| on [0, 4] are
+    certified by casestudies.certificate (outward rounding, interpolation remainder).
+    """
+    from robust_imdp.casestudies import certificate as C
+    from robust_imdp._kernels import se_kernel_with_error
+
+    case = get_case_study(NAME)
+    B, tau = float(case.rkhs_bound[0]), float(case.misspecification[0])
+    assert tuple(case.rkhs_bound[1:]) == (0.0, 0.0) and tuple(case.misspecification[1:]) == (0.0, 0.0)
+    lx, ly, lt = dict(case.gp)["lengthscale"][0]
+    terms = (("sin", 0, CURRENT),)
+    Z = C._tensor_points([C._axis_grid(-2.0, 6.0, 0.2, "c")[0]])
+    P = C._tensor_points([C._axis_grid(0.0, 4.0, 0.02, "f")[0]])
+    T, A = C._fit_basis(se_kernel_with_error(P, Z, np.array([ly]))[0], se_kernel_with_error(Z, Z, np.array([ly]))[0])
+    alpha = C._min_norm_fit(T, A, C._terms_values(terms, P)[0], 0.8 * tau, "0.04 sin")
+    cert = C.certify_expansion(terms, Z, alpha, [ly], [0.0], [4.0], check_spacing=1 / 512)
+    factor = 0.5 * (2.0 ** 2 / lx ** 2 + np.pi ** 2 / lt ** 2) * (1 + 1e-12)
+    sup_err = (cert["sup_error_upper"] + (CURRENT + cert["sup_error_upper"]) * factor) * (1 + 1e-12)
+    assert cert["norm_upper"] <= B, (cert["norm_upper"], B)
+    assert sup_err <= tau, (sup_err, tau)
+    # tight: the certified norm is within 1 % of B (B was tuned, not guessed)
+    assert cert["norm_upper"] >= 0.99 * B
