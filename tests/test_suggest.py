@@ -215,15 +215,25 @@ def test_the_power_function_uses_the_learned_components_lengthscales(starved):
     np.testing.assert_allclose(sg._assumption(p0)[1], 1.0 / np.array([[0.1, 0.2], [0.1, 0.2]]) ** 2)
 
 
-def test_beyond_max_candidates_the_closest_to_the_threshold_are_kept(starved, monkeypatch):
+def test_beyond_max_candidates_the_frontier_of_q_yes_is_kept(starved, monkeypatch):
+    # every kept undecided cell's strategy row puts upper probability on a Q_yes cell (recomputed here from
+    # the abstraction's rows); among the frontier, the kept ones are at least as close to the threshold
     cells, _, _ = sg._candidates(starved)
     monkeypatch.setattr(sg, "MAX_CANDIDATES", max(1, cells.size // 3))
     kept, _, _ = sg._candidates(starved)
     c = np.asarray(starved.class_names)
-    gap = np.maximum(starved.threshold - np.asarray(starved.p_low), 0.0)
-    und = kept[c[kept] == "maybe"]
-    dropped = np.setdiff1d(cells, kept)
-    dropped_und = dropped[c[dropped] == "maybe"]
-    assert kept.size == sg.MAX_CANDIDATES and und.size > 0
-    if dropped_und.size:  # every kept undecided cell is at least as close as every dropped one
-        assert gap[und].max() <= gap[dropped_und].min()
+    imdp, n = starved.abstraction.imdp, starved.partition.n_cells
+    strategy = np.asarray(starved.synthesis.strategy)
+    chosen = strategy[np.arange(n), np.asarray(starved.synthesis.initial_dfa_state)]
+
+    def yes_mass(q):
+        row = int(imdp.state_ptr[q]) + int(chosen[q])
+        lo, hi = int(imdp.row_ptr[row]), int(imdp.row_ptr[row + 1])
+        return sum(float(p) for t, p in zip(imdp.col[lo:hi], imdp.upper[lo:hi]) if t < n and c[t] == "yes")
+
+    und = [q for q in kept if c[q] == "maybe"]
+    assert 0 < kept.size <= sg.MAX_CANDIDATES and und
+    assert all(yes_mass(q) > 0 for q in und)
+    dropped = [q for q in np.setdiff1d(cells, kept) if c[q] == "maybe" and yes_mass(q) > 0]
+    if dropped:
+        assert min(yes_mass(q) for q in und) >= max(yes_mass(q) for q in dropped) - 1e-12

@@ -37,8 +37,9 @@ __all__ = ["SampleRequest", "suggest_samples", "write_requests", "power_function
 #: Largest number of data points of a mode used for the power function (an evenly spaced subset
 #: beyond it: fewer points only make the power function larger, i.e. the gains look larger).
 MAX_POINTS = 2000
-#: Largest number of candidate cells (beyond it, those whose lower bound -- or that of the undecided cell
-#: reaching them -- is closest to the threshold, then those with the largest weights).
+#: Largest number of candidate cells (beyond it, only those whose strategy puts upper probability on Q_yes cells,
+#: the most first, then those whose lower bound is closest to the threshold -- a reached cell: its undecided
+#: source's --, then those with the largest weights).
 MAX_CANDIDATES = 3000
 #: Largest number of candidate *sites* (cells whose centre may be requested): the candidates with the
 #: largest weighted RKHS term ``w B sqrt(P)`` at their centre. The gains are still summed over every
@@ -134,24 +135,33 @@ def _candidates(result):
     gap_q = np.maximum(float(result.threshold) - np.asarray(result.p_low, float), 0.0)
     gap = np.full(n_cells, np.inf)
     gap[undecided] = gap_q[undecided]
+    # and how much upper probability its strategy's row puts on Q_yes cells (the frontier of the decided
+    # region, where a tighter box can lift p_low over the threshold); a reached cell: its source's
+    yes_mass = np.zeros(n_cells)
     for q in undecided:
         weights[:, q] = OTHER_MODE_WEIGHT
         weights[chosen[q], q] = 1.0
         reason[int(q)] = "undecided (Q_?)"
         row = int(imdp.state_ptr[q]) + int(chosen[q])  # one choice per mode, in mode order
         lo, hi = int(imdp.row_ptr[row]), int(imdp.row_ptr[row + 1])
+        cols = np.asarray(imdp.col[lo:hi])
+        inside = cols < n_cells
+        yes_mass[q] = float(np.sum(np.asarray(imdp.upper[lo:hi])[inside][classes[cols[inside]] == "yes"]))
         for t, p in zip(imdp.col[lo:hi], imdp.upper[lo:hi]):
             t = int(t)
             if t >= n_cells or classes[t] == "maybe" or p <= 0:
                 continue
             w = REACHED_WEIGHT * float(p)
             gap[t] = min(gap[t], gap_q[q])
+            yes_mass[t] = max(yes_mass[t], yes_mass[q])
             if w > weights[chosen[t], t]:
                 weights[chosen[t], t] = w
                 reason[t] = f"reached from undecided cell {int(q)} (upper probability {float(p):.2f})"
     cells = np.flatnonzero(weights.max(axis=0) > 0)
-    if cells.size > MAX_CANDIDATES:  # the closest to being decided first, then by weight
-        order = np.lexsort((-weights[:, cells].max(axis=0), gap[cells]))
+    if cells.size > MAX_CANDIDATES:  # the frontier of Q_yes first, then the closest to the threshold, then weight
+        if np.any(yes_mass[cells] > 0):  # too many to rank them all: only the frontier
+            cells = cells[yes_mass[cells] > 0]
+        order = np.lexsort((-weights[:, cells].max(axis=0), gap[cells], -yes_mass[cells]))
         cells = np.sort(cells[order[:MAX_CANDIDATES]])
     return cells, weights[:, cells], reason
 
