@@ -326,6 +326,9 @@ def write(outs: list, where: Path) -> None:
                       f"{t['max_round_over_bound_plus_solve']:.2f} (round {t['worst_round']}; <= 3: "
                       f"{'met' if t['round_time_met'] else 'NOT met'}), median "
                       f"{t['median_round_over_bound_plus_solve']:.2f}.", ""]
+    notes = where / "notes.md"  # measurement notes kept beside the case files (appended as they are)
+    if notes.exists():
+        lines += ["## Notes", "", notes.read_text().strip(), ""]
     (where / "sampling.md").write_text("\n".join(lines) + "\n")
     _plot(outs, where / "sampling.png")
 
