@@ -395,6 +395,20 @@ MUTATIONS = [
          replacement="    return (np.asarray(lo_a, float) + np.asarray(lo_b, float),",
          description="assumptions.add_ranges: the lower end of f range + g range rounded to nearest (no ulp "
                      "outward)"),
+    # ------------------------------------------------------------------ improve (issue 22)
+    dict(name="improve-intersection-shrink", file="src/robust_imdp/improve.py",
+         original="        ilo[u, q], ihi[u, q] = np.maximum(lo, ilo[u, q]), np.minimum(hi, ihi[u, q])",
+         replacement=("        w_ = np.minimum(hi, ihi[u, q]) - np.maximum(lo, ilo[u, q])\n"
+                      "        ilo[u, q], ihi[u, q] = np.maximum(lo, ilo[u, q]) + 0.0005 * w_, "
+                      "np.minimum(hi, ihi[u, q]) - 0.0005 * w_"),
+         description="improve: the intersection of a kept box and its re-bounded box shrunk by 0.1 % of its width",
+         tests=["tests/test_improve.py"]),
+    dict(name="incremental-check-tolerance-loose", file="src/robust_imdp/improve.py",
+         original="if np.all(witness_residuals(prev.witness, X[n0:], y[n0:]) <= dbar):",
+         replacement="if np.all(witness_residuals(prev.witness, X[n0:], y[n0:]) <= dbar * 1.001):",
+         description="improve: a kept witness of the assumption may miss new samples by 0.1 % more than the "
+                     "check's allowance (a refuting round could pass)",
+         tests=["tests/test_improve_check.py"]),
 ]
 
 
