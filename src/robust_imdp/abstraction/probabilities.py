@@ -57,9 +57,14 @@ class _Mode:
         levels = np.array([_PAPER_LEVEL]) if rule == "paper" else EPS_LEVELS
         k99 = int(np.flatnonzero(levels == _PAPER_LEVEL)[0])
         K = levels.size
-        if self.errors is None:  # known dynamics: eps = 0 with probability 1
-            self.eps = np.zeros((n, d, K))
-            self.p = np.ones((n, d, K))
+        # Known dynamics (image boxes exact up to their own rounding): every candidate is the pair
+        # eps = 0, p = 1, the same for every cell. One candidate per cell is then enough: split's
+        # argmax keeps the first of equal scores, so K equal candidates pick what one picks, and
+        # the floor and top pairs are the same for every cell (computed once, broadcast).
+        self._same = self.errors is None
+        if self._same:
+            self.eps = np.zeros((1, d, 1))
+            self.p = np.ones((1, d, 1))
         else:
             self.eps = np.empty((n, d, K))
             self.p = np.empty((n, d, K))
@@ -84,7 +89,9 @@ class _Mode:
         self.eta_top = eta_top
         self.pv_top = noise.prob_abs_le(eta_top)
         # --- top candidate (unconstrained axes): the best p (eps) with the top eta
-        if rule == "paper":
+        if self._same:  # the one candidate (0, 1) whatever the rule
+            self.p_top, self.eps_top = np.ones((n, d)), np.zeros((n, d))
+        elif rule == "paper":
             self.p_top, self.eps_top = self.p[:, :, k99], self.eps[:, :, k99]
         else:
             kt = np.argmax(self.p, axis=2)
@@ -92,7 +99,8 @@ class _Mode:
             self.eps_top = np.take_along_axis(self.eps, kt[..., None], 2)[..., 0]
         # --- floor pair per (cell, dim)
         if rule == "paper":
-            self.floor_p, self.floor_eps = self.p[:, :, k99], self.eps[:, :, k99]
+            self.floor_p = np.broadcast_to(self.p[:, :, 0] if self._same else self.p[:, :, k99], (n, d)).copy()
+            self.floor_eps = np.broadcast_to(self.eps[:, :, 0] if self._same else self.eps[:, :, k99], (n, d)).copy()
             self.floor_pv = np.broadcast_to(self.pv_def, (n, d)).copy()
             self.floor_eta = np.broadcast_to(self.eta_def, (n, d)).copy()
         else:
@@ -103,14 +111,16 @@ class _Mode:
                 q = np.minimum(lv, 1.0 - 1e-15)
                 eta_l = np.maximum(noise.abs_quantile(q), self.eta_def)  # (L, d), >= paper's eta
             pv_l = noise.prob_abs_le(eta_l)  # (L, d)
-            pk = self.p[:, :, k99:]  # (n, d, L)
+            # (n, d, L); known dynamics: one row (1, d, L) of p = 1 for every cell
+            pk = np.ones((1, d, lv.size)) if self._same else self.p[:, :, k99:]
+            ek = np.zeros((1, d, lv.size)) if self._same else self.eps[:, :, k99:]
             score = pk * pv_l.T[None]
             good = score >= 1.0 - floor_tol / d
             kf = np.where(good.any(axis=2), np.argmax(good, axis=2), np.argmax(score, axis=2))
-            self.floor_p = np.take_along_axis(pk, kf[..., None], 2)[..., 0]
-            self.floor_eps = np.take_along_axis(self.eps[:, :, k99:], kf[..., None], 2)[..., 0]
-            self.floor_pv = pv_l[kf, np.arange(d)[None, :]]
-            self.floor_eta = eta_l[kf, np.arange(d)[None, :]]
+            self.floor_p = np.broadcast_to(np.take_along_axis(pk, kf[..., None], 2)[..., 0], (n, d)).copy()
+            self.floor_eps = np.broadcast_to(np.take_along_axis(ek, kf[..., None], 2)[..., 0], (n, d)).copy()
+            self.floor_pv = np.broadcast_to(pv_l[kf, np.arange(d)[None, :]], (n, d)).copy()
+            self.floor_eta = np.broadcast_to(eta_l[kf, np.arange(d)[None, :]], (n, d)).copy()
 
     def _prob(self, i, eps, rows):
         """Lower bound ``p_i(eps)`` of the learning-error event for cells ``rows`` (broadcast with eps)."""
@@ -130,8 +140,12 @@ class _Mode:
         t = np.asarray(t, dtype=float)
         cols = []
         if self.rule != "paper" or not paper_candidate:
-            E = self.eps[rows, i, :]
-            P = self.p[rows, i, :]
+            if self._same:  # the one candidate of every cell
+                E = np.broadcast_to(self.eps[0, i, :], (t.size, 1))
+                P = np.broadcast_to(self.p[0, i, :], (t.size, 1))
+            else:
+                E = self.eps[rows, i, :]
+                P = self.p[rows, i, :]
             tt = t[:, None]
             if self.fixed:
                 ETA = np.broadcast_to(self.eta_def[i], E.shape)

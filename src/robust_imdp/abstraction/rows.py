@@ -409,12 +409,17 @@ def _containing(out: _RowArrays, u, md, rows, a, b, entries, partition, combine)
     B, d = a.shape
     m = np.empty((er.size, d))
     periodic = getattr(partition, "periodic", None)
+    circle = [j for j in range(d) if periodic is not None and periodic[j]]
     for j in range(d):
-        if periodic is not None and periodic[j]:  # inside one translate of the cell
-            m[:, j] = circle_margin(tlo[cols, j], thi[cols, j], a[er, j], b[er, j], float(partition.space.lower[j]),
-                                    float(partition.space.upper[j]))
-            continue
-        m[:, j] = down(np.minimum(a[er, j] - tlo[cols, j], thi[cols, j] - b[er, j]))
+        if j not in circle:
+            m[:, j] = down(np.minimum(a[er, j] - tlo[cols, j], thi[cols, j] - b[er, j]))
+    # a periodic axis' margin (inside one translate of the cell) only where every other margin is
+    # positive: elsewhere the entry is no containing cell whatever it is (set to 0, not > 0)
+    cand = np.flatnonzero(np.all(m[:, [j for j in range(d) if j not in circle]] > 0, axis=1))
+    for j in circle:
+        m[:, j] = 0.0
+        m[cand, j] = circle_margin(tlo[cols[cand], j], thi[cols[cand], j], a[er[cand], j], b[er[cand], j],
+                                   float(partition.space.lower[j]), float(partition.space.upper[j]))
     hit = np.flatnonzero(np.all(m > 0, axis=1))  # at most one entry per row
     rin = er[hit]
     Pc, PVc = np.zeros((hit.size, d)), np.zeros((hit.size, d))

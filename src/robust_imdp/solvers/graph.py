@@ -7,6 +7,24 @@ Why they are sound: :mod:`robust_imdp.solvers.engine`.
 
 Kernels here call only kernels of this file (numba caches per file; see
 :mod:`robust_imdp.solvers.kernels`).
+
+In place: :func:`positive_attractor` and the inner fixed point of
+:func:`almost_sure` add nodes to their set during a sweep (Gauss-Seidel, sweeps alternating
+forwards and backwards) instead of Kleene's ``W_{k+1} = F(W_k)``: a path of m steps against the
+sweep order no longer needs m sweeps. The per-layer counts ``cnt`` of unlisted members are taken
+at the start of a sweep, so within it they can only be too small, which makes no test pass that
+would fail with the true counts (fewer unlisted members: less unlisted mass on the set). The loop
+stops after a sweep that added nothing, with exact counts: the set is a fixed point of the test.
+
+* :func:`almost_sure` (conservative: a node wrongly added would get the value 1): every node added
+  passes the float test, hence the exact one, at a subset of the exact least fixed point, so it is
+  in it (the exact test is monotone: more members never make a row fail).
+* :func:`positive_attractor` (liberal: a node wrongly left out would get the value 0): the result
+  is a fixed point of the float test, which passes wherever the exact one does, so it contains the
+  exact least fixed point.
+
+Where the float tests are monotone too (everywhere but a rounding-slack borderline) both give
+Kleene's set bit for bit (benchmarks/identical.py).
 """
 
 from __future__ import annotations
@@ -76,12 +94,17 @@ def positive_attractor(state_ptr, row_ptr, col, lower, upper, floor, nxt, init, 
     changed = True
     # per layer: number of q' whose successor node (nxt[l, q'], q') is in W
     cntW = np.zeros(L, dtype=np.int64)
+    sweep = 0
     while changed:
         changed = False
         _successor_counts(W, nxt, n, cntW)
-        newW = W.copy()
-        for l in range(L):
-            for q in range(n):
+        # in place (Gauss-Seidel), every other sweep backwards (the module's "In place" note)
+        back = sweep % 2 == 1
+        sweep += 1
+        for li in range(L):
+            l = L - 1 - li if back else li
+            for qi in range(n):
+                q = n - 1 - qi if back else qi
                 node = l * n + q
                 if W[node] or blocked[node]:
                     continue
@@ -119,9 +142,8 @@ def positive_attractor(state_ptr, row_ptr, col, lower, upper, floor, nxt, init, 
                     else:
                         all_hit = False
                 if (ctrl == _MIN and all_hit) or (ctrl != _MIN and any_hit):
-                    newW[node] = True
+                    W[node] = True
                     changed = True
-        W = newW
     return W
 
 
@@ -148,12 +170,16 @@ def almost_sure(state_ptr, row_ptr, col, lower, upper, floor, nxt, target, W, ct
         _successor_counts(Y, nxt, n, cntY)
         X = target.copy()
         changed = True
+        sweep = 0
         while changed:
             changed = False
             _successor_counts(X, nxt, n, cntX)
-            newX = X.copy()
-            for l in range(L):
-                for q in range(n):
+            back = sweep % 2 == 1  # in place, alternating directions (the module's "In place" note)
+            sweep += 1
+            for li in range(L):
+                l = L - 1 - li if back else li
+                for qi in range(n):
+                    q = n - 1 - qi if back else qi
                     node = l * n + q
                     if X[node] or not Y[node]:
                         continue
@@ -213,10 +239,9 @@ def almost_sure(state_ptr, row_ptr, col, lower, upper, floor, nxt, target, W, ct
                                 rest = upNotX + (f * unlNotX if fl else 0.0)
                                 good = lowX > 0.0 or rest + _sum_slack(nNotX, fl and unlNotX > 0) < 1.0
                         if good:
-                            newX[node] = True
+                            X[node] = True
                             changed = True
                             break
-            X = newX
         same = True
         for i in range(Y.shape[0]):
             if Y[i] != X[i]:
