@@ -395,6 +395,23 @@ MUTATIONS = [
          replacement="    return (np.asarray(lo_a, float) + np.asarray(lo_b, float),",
          description="assumptions.add_ranges: the lower end of f range + g range rounded to nearest (no ulp "
                      "outward)"),
+    # ------------------------------------------------------------------ sub-box pruning and shared weight sums (issue 20)
+    dict(name="rkhs-local-split-optimal-noise-shrink-1e-3", file="src/robust_imdp/bounds/rkhs_local.py",
+         original="cv = _certify_parts(bidx, bw, nb, yo, Bg[j, jv], EBg[j, jv], K_err, s0g[j, jv], a1[o], 0.0, G, sgn,",
+         replacement="cv = _certify_parts(bidx, bw, nb, yo, Bg[j, jv], EBg[j, jv], K_err, s0g[j, jv], a1[o] * 0.999, 0.0, G, sgn,",
+         description="local weights, split cells: the noise term of the optimal sub-box certificate shrunk by 0.1 %", tests=["tests/test_rkhs_local.py"]),
+    dict(name="rkhs-local-split-optimal-rkhs-shrink-1e-3", file="src/robust_imdp/bounds/rkhs_local.py",
+         original="cv = _certify_parts(bidx, bw, nb, yo, Bg[j, jv], EBg[j, jv], K_err, s0g[j, jv], a1[o], 0.0, G, sgn,",
+         replacement="cv = _certify_parts(bidx, bw, nb, yo, Bg[j, jv], EBg[j, jv], K_err, s0g[j, jv], a1[o], 0.0, G * 0.999, sgn,",
+         description="local weights, split cells: the RKHS term of the optimal sub-box certificate shrunk by 0.1 %", tests=["tests/test_rkhs_local.py"]),
+    dict(name="rkhs-optimal-cells-noise-shrink-1e-3", file="src/robust_imdp/bounds/rkhs_weights.py",
+         original="cv = _certify_parts(bidx, bw, nb, y, B[j, jv], EB[j, jv], K_err, s0[j, jv], dbar, 0.0, G, sgn,",
+         replacement="cv = _certify_parts(bidx, bw, nb, y, B[j, jv], EB[j, jv], K_err, s0[j, jv], dbar * 0.999, 0.0, G, sgn,",
+         description="global optimal weights: the noise term of the optimised vertex certificate shrunk by 0.1 %", tests=["tests/test_rkhs_local.py"]),
+    dict(name="rkhs-weight-parts-wKw-shrink-1e-3", file="src/robust_imdp/bounds/rkhs_model.py",
+         original="l1_up, l2_up, r_up = _norms_from_parts(idx, w, n, b, eb, K_err, s0, parts[0], parts[1], parts[2], parts[3])",
+         replacement="l1_up, l2_up, r_up = _norms_from_parts(idx, w, n, b, eb, K_err, s0, parts[0], parts[1], parts[2] * 0.999, parts[3])",
+         description="shared weight sums (eq. W): w.K w shrunk by 0.1 %", tests=["tests/test_rkhs_local.py"]),
     # ------------------------------------------------------------------ improve (issue 22)
     dict(name="improve-intersection-shrink", file="src/robust_imdp/improve.py",
          original="        ilo[u, q], ihi[u, q] = np.maximum(lo, ilo[u, q]), np.minimum(hi, ihi[u, q])",
