@@ -62,6 +62,7 @@ ROWS = {
 }
 #: The row each learned row is compared with.
 REFERENCE_OF = {"old": "old_reference", "new": "new_reference", "new_untuned": "new_reference",
+                "new_iid_untuned": "new_reference",
                 "new_iid": "new_reference", "new_iid_local200": "new_reference",
                 "new_reference_widened": "new_reference"}
 
