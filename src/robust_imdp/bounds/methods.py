@@ -113,6 +113,7 @@ class BoundMethod:
     misspecification: bool = False
     iid_noise: bool = False
     local_points: bool = False
+    split: bool = False
     refine: bool = False
     nonlinear_known: bool = False
     per_component: bool = False
@@ -196,6 +197,17 @@ class BoundMethod:
                     f"error_bound = \"{self.name}\" uses the unit-amplitude kernel with the given lengthscale "
                     f"only: remove the key or set error_bound = {post}")
 
+    def check_split(self) -> None:
+        if not self.split:
+            names = _names("split", "'")
+            raise InvalidInputError(f"split_tol applies to error_bound = {names} only (sub-box certificates of the "
+                                    f"RKHS route); error_bound = {self.name!r} has none: remove it")
+
+    def check_file_split(self, where: str) -> None:
+        if not self.split:
+            names = _names("split", '"')
+            raise ProblemFileError(f"{where}: [learning].split_tol applies to error_bound = {names} only")
+
     def check_file_local_points(self, where: str) -> None:
         if not self.local_points:
             names = _names("local_points", '"')
@@ -243,7 +255,7 @@ _ROUTE_TEXT = {"gp": "GP route", "rkhs": "RKHS route"}
 
 _RKHS = dict(route="rkhs", bounder="robust_imdp.pipeline.bound_rkhs:learn_and_bound",
              new_cells="robust_imdp.pipeline.bound_rkhs:cell_bounder", misspecification=True, iid_noise=True,
-             local_points=True, refine=True, nonlinear_known=True, per_component=True, advice_pilot=True,
+             local_points=True, split=True, refine=True, nonlinear_known=True, per_component=True, advice_pilot=True,
              confidence_in_bounds=True)
 
 #: The registry, in the order the documentation lists the methods (the default first).

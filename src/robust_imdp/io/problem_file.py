@@ -11,7 +11,8 @@ Problem file contract (keys in ``[brackets]`` are tables; ``?`` marks optional k
     [noise]         kind = "truncated_gaussian" (sigma, bound) | "gaussian" (sigma) | "uniform" (bound)
     [learning]      rkhs_bound, lengthscale?, error_bound? ("optimal" | "ridge" | "chowdhury"),
                     misspecification? (0), iid_noise? (false), local_points? (all points up to 1000
-                    per mode, else 100), known? (n true/false: components not learned);
+                    per mode, else 100), known? (n true/false: components not learned),
+                    split_tol? (> 0: sub-box certificates where a cell's Taylor term exceeds it);
                     rkhs_bound, lengthscale, misspecification and known each take one value, a list
                     per component or a table per mode (robust_imdp.bounds.assumptions; rkhs_bound = 0
                     declares a component known);
@@ -74,7 +75,7 @@ _SCHEMA: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "data": (("path",), ()),
     "noise": (("kind",), ("sigma", "bound")),
     LEARNING_TABLE: (("rkhs_bound",), ("lengthscale", "error_bound", "misspecification", "iid_noise", "local_points",
-                                       "known", "signal_variance",
+                                       "split_tol", "known", "signal_variance",
                                        "optimize", "info_gain", "bound_tol", "bound_max_boxes")),
     "abstraction": ((), ("eta", "eps_rule", "combine", "guarantee", "confidence")),
     "refine": (("max_cells",), ("max_rounds", "min_cell_size", "time_budget", "split", "growth", "focus")),
@@ -397,6 +398,13 @@ def _parse_learning(gp_in: dict, mode_names: list, n: int, t: str, where: str) -
     if "local_points" in gp_in:
         _file_rule(t, method.check_file_local_points, where)
         gp["local_points"] = _number(gp_in["local_points"], f"{t}.local_points", where, lo=1, integer=True)
+    gp["split_tol"] = None
+    if "split_tol" in gp_in:
+        _file_rule(t, method.check_file_split, where)
+        gp["split_tol"] = float(_number(gp_in["split_tol"], f"{t}.split_tol", where, lo=0.0))
+        if not gp["split_tol"] > 0:
+            raise ProblemFileError(f"{where}: {t}.split_tol must be > 0 (leave it out to never split a cell); got "
+                                   f"{gp_in['split_tol']!r}")
     gp["iid_noise"] = gp_in.get("iid_noise", False)
     if not isinstance(gp["iid_noise"], bool):
         raise ProblemFileError(f"{where}: {t}.iid_noise must be true or false; got {gp_in['iid_noise']!r}")
@@ -613,6 +621,7 @@ def load_problem(path):
     misspecification = gp.pop("misspecification")
     iid_noise = gp.pop("iid_noise")
     local_points = gp.pop("local_points")
+    split_tol = gp.pop("split_tol", None)
     bound_tol = gp.pop("bound_tol", BOUND_TOL)
     bound_max_boxes = gp.pop("bound_max_boxes", BOUND_MAX_BOXES)
     ab = spec["abstraction"]
@@ -626,7 +635,7 @@ def load_problem(path):
         bound_tol=bound_tol, bound_max_boxes=bound_max_boxes, eta=ab["eta"], eps_rule=ab["eps_rule"], combine=ab["combine"],
         guarantee=ab["guarantee"], confidence=ab["confidence"], error_bound=error_bound,
         misspecification=misspecification, iid_noise=iid_noise, local_points=local_points,
-        refine=spec["refine"], dim_names=spec["names"], periodic=spec.get("periodic"),
+        refine=spec["refine"], dim_names=spec["names"], periodic=spec.get("periodic"), split_tol=split_tol,
     )
 
 

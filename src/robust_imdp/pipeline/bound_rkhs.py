@@ -73,8 +73,11 @@ def _data_noise_bound(problem: Problem, data, data_fail: float):
 def _chunk_settings(problem: Problem, noise_bound, iid_theta=None, iid_factor=None) -> dict:
     """The keyword settings of every bound task (``rkhs.bound_chunk``): the problem-wide assumption, the
     largest allowance over the modes, the method's weights, the iid event (None: without it)."""
-    return {**_base_settings(problem), "noise_bound": _shared_allowance(problem, noise_bound),
-            "method": _method(problem.error_bound).weights, "iid_theta": iid_theta, "iid_factor": iid_factor}
+    out = {**_base_settings(problem), "noise_bound": _shared_allowance(problem, noise_bound),
+           "method": _method(problem.error_bound).weights, "iid_theta": iid_theta, "iid_factor": iid_factor}
+    if getattr(problem, "split_tol", None) is not None:  # only then: the tasks' arguments are otherwise as before
+        out["split_tol"] = float(problem.split_tol)  # sub-box certificates (rkhs.cell_ranges, eq. C on each)
+    return out
 
 
 def _local_settings(problem: Problem, data, partition, noise_bound):

@@ -63,7 +63,7 @@ def bounds_key(problem: Problem) -> str:
         int(problem.bound_max_boxes), problem.error_bound, _setting_value(problem.misspecification),
         bool(problem.iid_noise), float(problem.confidence) if problem.method.confidence_in_bounds else None,
         problem.local_points,
-    ] + _periodic_key(problem))
+    ] + _periodic_key(problem) + _split_key(problem))
     return h.hexdigest()[:20]
 
 
@@ -71,6 +71,12 @@ def _periodic_key(problem: Problem) -> list:
     """``[("periodic", flags)]`` when a dimension is periodic, else ``[]`` (keys without one are unchanged)."""
     periodic = getattr(problem, "periodic", None)
     return [] if periodic is None else [("periodic", list(periodic))]
+
+
+def _split_key(problem: Problem) -> list:
+    """``[("split_tol", value)]`` when sub-box certification is on, else ``[]`` (keys without it are unchanged)."""
+    tol = getattr(problem, "split_tol", None)
+    return [] if tol is None else [("split_tol", float(tol))]
 
 
 def abstraction_key(problem: Problem) -> str:

@@ -66,6 +66,7 @@ class LearningConfig:
     gp_options: dict
     bound_tol: float
     bound_max_boxes: int
+    split_tol: float | None = None
 
     @property
     def method(self) -> methods.BoundMethod:
@@ -148,6 +149,12 @@ class Problem:
         Let only the ``local_points`` data points nearest to each cell carry certificate weight
         (``rkhs.local_pools``): the cost per cell no longer grows with the data, and no m x m
         kernel matrix is built. None: all points up to ``LOCAL_AUTO`` points per mode, else 100.
+    split_tol : float > 0 or None
+        Sub-box certification (``[learning].split_tol``; ``rkhs.cell_ranges``): a cell whose Taylor
+        remainder ``B sqrt(R(t_max))`` exceeds it is certified on ``s^d`` sub-boxes (``rkhs.split_counts``)
+        and gets the hull of their ranges; tighter where cells are large against the lengthscale, at a
+        higher bound cost (``docs/rkhs_bounds.md``). ``rkhs.SPLIT_TOL`` (1.5e-3) is the suggested value.
+        None (the default): never split.
     refine : refine.RefineOptions, dict or None
         Adaptive refinement of the undecided cells after the first solve (the problem file's
         ``[refine]`` table: ``max_cells``, ``max_rounds``, ``min_cell_size``, ``time_budget``,
@@ -196,6 +203,7 @@ class Problem:
     refine: Any = None
     dim_names: tuple | None = None
     periodic: tuple | None = None
+    split_tol: float | None = None
 
     def __post_init__(self):
         if self.periodic is not None:
@@ -233,6 +241,12 @@ class Problem:
             raise InvalidInputError(f"misspecification must be a finite float >= 0; got {self.misspecification!r}")
         if self.local_points is not None and (int(self.local_points) != self.local_points or self.local_points < 1):
             raise InvalidInputError(f"local_points must be a positive integer or None; got {self.local_points!r}")
+        if self.split_tol is not None:
+            ok = not isinstance(self.split_tol, bool) and isinstance(self.split_tol, (int, float, np.floating))
+            if not ok or not (np.isfinite(float(self.split_tol)) and float(self.split_tol) > 0):
+                raise InvalidInputError(f"split_tol must be a finite float > 0 (certify a cell on sub-boxes where "
+                                        f"its Taylor term exceeds it) or None (never); got {self.split_tol!r}")
+            method.check_split()
         method.check_noise_options(tau, self.iid_noise)
         method.check_gp_options(self.gp_options)
         self._check_known_parts()
@@ -276,7 +290,7 @@ class Problem:
     def learning(self) -> LearningConfig:
         return LearningConfig(self.rkhs_bound, self.gp_options.get("lengthscale"), self.misspecification,
                               self.error_bound, self.iid_noise, self.local_points, self.gp_options, self.bound_tol,
-                              self.bound_max_boxes)
+                              self.bound_max_boxes, self.split_tol)
 
     @property
     def abstraction(self) -> AbstractionConfig:

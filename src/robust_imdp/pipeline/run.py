@@ -92,6 +92,7 @@ def _parameters(problem: Problem, abstraction) -> dict:
         "misspecification": _setting_value(problem.misspecification),
         "iid_noise": bool(problem.iid_noise),
         "local_points": problem.local_points,
+        **({} if getattr(problem, "split_tol", None) is None else {"split_tol": float(problem.split_tol)}),
         "abstraction_key": abstraction_key(problem),
         **({} if all(_is_affine(m) for m in problem.maps) else
            {"known_parts": {name: (None if _is_affine(m) else list(m.expressions))
