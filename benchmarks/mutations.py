@@ -412,6 +412,15 @@ MUTATIONS = [
          original="l1_up, l2_up, r_up = _norms_from_parts(idx, w, n, b, eb, K_err, s0, parts[0], parts[1], parts[2], parts[3])",
          replacement="l1_up, l2_up, r_up = _norms_from_parts(idx, w, n, b, eb, K_err, s0, parts[0], parts[1], parts[2] * 0.999, parts[3])",
          description="shared weight sums (eq. W): w.K w shrunk by 0.1 %", tests=["tests/test_rkhs_local.py"]),
+    # ------------------------------------------------------------------ unicycle assumption, known-dynamics candidate path (issue 21)
+    dict(name="unicycle-known-B-below-certified-norm", file="src/robust_imdp/casestudies/systems.py",
+         original="    rkhs_bound=(0.074, 0.0, 0.0),",
+         replacement="    rkhs_bound=(0.0736, 0.0, 0.0),",
+         description="unicycle_3d_known: B below the certified norm 0.07367 of the drift's RKHS approximant (an unsound shipped assumption)", tests=["tests/test_unicycle_known.py"]),
+    dict(name="known-dynamics-short-path-eps-shrink", file="src/robust_imdp/abstraction/probabilities.py",
+         original="E = np.broadcast_to(self.eps[0, i, :], (t.size, 1))",
+         replacement="E = np.broadcast_to(self.eps[0, i, :] - 1e-4, (t.size, 1))",
+         description="abstraction: the known-dynamics single-candidate path's eps shrunk by 1e-4 (a larger noise share than Thm 1 allows)", tests=["tests/test_abstraction_known_candidates.py"]),
     # ------------------------------------------------------------------ improve (issue 22)
     dict(name="improve-intersection-shrink", file="src/robust_imdp/improve.py",
          original="        ilo[u, q], ihi[u, q] = np.maximum(lo, ilo[u, q]), np.minimum(hi, ihi[u, q])",
