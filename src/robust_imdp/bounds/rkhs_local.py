@@ -11,7 +11,7 @@ from robust_imdp._fp import U as _U, up as _up
 from robust_imdp._kernels import inv_l2_up as _inv_l2, kernel_matrix as _kernel_matrix, kernel_rel_err_nb as _kernel_rel_err_nb, norm_inflation as _norm_inflation
 from robust_imdp.bounds.rkhs_model import (CELL_BLOCK, _blocks, _certified_norms, _certified_value, _certify, _certify_parts,
                                            _check_cells, _weight_parts,
-                                           _combine_vertices, _known_at_vertices, _vertex_b, _writable, cell_centres,
+                                           _combine_vertices, _known_at_vertices, _vertex_functional, _writable, cell_centres,
                                            split_counts, sub_boxes, vertex_signs)
 from robust_imdp.bounds.rkhs_weights import METHODS, _active_set, _chol_factor, _chol_solve
 from robust_imdp.errors import InvalidInputError
@@ -40,16 +40,7 @@ def _local_group_optimal(Xp, Yp, inv_l2, c, r, signs, q0, q1, lin, Kp, K_err, a1
     v = np.empty(d)
     for j in range(nbox):
         for jv in range(V):
-            for a in range(d):
-                v[a] = signs[jv, a] * r[q0 + j, a]
-            z = _vertex_b(Xp, inv_l2, c[q0 + j], v, Bg[j, jv], EBg[j, jv])
-            kerr = _kernel_rel_err_nb(z, d)
-            for i in range(k):
-                EBg[j, jv, i] += abs(Bg[j, jv, i]) * kerr
-            t = 1.0
-            for a in range(d):
-                t += v[a] * v[a] * inv_l2[a]
-            s0g[j, jv] = t * (1.0 + (d + 8) * 2.220446049250313e-16)  # upper bound of <phi_v, phi_v>
+            s0g[j, jv] = _vertex_functional(Xp, inv_l2, c[q0 + j], r[q0 + j], signs[jv], v, Bg[j, jv], EBg[j, jv])
     ys = np.empty(k)
     yo = np.empty(k)
     lastS = np.zeros(k, dtype=np.int64)
@@ -203,16 +194,7 @@ def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_
                         done_to = q1
                         continue
             for jv in range(V):
-                for a in range(d):
-                    v[a] = signs[jv, a] * r[q, a]
-                z = _vertex_b(Xp, inv_l2, c[q], v, b, eb)
-                kerr = _kernel_rel_err_nb(z, d)
-                for i in range(k):
-                    eb[i] += abs(b[i]) * kerr
-                s0 = 1.0
-                for a in range(d):
-                    s0 += v[a] * v[a] * inv_l2[a]
-                s0 = s0 * (1.0 + (d + 8) * 2.220446049250313e-16)
+                s0 = _vertex_functional(Xp, inv_l2, c[q], r[q], signs[jv], v, b, eb)
                 if not optimal:
                     if ok:
                         _chol_solve(L, k, b, w)

@@ -14,6 +14,7 @@ import numpy as np
 
 from robust_imdp._fp import U as _U, down as _down, up as _up
 from robust_imdp._kernels import inv_l2_up as _inv_l2, kernel_matrix as _kernel_matrix, kernel_rel_err as _kernel_rel_err
+from robust_imdp._kernels import kernel_rel_err_nb as _kernel_rel_err_nb
 from robust_imdp.errors import DimensionError, InvalidInputError
 
 
@@ -184,6 +185,25 @@ def _vertex_b(X, inv_l2, c, v, b, eb):  # pragma: no cover - compiled
         # bracket: d + 1 terms, each of 3 roundings -> (d + 4) u * mag; product: 1 ulp
         eb[i] = k * (d + 5) * 1.1102230246251565e-16 * mag
     return zmax
+
+
+@numba.njit(cache=True)
+def _vertex_functional(X, inv_l2, c, r, sign, v, b, eb):  # pragma: no cover - compiled
+    """The vertex ``v = sign * r`` of the box around ``c`` (written into ``v``): ``b``, its absolute error
+    ``eb`` including the kernel's own relative error, and the returned upper bound of
+    ``<phi_v, phi_v> = 1 + sum_a v_a^2 inv_l2_a`` (eq. C's data of one vertex; the compiled twin of
+    :func:`vertex_problems`, shared by the optimal, local and sub-box paths)."""
+    d = c.shape[0]
+    for a in range(d):
+        v[a] = sign[a] * r[a]
+    z = _vertex_b(X, inv_l2, c, v, b, eb)
+    kerr = _kernel_rel_err_nb(z, d)
+    for i in range(X.shape[0]):
+        eb[i] += abs(b[i]) * kerr
+    t = 1.0
+    for a in range(d):
+        t += v[a] * v[a] * inv_l2[a]
+    return t * (1.0 + (d + 8) * 2.220446049250313e-16)  # upper bound of <phi_v, phi_v>
 
 
 def vertex_problems(model: KernelModel, c, r, signs=None):

@@ -8,8 +8,7 @@ import math
 import numba
 import numpy as np
 
-from robust_imdp._kernels import kernel_rel_err_nb as _kernel_rel_err_nb
-from robust_imdp.bounds.rkhs_model import KernelModel, _certify, _certify_parts, _vertex_b, _weight_parts, vertex_problems
+from robust_imdp.bounds.rkhs_model import KernelModel, _certify, _certify_parts, _vertex_functional, _weight_parts, vertex_problems
 
 #: Ways to choose the certificate weights (see ``bounds/rkhs.py``'s docstring, sections 1-3).
 METHODS = ("optimal", "ridge")
@@ -360,16 +359,7 @@ def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, 
             nbox = q1 - q
             for j in range(nbox):
                 for jv in range(V):
-                    for a in range(d):
-                        v[a] = signs[jv, a] * r[q + j, a]
-                    z = _vertex_b(X, inv_l2, c[q + j], v, B[j, jv], EB[j, jv])
-                    kerr = _kernel_rel_err_nb(z, d)
-                    for i in range(m):
-                        EB[j, jv, i] += abs(B[j, jv, i]) * kerr
-                    t = 1.0
-                    for a in range(d):
-                        t += v[a] * v[a] * inv_l2[a]
-                    s0[j, jv] = t * (1.0 + (d + 8) * 2.220446049250313e-16)  # upper bound of <phi_v, phi_v>
+                    s0[j, jv] = _vertex_functional(X, inv_l2, c[q + j], r[q + j], signs[jv], v, B[j, jv], EB[j, jv])
             for side in range(2):
                 sgn = 1.0 if side == 0 else -1.0
                 for i in range(m):
