@@ -26,7 +26,7 @@ The system (every configuration; ``system()``)
 What is measured per configuration
     (a) **slack**: for a seeded sample of cells (20 / 15 / 10 in 1-D / 2-D / 3-D), first mode and
         first output, our certified cell range (``rkhs.bound_chunk`` exactly as the pipeline calls
-        it: optimal weights, local weights above 1,000 points per mode) against the **optimal
+        it: optimal weights, local weights above LOCAL_AUTO (1,000) points per mode) against the **optimal
         range**: max / min over a grid of 11 / 6^2 / 5^3 points per cell (vertices included) of the
         pointwise optimal bound of Scharnhorst et al. (sup / inf of f_u + h over ``||h|| <= B``,
         ``|h(x_i) - y_i| <= noise bound``, ALL data). The pointwise optimum is our active-set
@@ -96,6 +96,7 @@ from robust_imdp.spec.dfa import ltlf_to_dfa  # noqa: E402
 from robust_imdp.models.geometry import Box, Partition, Region  # noqa: E402
 from robust_imdp.models.noise import TruncatedGaussianNoise  # noqa: E402
 from robust_imdp.synthesis.core import synthesize  # noqa: E402
+from robust_imdp.pipeline.problem import LOCAL_AUTO, LOCAL_DEFAULT as LOCAL_POINTS  # noqa: E402  (the pipeline's rule)
 
 HERE = Path(__file__).resolve().parent
 OUT = HERE / "results"
@@ -116,7 +117,6 @@ FORMULA = "G !obs & F des"
 SLACK_CELLS = {1: 20, 2: 15, 3: 10}  # cells sampled for (a)
 OPT_GRID = {1: 11, 2: 6, 3: 5}  # points per axis of the optimal range (vertices included)
 REF_GRID = {1: 33, 2: 17, 3: 9}  # points per axis of the reference boxes (vertices included)
-LOCAL_AUTO, LOCAL_POINTS = 1000, 100  # the pipeline's rule (pipeline.LOCAL_AUTO / LOCAL_DEFAULT)
 VERIFY_POINTS = 1  # points (both sides) checked against Clarabel in the 1-D and 2-D middle configurations
 VERIFY_DIMS = (1, 2)  # 3-D: m = 1024 points, about 30 s per Clarabel solve on the loaded machine
 TARGET_RATIO = 0.95
