@@ -7,7 +7,7 @@ the family's sampled cells, first mode and output) and Q_yes. Ratios are measure
 
     python benchmarks/local_auto.py [--ratios 0.03 0.06 ...] [--split-ratios ...]
 
-Writes ``benchmarks/results/local_auto.json`` and ``.md``.
+Writes ``benchmarks/results/local_auto.json`` and ``.md`` (``--name`` another name).
 """
 from __future__ import annotations
 
@@ -53,6 +53,7 @@ def main(argv=None) -> int:
     ap.add_argument("--ratios", nargs="+", type=float, default=[0.03, 0.06, 0.125, 0.25, 0.5])
     ap.add_argument("--split-ratios", nargs="+", type=float, default=[0.03, 0.06, 0.125])
     ap.add_argument("--seed", type=int, default=20)
+    ap.add_argument("--name", default="local_auto", help="results file name (without .json / .md)")
     args = ap.parse_args(argv)
     warm = F.system(dict(F.configurations("default")[0], dim=1), args.seed)
     F.our_boxes(warm, None)
@@ -74,7 +75,7 @@ def main(argv=None) -> int:
     data = {"rows": rows, "commit": _git_commit(), "load": os.getloadavg(), "seconds": time.perf_counter() - t_all,
             "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
     OUT.mkdir(exist_ok=True)
-    (OUT / "local_auto.json").write_text(json.dumps(data, indent=1))
+    (OUT / f"{args.name}.json").write_text(json.dumps(data, indent=1))
     lines = ["# Local pools against all points, family 3-D (`benchmarks/local_auto.py`)", "",
              f"{data['date']}, commit {data['commit']}, load at the end {data['load'][0]:.1f}; "
              "1,024 points per mode, 8^3 cells, 3 modes x 3 outputs.", "",
@@ -86,7 +87,7 @@ def main(argv=None) -> int:
                      f"{a['slack_upper_median']:.4f}, {a['slack_lower_median']:.4f} / {a['q_yes']} | "
                      f"{b['bound_seconds']:.1f} / {b['slack_upper_median']:.4f}, {b['slack_lower_median']:.4f} / "
                      f"{b['q_yes']} | {b['bound_seconds'] / a['bound_seconds']:.2f} |")
-    (OUT / "local_auto.md").write_text("\n".join(lines) + "\n")
+    (OUT / f"{args.name}.md").write_text("\n".join(lines) + "\n")
     return 0
 
 
