@@ -308,13 +308,17 @@ def true_boxes(sy: dict) -> dict:
     return out
 
 
-def our_boxes(sy: dict, split_tol) -> dict:
-    """Our certified image boxes of every mode, cell and output (``bound_chunk`` as the pipeline runs it)."""
+def our_boxes(sy: dict, split_tol, local="auto") -> dict:
+    """Our certified image boxes of every mode, cell and output (``bound_chunk`` as the pipeline runs it).
+
+    ``local``: the local pool size, None for all points, or ``"auto"`` for the pipeline's rule.
+    """
     part = sy["partition"]
     lo_all, up_all = [], []
     t0 = time.perf_counter()
     unconv = 0
-    local = None if sy["m"] <= LOCAL_AUTO else LOCAL_POINTS
+    if local == "auto":
+        local = None if sy["m"] <= LOCAL_AUTO else LOCAL_POINTS
     for u, (X, Y, _) in enumerate(sy["data"]):
         A, b = sy["maps"][u]
         res = rkhs.bound_chunk(X, Y, A, b, part.cells_lower, part.cells_upper, lengthscale=sy["lengthscale"],

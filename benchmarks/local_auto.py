@@ -31,19 +31,9 @@ OUT = Path(__file__).resolve().parent / "results"
 
 
 def measure(sy: dict, cells, opt: dict, local, tol) -> dict:
-    part = sy["partition"]
-    lo, up = [], []
-    t0 = time.perf_counter()
-    for u, (X, Y, _) in enumerate(sy["data"]):
-        A, b = sy["maps"][u]
-        res = rkhs.bound_chunk(X, Y, A, b, part.cells_lower, part.cells_upper, lengthscale=sy["lengthscale"],
-                               rkhs_bound=sy["B"], noise_bound=np.full(sy["dim"], sy["noise_bound"]),
-                               local_points=local, split_tol=tol)
-        lo.append(res["lower"])
-        up.append(res["upper"])
-    sec = time.perf_counter() - t0
-    lo, up = np.stack(lo), np.stack(up)
-    return {"local_points": local, "split_tol": tol, "bound_seconds": sec, "q_yes": F.q_yes(sy, lo, up)["yes"],
+    ob = F.our_boxes(sy, tol, local)
+    lo, up = ob["lower"], ob["upper"]
+    return {"local_points": local, "split_tol": tol, "bound_seconds": ob["seconds"], "q_yes": F.q_yes(sy, lo, up)["yes"],
             "slack_upper_median": float(np.median(up[0, cells, 0] - opt["opt_up"])),
             "slack_lower_median": float(np.median(opt["opt_lo"] - lo[0, cells, 0]))}
 
