@@ -211,7 +211,7 @@ def test_the_run_prints_and_saves_the_advice(tiny_runs):
 
     first, again, off, out = tiny_runs
     adv = first.advice
-    assert [lv["name"] for lv in adv["levers"]] == ["finer grid", "more data", "smaller B"]
+    assert [lv["name"] for lv in adv["levers"]] == ["finer grid", "more data", "smaller B", "sub-boxes"]
     assert adv["baseline_share"] == pytest.approx(np.mean(first.class_names == "yes"))  # equal cells: share = count
     for lv in adv["levers"]:
         assert lv["gain"] is None or lv["gain"] == pytest.approx(lv["q_yes_share"] - adv["baseline_share"])
@@ -226,3 +226,53 @@ def test_the_run_prints_and_saves_the_advice(tiny_runs):
     assert validate_schema(doc, SCHEMA) == []
     with pytest.raises(InvalidInputError, match="advice must be 'auto', True or False; got 'yes'"):
         synthesize_from_data(first.problem, progress=False, advice="yes")
+
+
+# =========================================================================== the sub-box lever
+@pytest.fixture(scope="module")
+def split_runs():
+    import sys
+    from pathlib import Path
+
+    from robust_imdp.bounds import rkhs
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_pipeline import tiny_problem
+
+    p = tiny_problem()  # l = 2 on cells of 0.5: r / l = 0.125, B = 6, a Taylor term far above split_tol
+    return synthesize_from_data(p, progress=False), synthesize_from_data(p.replace(split_tol=rkhs.SPLIT_TOL),
+                                                                           progress=False)
+
+
+def test_sub_box_lever_estimates_a_real_split_run(split_runs):
+    plain, split = split_runs
+    lv = {v["name"]: v for v in plain.advice["levers"]}["sub-boxes"]
+    base = plain.advice["baseline_share"]
+    real = float(np.mean(split.class_names == "yes"))  # equal cells: share = count share
+    assert real > base + 0.2  # sub-boxes decide many more cells here (0.25 -> 0.56 when written)
+    # tighter boxes never lose Q_yes, and the estimate (the pilot cells' median excess ratio applied to
+    # every split cell) lands within 0.1 of X of the real split run (0.59 against 0.56 when written)
+    assert lv["q_yes_share"] >= base and abs(lv["q_yes_share"] - real) <= 0.1
+    assert 0 < lv["excess_ratio"] < 1 and lv["setting"].startswith("split_tol = 0.0015, ")
+    # a run that already splits gets no sub-box lever
+    assert "sub-boxes" not in [v["name"] for v in split.advice["levers"]]
+
+
+def test_sub_box_lever_says_when_sub_boxes_change_nothing():
+    # a rule that splits no cell: no pilot is bounded (bound_cells would raise) and the note says why
+    part, fits, dfa = _robot_setup(0.25)
+    noise = TruncatedGaussianNoise([0.01, 0.01], [0.02, 0.02])
+    flo, fhi = fits.grid_ranges(part.breakpoints)
+    cb = CellBounds(flo - 0.05, fhi + 0.05, None)
+
+    def no_pilot(lower, upper, rkhs_bound, split_tol=None):
+        assert split_tol is None, "no pilot is bounded on sub-boxes"
+        lo, hi = fits.cell_ranges(lower, upper)
+        return lo - 0.05, hi + 0.05
+
+    adv = advise(part, cb, fits, noise, dfa, threshold=0.9, classes=_solve_classes(part, cb, noise, dfa),
+                 noise_floor=[0.02, 0.02], rkhs_bound=0.2, bound_cells=no_pilot,
+                 sub_boxes=lambda lo, up: np.ones(lo.shape[0], dtype=np.int64))
+    lv = {v.name: v for v in adv.levers}["sub-boxes"]
+    assert lv.gain is None and "change nothing" in lv.note and lv.setting.endswith("1 sub-boxes per cell")
+    assert "sub-boxes: the Taylor term is below split_tol" in advice_line(adv.to_dict())

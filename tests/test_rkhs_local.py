@@ -218,6 +218,28 @@ def test_numba_kernel_error_bound_equals_the_python_one():
             assert rkhs._kernel_rel_err_nb(z, d) >= 6 * 2.0 ** -53  # exp and the inputs' rounding at least
 
 
+def test_split_counts_follow_the_rule_up_to_the_cap_in_every_dimension():
+    # s = ceil(sqrt(B rho(t) / tol)) (docs/rkhs_bounds.md, "Sub-boxes"): the fewest pieces with
+    # B rho(t) / s^2 <= tol (the term shrinks about like t, and a sub-box of 1/s the size has t / s^2),
+    # never more than floor(MAX_SUB^(1/d)) per axis.
+    from robust_imdp.bounds.rkhs_model import _scaled_remainder_sqrt_up
+
+    B, tol = 0.35, rkhs.SPLIT_TOL
+    for d in (1, 2, 3, 4):
+        t = d * np.linspace(0.001, 1.0, 400) ** 2  # r / l up to 1 per axis
+        s = rkhs.split_counts(t, B, d, tol)
+        cap = int(np.floor(rkhs.MAX_SUB ** (1.0 / d) + 1e-9))
+        assert s.min() == 1 and s.max() <= cap and np.all(s ** d <= rkhs.MAX_SUB)
+        assert d == 1 or s.max() == cap  # (in 1-D the rule asks for at most 16 here)
+        assert np.all(np.diff(s) >= 0)  # a larger cell never gets fewer pieces
+        term = B * np.minimum(rkhs.taylor_remainder_sqrt_up(t), _scaled_remainder_sqrt_up(np.exp(-0.5 * t), t))
+        free = s < cap
+        assert np.all(term[free] / s[free] ** 2 <= tol * (1 + 1e-12))
+        assert np.all(term[s > 1] / (s[s > 1] - 1.0) ** 2 > tol)  # and one piece fewer would not do
+    # the cap leaves 3-D cells at r/l 0.25 (B 0.32, the family's) the s = 6 the rule asks for
+    assert int(rkhs.split_counts(np.array([3 * 0.25 ** 2]), 0.32, 3, tol)[0]) == 6
+
+
 # ----------------------------------------------------------------------------- certification sub-boxes
 def test_sub_boxes_cover_the_cell_exactly():
     # Union of the sub-boxes = the cell, in exact rational arithmetic, for awkward floats and s = 1..5:

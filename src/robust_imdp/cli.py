@@ -125,7 +125,7 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--threshold", type=_probability, default=None, help="override [spec].threshold")
     run.add_argument("--no-figures", action="store_true", help="do not write PNG figures")
     run.add_argument("--advice", choices=("auto", "on", "off"), default="auto",
-                     help="estimate which lever (2x finer grid, more data, smaller B) would move most of X "
+                     help="estimate which lever (2x finer grid, more data, smaller B, sub-boxes) would move most of X "
                           "into Q_yes, by re-solving with modified image boxes; auto: when the finer grid "
                           "has at most 65,536 cells and ~3e6 listed transitions (cells x modes x 3^d)")
     run.add_argument("--quiet", action="store_true", help="no progress lines")

@@ -479,8 +479,11 @@ def _combine_vertices(lin_v, lin_err, su, sl, t_max, G: float, tau: float):
 
 
 SPLIT_TOL = 1.5e-3
-#: Most sub-boxes per cell (``s <= floor(MAX_SUB^(1/d))``).
-MAX_SUB = 64
+#: Most sub-boxes per cell (``s <= floor(MAX_SUB^(1/d))``): 6 pieces per axis in 3-D, 14 in 2-D, 3 in 4-D.
+#: 216 rather than 64 (4 per axis in 3-D): the family's 3-D cells at r/l 0.25 want s = 6, and with all
+#: points their slack over the optimal range is 0.0031 at s = 4, 0.0014 at s = 6 (benchmarks/results/sub_cap.md);
+#: in 1-D and 2-D the rule's s stays at or below 8 on the family, so the cap does not bind there.
+MAX_SUB = 216
 
 
 def _blocks(n_parents: int, starts, n_boxes: int, block: int) -> np.ndarray:

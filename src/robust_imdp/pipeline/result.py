@@ -34,7 +34,7 @@ class Result:
     from_cache : bool
         Whether the abstraction was reused.
     advice : dict
-        Which lever (finer grid, more data, smaller B) would move most of X into Q_yes, estimated
+        Which lever (finer grid, more data, smaller B, sub-boxes) would move most of X into Q_yes, estimated
         after the solve (``advice.Advice.to_dict()``; empty when not estimated, and after
         :func:`resynthesize`).
     diagnostics : dict

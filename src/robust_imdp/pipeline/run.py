@@ -236,7 +236,7 @@ def synthesize_from_data(problem: Problem, *, progress: bool = True, abstraction
     check_resources : bool
         Refuse (``ResourceError``) when the pre-flight memory estimate exceeds the memory free.
     advice : {"auto", True, False}
-        After the solve, estimate which lever (a 2x finer grid, more data, a smaller B) would move
+        After the solve, estimate which lever (a 2x finer grid, more data, a smaller B, sub-boxes) would move
         most of X into Q_yes (:func:`robust_imdp.synthesis.advice.advise`; ``result.advice``, the summary's
         ``advice:`` line and ``result.json``'s ``diagnostics.advice``). ``"auto"``: when the
         finer grid has at most ``advice.MAX_CELLS`` cells and about
@@ -342,11 +342,13 @@ def _advice(problem: Problem, partition, cell_bounds, dfa, classes, log: _Log, r
     mins = [c["minimum"] for c in diagnostics.get("assumption", {}).get("min_norm", [])]
     bounders: dict = {}
 
-    def bound_cells(lower, upper, rkhs_bound):
-        if rkhs_bound not in bounders:
-            bounders[rkhs_bound] = _cell_bounder(problem.replace(rkhs_bound=rkhs_bound), partition, _Log(False), run,
-                                                 task=_pilot_task)
-        return bounders[rkhs_bound](lower, upper)
+    def bound_cells(lower, upper, rkhs_bound, split_tol=None):
+        key = (rkhs_bound, split_tol)
+        if key not in bounders:
+            p = problem.replace(rkhs_bound=rkhs_bound) if split_tol is None else \
+                problem.replace(rkhs_bound=rkhs_bound, split_tol=split_tol)
+            bounders[key] = _cell_bounder(p, partition, _Log(False), run, task=_pilot_task)
+        return bounders[key](lower, upper)
 
     with log.stage("advice"):
         adv = advise(partition, cell_bounds, _fitted(problem, data), problem.noise, dfa, threshold=problem.threshold,
@@ -354,12 +356,30 @@ def _advice(problem: Problem, partition, cell_bounds, dfa, classes, log: _Log, r
                      min_norm=max(mins, default=0.0),
                      abstraction_options={"eta": problem.eta, "eps_rule": problem.eps_rule,
                                           "combine": problem.combine},
-                     bound_cells=bound_cells, max_cells=MAX_CELLS if want == "auto" else 2 ** 62)
+                     bound_cells=bound_cells, max_cells=MAX_CELLS if want == "auto" else 2 ** 62,
+                     sub_boxes=_sub_box_counter(problem))
     from robust_imdp.jsonable import jsonable as _jsonable
 
     out = _jsonable(adv.to_dict())
     log.info(advice_line(out))
     return out
+
+
+def _sub_box_counter(problem: Problem):
+    """Sub-boxes per cell that ``split_tol = rkhs.SPLIT_TOL`` would certify (``rkhs.split_counts`` on the
+    problem's one B and lengthscale), or None where the run cannot split or already does."""
+    if getattr(problem, "split_tol", None) is not None or not problem.method.split:
+        return None
+    from robust_imdp.bounds.rkhs import SPLIT_TOL, split_counts
+
+    n = int(np.size(problem.space_lower))
+    inv_l2 = 1.0 / np.broadcast_to(np.asarray(problem.gp_options.get("lengthscale", 1.0), float), (n,)) ** 2
+
+    def counts(lower, upper):
+        half = 0.5 * (np.asarray(upper, float) - np.asarray(lower, float))
+        return split_counts(np.sum(half ** 2 * inv_l2, axis=1), float(problem.rkhs_bound), n, SPLIT_TOL) ** n
+
+    return counts
 
 
 def _refine(problem: Problem, partition, abstraction, syn, cell_bounds, dfa, log: _Log, run: _Run, cache_dir,

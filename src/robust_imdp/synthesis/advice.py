@@ -21,7 +21,10 @@ components are permuted (the boxes and the fit do; tested).
   tau, the limit of the deterministic bound when data are dense: a constant offset of the noise
   cannot be told apart from ``g``);
 * **smaller B** (``max(B/2, the data-implied minimum norm)``): the excess scaled by the ratio
-  measured on pilot cells bounded with that B.
+  measured on pilot cells bounded with that B;
+* **sub-boxes** (``split_tol = rkhs.SPLIT_TOL``, only where the run did not split): the excess scaled
+  by the ratio measured on pilot cells certified on sub-boxes; the setting names the grid's mean
+  number of sub-boxes per cell (the bound stage's cost grows about with it).
 
 Each estimate re-abstracts (Thm 1, ``abstraction.abstract``) and re-solves
 (``synthesis.synthesize``) with the modified boxes; the bound stage, the expensive one, runs only
@@ -54,7 +57,7 @@ MAX_CELLS = 65536
 #: ``advice="auto"`` runs when the finer grid's IMDP has at most about this many listed transitions
 #: (cells x modes x 3^d): a few seconds of abstraction and solving at the case studies' speed.
 MAX_AUTO_TRANSITIONS = 3_000_000
-LEVERS = ("finer grid", "more data", "smaller B")
+LEVERS = ("finer grid", "more data", "smaller B", "sub-boxes")
 #: A lever wins only if it is estimated to move at least this share of X into Q_yes.
 MIN_GAIN = 0.005
 
@@ -161,8 +164,8 @@ def _ratio(num, den) -> np.ndarray:
 def advise(partition, cell_bounds, fits: FittedModes, noise, dfa, *, threshold: float, horizon=None,
            classes, noise_floor, rkhs_bound: float, min_norm: float = 0.0, abstraction_options=None,
            bound_cells=None, max_cells: int = MAX_CELLS, pilot_cells: int = PILOT_CELLS,
-           progress=None) -> Advice:
-    """Estimate the Q_yes share of X that a finer grid, more data or a smaller B would give.
+           progress=None, sub_boxes=None) -> Advice:
+    """Estimate the Q_yes share of X that a finer grid, more data, a smaller B or sub-boxes would give.
 
     Parameters
     ----------
@@ -185,10 +188,13 @@ def advise(partition, cell_bounds, fits: FittedModes, noise, dfa, *, threshold: 
         The data-implied minimum RKHS norm (largest over modes and components).
     abstraction_options : dict
         ``eta``, ``eps_rule``, ``combine`` of the run.
-    bound_cells : callable ``(lower (k, d), upper (k, d), rkhs_bound) -> (lower, upper)`` of shape
-        ``(n_modes, k, n)``, optional
+    bound_cells : callable ``(lower (k, d), upper (k, d), rkhs_bound[, split_tol]) -> (lower, upper)`` of
+        shape ``(n_modes, k, n)``, optional
         The run's bound stage for a few pilot cells; without it the excess ratios are 1 (finer
-        grid) and ``B' / B`` (smaller B).
+        grid) and ``B' / B`` (smaller B), and sub-boxes are not estimated.
+    sub_boxes : callable ``(lower (k, d), upper (k, d)) -> (k,) int``, optional
+        Sub-boxes per cell that ``split_tol = rkhs.SPLIT_TOL`` would certify (``rkhs.split_counts``);
+        None: the run cannot split or already does (no sub-box estimate).
     max_cells : int
         An estimate that would abstract more cells than this is skipped (its note says so).
     pilot_cells : int
@@ -224,6 +230,8 @@ def advise(partition, cell_bounds, fits: FittedModes, noise, dfa, *, threshold: 
     floor = np.broadcast_to(np.asarray(noise_floor, float), (lo.shape[2],))
     levers = [_finer_grid(ctx, fits, rkhs_bound, say), _more_data(ctx, floor, say),
               _smaller_b(ctx, rkhs_bound, min_norm, say)]
+    if sub_boxes is not None:
+        levers.append(_sub_boxes(ctx, rkhs_bound, sub_boxes, say))
     est = [lv for lv in levers if lv.gain is not None and lv.gain >= MIN_GAIN]
     winner = max(est, key=lambda lv: lv.gain).name if est else None
     return Advice(base, tuple(levers), winner, time.perf_counter() - t_all)
@@ -332,3 +340,34 @@ def _smaller_b(ctx: _Context, rkhs_bound: float, min_norm: float, say) -> Lever:
     say(f"advice: B = {Bs:.3g} -> Q_yes {100 * share:.0f} % of X")
     return Lever("smaller B", f"B = {Bs:.3g}", share, share - ctx.base, partition.n_cells,
                  float(np.median(r)), time.perf_counter() - t0, note)
+
+
+def _sub_boxes(ctx: _Context, rkhs_bound: float, counts, say) -> Lever:
+    """Lever (d), sub-box certification (``split_tol = rkhs.SPLIT_TOL``): the excess scaled by the ratio
+    measured on the pilot cells certified on sub-boxes (a finer cover of the cell for eq. C only: the
+    grid, and so the abstraction's size, stay as they are)."""
+    from robust_imdp.bounds.rkhs import SPLIT_TOL
+
+    partition, pilot = ctx.partition, ctx.pilot
+    t0 = time.perf_counter()
+    n_sub = np.asarray(counts(partition.cells_lower, partition.cells_upper))
+    setting = f"split_tol = {SPLIT_TOL:g}, {float(np.mean(n_sub)):.3g} sub-boxes per cell"
+    if np.all(n_sub[pilot] <= 1):
+        return Lever("sub-boxes", setting, None, None, partition.n_cells,
+                     note="the Taylor term is below split_tol in the undecided cells: sub-boxes change nothing")
+    if ctx.bound_cells is None or partition.n_cells > ctx.max_cells:
+        return Lever("sub-boxes", setting, None, None, partition.n_cells,
+                     note="no pilot bound stage" if ctx.bound_cells is None
+                     else f"{partition.n_cells:,} cells > {ctx.max_cells:,}")
+    plo, phi = ctx.bound_cells(partition.cells_lower[pilot], partition.cells_upper[pilot], rkhs_bound, SPLIT_TOL)
+    s_lo, s_hi = _excess_sides(plo, phi, ctx.flo[:, pilot], ctx.fhi[:, pilot])
+    r = _ratio(np.concatenate([s_lo, s_hi], axis=1),
+               np.concatenate([ctx.e_lo[:, pilot], ctx.e_hi[:, pilot]], axis=1))
+    # cells the rule leaves whole keep their boxes
+    split = (n_sub > 1)[None, :, None]
+    blo, bhi = _shrunk(ctx.lo, ctx.hi, ctx.flo, ctx.fhi, np.where(split, r[:, None] * ctx.e_lo, ctx.e_lo),
+                       np.where(split, r[:, None] * ctx.e_hi, ctx.e_hi))
+    share = ctx.q_yes(partition, blo, bhi)
+    say(f"advice: sub-boxes -> Q_yes {100 * share:.0f} % of X")
+    return Lever("sub-boxes", setting, share, share - ctx.base, partition.n_cells, float(np.median(r)),
+                 time.perf_counter() - t0)
