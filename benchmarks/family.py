@@ -677,6 +677,9 @@ def main(argv=None) -> int:
     ap.add_argument("--only", nargs="+", metavar="KEY", help="configuration keys to run (e.g. d2-rl0.125-nz0.15-dn2)")
     ap.add_argument("--no-pipeline", action="store_true", help="skip the start-up and pipeline timings")
     ap.add_argument("--render", action="store_true", help="only rewrite family.md from family.json")
+    ap.add_argument("--merge", action="store_true",
+                    help="with --only: replace those rows of the existing family.json (the others, and its pipeline "
+                         "and start-up timings, are kept; meta names the re-run rows) instead of overwriting it")
     args = ap.parse_args(argv)
     OUT.mkdir(exist_ok=True)
     if args.render:
@@ -721,12 +724,23 @@ def main(argv=None) -> int:
             print(f"pipeline: {data['pipeline']}", flush=True)
         data["startup"] = startup()
         print(f"start-up: {data['startup']}", flush=True)
+    merged_from = None
+    if args.merge and args.only and (OUT / "family.json").exists():
+        old = json.loads((OUT / "family.json").read_text())
+        fresh = {r["key"]: r for r in rows}
+        rows = [fresh.pop(r["key"], r) for r in old["rows"]] + list(fresh.values())
+        data = {**{k: v for k, v in old.items() if k in ("pipeline", "startup")}, **data, "rows": rows}
+        merged_from = old["meta"]
     data["summary"] = summary(rows)
     data["meta"] = {"machine": platform.platform(), "python": platform.python_version(), "numpy": np.__version__,
                     "robust_imdp": robust_imdp.__version__, "commit": _git_commit(), "subset": subset,
                     "seed": args.seed, "note": os.environ.get("BENCH_NOTE", "2-core machine shared with other jobs"),
                     "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "total_s": time.perf_counter() - t0,
                     "split_tol": rkhs.SPLIT_TOL, "only": args.only}
+    if merged_from is not None:  # the table's other rows are the earlier run's
+        data["meta"] = {**merged_from, "note": f"{merged_from['note']}; rows {', '.join(args.only)} re-run "
+                        f"{data['meta']['date']} at commit {data['meta']['commit']} ({data['meta']['total_s']:.0f} s)",
+                        "merged": [data["meta"]] + merged_from.get("merged", [])}
     (OUT / "family.json").write_text(json.dumps(data, indent=1))
     write_md(OUT / "family.md", data)
     bad = data["summary"]["violations"]

@@ -23,11 +23,10 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import family as F  # noqa: E402
-from reference import _git_commit  # noqa: E402
+from reference import results_record, write_results  # noqa: E402
 
 from robust_imdp.bounds import rkhs  # noqa: E402
 
-OUT = Path(__file__).resolve().parent / "results"
 
 
 def measure(sy: dict, cells, opt: dict, local, tol) -> dict:
@@ -62,10 +61,7 @@ def main(argv=None) -> int:
                 row = {"key": F.key_of(c), "ratio": r, "points_per_mode": sy["m"], **measure(sy, cells, opt, local, tol)}
                 rows.append(row)
                 print(json.dumps(row), flush=True)
-    data = {"rows": rows, "commit": _git_commit(), "load": os.getloadavg(), "seconds": time.perf_counter() - t_all,
-            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
-    OUT.mkdir(exist_ok=True)
-    (OUT / f"{args.name}.json").write_text(json.dumps(data, indent=1))
+    data = results_record(rows, seconds=time.perf_counter() - t_all)
     lines = ["# Local pools against all points, family 3-D (`benchmarks/local_auto.py`)", "",
              f"{data['date']}, commit {data['commit']}, load at the end {data['load'][0]:.1f}; "
              "1,024 points per mode, 8^3 cells, 3 modes x 3 outputs.", "",
@@ -77,7 +73,7 @@ def main(argv=None) -> int:
                      f"{a['slack_upper_median']:.4f}, {a['slack_lower_median']:.4f} / {a['q_yes']} | "
                      f"{b['bound_seconds']:.1f} / {b['slack_upper_median']:.4f}, {b['slack_lower_median']:.4f} / "
                      f"{b['q_yes']} | {b['bound_seconds'] / a['bound_seconds']:.2f} |")
-    (OUT / f"{args.name}.md").write_text("\n".join(lines) + "\n")
+    write_results(args.name, data, lines)
     return 0
 
 

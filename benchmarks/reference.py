@@ -224,6 +224,20 @@ def _git_commit() -> str | None:
         return None
 
 
+def results_record(rows: list, **extra) -> dict:
+    """A results file's record: the rows, the commit, the load average at the end and the date (UTC)."""
+    return {"rows": rows, **extra, "commit": _git_commit(), "load": os.getloadavg(),
+            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
+
+
+def write_results(name: str, data: dict, lines: list[str]) -> None:
+    """Write ``benchmarks/results/NAME.json`` (the record) and ``NAME.md`` (the table's lines)."""
+    out = ROOT / "benchmarks" / "results"
+    out.mkdir(exist_ok=True)
+    (out / f"{name}.json").write_text(json.dumps(data, indent=1))
+    (out / f"{name}.md").write_text("\n".join(lines) + "\n")
+
+
 # --------------------------------------------------------------------------- report
 def _stem(row: dict) -> str:
     """The problem's name in the tables (a generated problem is named by its case study)."""

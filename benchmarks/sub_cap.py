@@ -24,11 +24,10 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import family as F  # noqa: E402
-from reference import _git_commit  # noqa: E402
+from reference import results_record, write_results  # noqa: E402
 
 from robust_imdp.bounds import rkhs, rkhs_model  # noqa: E402
 
-OUT = Path(__file__).resolve().parent / "results"
 
 
 def main(argv=None) -> int:
@@ -66,10 +65,7 @@ def main(argv=None) -> int:
                     print(json.dumps(row), flush=True)
     finally:
         rkhs_model.MAX_SUB = shipped
-    data = {"rows": rows, "commit": _git_commit(), "load": os.getloadavg(), "max_sub_shipped": shipped,
-            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
-    OUT.mkdir(exist_ok=True)
-    (OUT / "sub_cap.json").write_text(json.dumps(data, indent=1))
+    data = results_record(rows, max_sub_shipped=shipped)
     lines = ["# Sub-boxes per cell, family 3-D (`benchmarks/sub_cap.py`)", "",
              f"{data['date']}, commit {data['commit']}, load at the end {data['load'][0]:.1f}; the family's "
              f"{F.SLACK_CELLS[3]} sampled cells of each 3-D configuration, first mode (3 outputs bounded), "
@@ -81,7 +77,7 @@ def main(argv=None) -> int:
         lines.append(f"| {w['ratio']} | {'all' if w['local_points'] is None else w['local_points']} | "
                      f"{w['pieces_cap']} | {w['bound_seconds']:.2f} | {w['slack_upper_median']:.4f} / "
                      f"{w['slack_lower_median']:.4f} |")
-    (OUT / "sub_cap.md").write_text("\n".join(lines) + "\n")
+    write_results("sub_cap", data, lines)
     return 0
 
 

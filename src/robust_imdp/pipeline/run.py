@@ -366,20 +366,23 @@ def _advice(problem: Problem, partition, cell_bounds, dfa, classes, log: _Log, r
 
 
 def _sub_box_counter(problem: Problem):
-    """Sub-boxes per cell that ``split_tol = rkhs.SPLIT_TOL`` would certify (``rkhs.split_counts`` on the
-    problem's one B and lengthscale), or None where the run cannot split or already does."""
+    """``probe(lower, upper, split_tol) -> (taylor, sub_boxes)`` per cell: the Taylor term ``B rho(t_max)``
+    (eq. C) and the sub-boxes ``split_tol`` would certify (``rkhs.split_counts`` on the problem's one B and
+    lengthscale), or None where the run cannot split or already does."""
     if getattr(problem, "split_tol", None) is not None or not problem.method.split:
         return None
-    from robust_imdp.bounds.rkhs import SPLIT_TOL, split_counts
+    from robust_imdp.bounds.rkhs import split_counts, taylor_remainder_sqrt_up
 
     n = int(np.size(problem.space_lower))
     inv_l2 = 1.0 / np.broadcast_to(np.asarray(problem.gp_options.get("lengthscale", 1.0), float), (n,)) ** 2
+    B = float(problem.rkhs_bound)
 
-    def counts(lower, upper):
+    def probe(lower, upper, split_tol):
         half = 0.5 * (np.asarray(upper, float) - np.asarray(lower, float))
-        return split_counts(np.sum(half ** 2 * inv_l2, axis=1), float(problem.rkhs_bound), n, SPLIT_TOL) ** n
+        t = np.sum(half ** 2 * inv_l2, axis=1)
+        return B * taylor_remainder_sqrt_up(t), split_counts(t, B, n, split_tol) ** n
 
-    return counts
+    return probe
 
 
 def _refine(problem: Problem, partition, abstraction, syn, cell_bounds, dfa, log: _Log, run: _Run, cache_dir,

@@ -22,9 +22,10 @@ components are permuted (the boxes and the fit do; tested).
   cannot be told apart from ``g``);
 * **smaller B** (``max(B/2, the data-implied minimum norm)``): the excess scaled by the ratio
   measured on pilot cells bounded with that B;
-* **sub-boxes** (``split_tol = rkhs.SPLIT_TOL``, only where the run did not split): the excess scaled
-  by the ratio measured on pilot cells certified on sub-boxes; the setting names the grid's mean
-  number of sub-boxes per cell (the bound stage's cost grows about with it).
+* **sub-boxes** (only where the run did not split): ``split_tol`` set so the cells with the largest
+  Taylor term are halved once per axis; the excess scaled by the ratio measured on pilot cells
+  certified on those sub-boxes; the setting names the grid's mean number of sub-boxes per cell (the
+  bound stage's cost grows about with it).
 
 Each estimate re-abstracts (Thm 1, ``abstraction.abstract``) and re-solves
 (``synthesis.synthesize``) with the modified boxes; the bound stage, the expensive one, runs only
@@ -192,9 +193,9 @@ def advise(partition, cell_bounds, fits: FittedModes, noise, dfa, *, threshold: 
         shape ``(n_modes, k, n)``, optional
         The run's bound stage for a few pilot cells; without it the excess ratios are 1 (finer
         grid) and ``B' / B`` (smaller B), and sub-boxes are not estimated.
-    sub_boxes : callable ``(lower (k, d), upper (k, d)) -> (k,) int``, optional
-        Sub-boxes per cell that ``split_tol = rkhs.SPLIT_TOL`` would certify (``rkhs.split_counts``);
-        None: the run cannot split or already does (no sub-box estimate).
+    sub_boxes : callable ``(lower (k, d), upper (k, d), split_tol) -> (taylor (k,), sub_boxes (k,))``, optional
+        Per cell the Taylor term of eq. C and the sub-boxes ``split_tol`` would certify
+        (``rkhs.split_counts``); None: the run cannot split or already does (no sub-box estimate).
     max_cells : int
         An estimate that would abstract more cells than this is skipped (its note says so).
     pilot_cells : int
@@ -342,16 +343,23 @@ def _smaller_b(ctx: _Context, rkhs_bound: float, min_norm: float, say) -> Lever:
                  float(np.median(r)), time.perf_counter() - t0, note)
 
 
-def _sub_boxes(ctx: _Context, rkhs_bound: float, counts, say) -> Lever:
-    """Lever (d), sub-box certification (``split_tol = rkhs.SPLIT_TOL``): the excess scaled by the ratio
-    measured on the pilot cells certified on sub-boxes (a finer cover of the cell for eq. C only: the
-    grid, and so the abstraction's size, stay as they are)."""
+def _sub_boxes(ctx: _Context, rkhs_bound: float, probe, say) -> Lever:
+    """Lever (d), sub-box certification: one halving per axis where the Taylor term of eq. C is largest
+    (``split_tol`` = the grid's largest term / 2.25, so ``s = ceil(sqrt(term / split_tol)) = 2`` there,
+    but at least ``rkhs.SPLIT_TOL``); the excess scaled by the ratio measured on the pilot cells certified
+    on those sub-boxes. The grid, and so the abstraction's size, stay as they are.
+
+    Why one halving: it divides the term by about 4, and that took most of the gain where measured (the
+    issue-20 newcomer system, B = 6, r/l 0.125: Q_yes 141 unsplit, 171 with s = 2 at 2.7x the bound time,
+    174 with the s = 10 of ``SPLIT_TOL`` at 27x; ``benchmarks/results/advice_sub_boxes.md``)."""
     from robust_imdp.bounds.rkhs import SPLIT_TOL
 
     partition, pilot = ctx.partition, ctx.pilot
     t0 = time.perf_counter()
-    n_sub = np.asarray(counts(partition.cells_lower, partition.cells_upper))
-    setting = f"split_tol = {SPLIT_TOL:g}, {float(np.mean(n_sub)):.3g} sub-boxes per cell"
+    term, _ = probe(partition.cells_lower, partition.cells_upper, SPLIT_TOL)
+    tol = max(SPLIT_TOL, float(np.max(term)) / 2.25 * (1 + 1e-9))
+    _, n_sub = probe(partition.cells_lower, partition.cells_upper, tol)
+    setting = f"split_tol = {tol:.3g}, {float(np.mean(n_sub)):.3g} sub-boxes per cell"
     if np.all(n_sub[pilot] <= 1):
         return Lever("sub-boxes", setting, None, None, partition.n_cells,
                      note="the Taylor term is below split_tol in the undecided cells: sub-boxes change nothing")
@@ -359,7 +367,7 @@ def _sub_boxes(ctx: _Context, rkhs_bound: float, counts, say) -> Lever:
         return Lever("sub-boxes", setting, None, None, partition.n_cells,
                      note="no pilot bound stage" if ctx.bound_cells is None
                      else f"{partition.n_cells:,} cells > {ctx.max_cells:,}")
-    plo, phi = ctx.bound_cells(partition.cells_lower[pilot], partition.cells_upper[pilot], rkhs_bound, SPLIT_TOL)
+    plo, phi = ctx.bound_cells(partition.cells_lower[pilot], partition.cells_upper[pilot], rkhs_bound, tol)
     s_lo, s_hi = _excess_sides(plo, phi, ctx.flo[:, pilot], ctx.fhi[:, pilot])
     r = _ratio(np.concatenate([s_lo, s_hi], axis=1),
                np.concatenate([ctx.e_lo[:, pilot], ctx.e_hi[:, pilot]], axis=1))
