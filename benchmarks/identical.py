@@ -1,7 +1,7 @@
 """Behaviour check for refactors: are a tree's results identical to another tree's?
 
     python benchmarks/identical.py record OUT [--src SRC] [--full]   # run every problem, write digests
-    python benchmarks/identical.py compare A B                       # exit 1 if any result differs
+    python benchmarks/identical.py compare A B [--ignore KEY ...]    # exit 1 if any result differs
 
 ``record`` runs ``robust-imdp run`` on every shipped problem file (``examples/problems``, the
 newcomer problems of ``examples/newcomer`` with their data generators, the case studies written
@@ -263,7 +263,21 @@ def _first_difference(a, b, path=""):
     return None if a == b else path
 
 
-def compare(a: Path, b: Path) -> int:
+def _drop(doc: dict, dotted: str) -> None:
+    """Remove the key at ``dotted`` (e.g. ``diagnostics.advice``) from ``doc`` where it exists."""
+    *parents, last = dotted.split(".")
+    for k in parents:
+        doc = doc.get(k) if isinstance(doc, dict) else None
+        if doc is None:
+            return
+    if isinstance(doc, dict):
+        doc.pop(last, None)
+
+
+def compare(a: Path, b: Path, ignore: list[str] | None = None) -> int:
+    """Compare two records; ``ignore``: result.json keys (dotted paths) left out of the comparison, for a
+    change that is meant to alter them only (the npz arrays are always compared)."""
+    ignore = list(ignore or [])
     da = json.loads((a / "digests.json").read_text())["problems"]
     db = json.loads((b / "digests.json").read_text())["problems"]
     rows, bad = [], 0
@@ -277,14 +291,19 @@ def compare(a: Path, b: Path) -> int:
         if x["json"] != y["json"]:
             ja = _strip(json.loads((a / "results" / name / "result.json").read_text()), "", [])
             jb = _strip(json.loads((b / "results" / name / "result.json").read_text()), "", [])
-            diff.append(f"result.json at {_first_difference(ja, jb)}")
+            for key in ignore:
+                _drop(ja, key)
+                _drop(jb, key)
+            where = _first_difference(ja, jb)
+            if where is not None:
+                diff.append(f"result.json at {where}")
         if x["removed"] != y["removed"]:
             diff.append(f"removed run fields differ: {sorted(set(x['removed']) ^ set(y['removed']))}")
         rows.append((name, "identical" if not diff else "DIFFERS: " + ", ".join(diff)))
         bad += bool(diff)
     for name, what in rows:
         print(f"{name:32s} {what}")
-    print(f"{len(rows) - bad} of {len(rows)} identical")
+    print(f"{len(rows) - bad} of {len(rows)} identical" + (f" (result.json without {', '.join(ignore)})" if ignore else ""))
     return 1 if bad else 0
 
 
@@ -299,10 +318,12 @@ def main(argv=None) -> int:
     c = sub.add_parser("compare")
     c.add_argument("a", type=Path)
     c.add_argument("b", type=Path)
+    c.add_argument("--ignore", nargs="+", metavar="KEY", default=[],
+                   help="result.json keys (dotted, e.g. diagnostics.advice) a change is meant to alter")
     args = ap.parse_args(argv)
     if args.cmd == "record":
         return record(args.out, args.src, args.full, args.only)
-    return compare(args.a, args.b)
+    return compare(args.a, args.b, args.ignore)
 
 
 if __name__ == "__main__":
