@@ -5,7 +5,8 @@
 Problems: the issue's newcomer system (``serial_parts.build_problem``: the three-mode linear system at
 lengthscale 1, B = 6, on cells of 0.25), the newcomer's 16 x 16 robot
 (``examples/newcomer/robot2d_16.toml`` with its data generator), and the first case study
-(``three_mode_linear``, cells of 0.125). Per problem: a run with the advice on (its baseline Q_yes and
+(``three_mode_linear``, cells of 0.125) and the shipped two-goal problem of the second
+(``four_mode_nonlinear_two_goals.toml``). ``--only`` re-runs some rows and keeps the others. Per problem: a run with the advice on (its baseline Q_yes and
 every lever's estimate), then a run with ``split_tol = rkhs.SPLIT_TOL`` (the real Q_yes the sub-box
 lever estimates, and the bound stage's time against the first run's, measured one after the other).
 
@@ -23,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+OUT = ROOT / "benchmarks" / "results"
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from reference import results_record, write_results  # noqa: E402
 from serial_parts import build_problem  # noqa: E402
@@ -51,6 +53,8 @@ def _problems(names) -> dict:
 
     add("robot2d_16", robot)
     add("three_mode_linear", lambda: load_problem(write_problem_files("three_mode_linear", Path(tempfile.mkdtemp()))))
+    add("four_mode_nonlinear_two_goals",
+        lambda: load_problem(ROOT / "examples" / "problems" / "four_mode_nonlinear_two_goals.toml"))
     return out
 
 
@@ -89,6 +93,10 @@ def main(argv=None) -> int:
                "bound_seconds": plain.timings.get("bound"), "advice_seconds": plain.timings.get("advice")}
         rows.append(row)
         print(json.dumps(row), flush=True)
+    old = OUT / "advice_sub_boxes.json"
+    if args.only and old.exists():  # --only: replace those rows of the earlier record, keep the others
+        fresh = {r["problem"]: r for r in rows}
+        rows = [fresh.pop(r["problem"], r) for r in json.loads(old.read_text())["rows"]] + list(fresh.values())
     data = results_record(rows)
 
     def pct(v):
