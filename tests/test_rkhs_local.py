@@ -222,7 +222,7 @@ def test_split_counts_follow_the_rule_up_to_the_cap_in_every_dimension():
     # s = ceil(sqrt(B rho(t) / tol)) (docs/rkhs_bounds.md, "Sub-boxes"): the fewest pieces with
     # B rho(t) / s^2 <= tol (the term shrinks about like t, and a sub-box of 1/s the size has t / s^2),
     # never more than floor(MAX_SUB^(1/d)) per axis.
-    from robust_imdp.bounds.rkhs_model import _scaled_remainder_sqrt_up
+    from robust_imdp.bounds.rkhs_model import _scaled_remainder_sqrt_up, split_term
 
     B, tol = 0.35, rkhs.SPLIT_TOL
     for d in (1, 2, 3, 4):
@@ -233,6 +233,7 @@ def test_split_counts_follow_the_rule_up_to_the_cap_in_every_dimension():
         assert d == 1 or s.max() == cap  # (in 1-D the rule asks for at most 16 here)
         assert np.all(np.diff(s) >= 0)  # a larger cell never gets fewer pieces
         term = B * np.minimum(rkhs.taylor_remainder_sqrt_up(t), _scaled_remainder_sqrt_up(np.exp(-0.5 * t), t))
+        np.testing.assert_array_equal(term, split_term(t, B))  # the term split_counts weighs
         free = s < cap
         assert np.all(term[free] / s[free] ** 2 <= tol * (1 + 1e-12))
         assert np.all(term[s > 1] / (s[s > 1] - 1.0) ** 2 > tol)  # and one piece fewer would not do

@@ -491,6 +491,14 @@ def _blocks(n_parents: int, starts, n_boxes: int, block: int) -> np.ndarray:
     return np.ascontiguousarray(np.append(np.asarray(starts, np.int64)[0:n_parents:block], n_boxes), dtype=np.int64)
 
 
+def split_term(t_max, rkhs_bound: float) -> np.ndarray:
+    """The Taylor term ``B rho(t_max)`` that :func:`split_counts` weighs against ``split_tol`` (a choice of
+    sub-boxes, not a bound: eq. C takes its own remainder on every box)."""
+    t_max = np.asarray(t_max, float)
+    a = np.exp(-0.5 * t_max)
+    return float(rkhs_bound) * np.minimum(taylor_remainder_sqrt_up(t_max), _scaled_remainder_sqrt_up(a, t_max))
+
+
 def split_counts(t_max, rkhs_bound: float, d: int, split_tol: float | None = SPLIT_TOL) -> np.ndarray:
     """Pieces per axis ``s`` of every cell's certification sub-boxes (1: the cell itself).
 
@@ -501,9 +509,7 @@ def split_counts(t_max, rkhs_bound: float, d: int, split_tol: float | None = SPL
     t_max = np.asarray(t_max, float)
     if not split_tol:
         return np.ones(t_max.shape, dtype=np.int64)
-    a = np.exp(-0.5 * t_max)
-    rho = np.minimum(taylor_remainder_sqrt_up(t_max), _scaled_remainder_sqrt_up(a, t_max))
-    s = np.ceil(np.sqrt(float(rkhs_bound) * rho / float(split_tol)))
+    s = np.ceil(np.sqrt(split_term(t_max, rkhs_bound) / float(split_tol)))
     s_max = max(1, int(math.floor(MAX_SUB ** (1.0 / d) + 1e-9)))
     return np.clip(np.nan_to_num(s, nan=1.0, posinf=s_max), 1, s_max).astype(np.int64)
 

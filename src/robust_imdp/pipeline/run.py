@@ -371,7 +371,7 @@ def _sub_box_counter(problem: Problem):
     lengthscale), or None where the run cannot split or already does."""
     if getattr(problem, "split_tol", None) is not None or not problem.method.split:
         return None
-    from robust_imdp.bounds.rkhs import split_counts, taylor_remainder_sqrt_up
+    from robust_imdp.bounds.rkhs_model import split_counts, split_term
 
     n = int(np.size(problem.space_lower))
     inv_l2 = 1.0 / np.broadcast_to(np.asarray(problem.gp_options.get("lengthscale", 1.0), float), (n,)) ** 2
@@ -380,7 +380,7 @@ def _sub_box_counter(problem: Problem):
     def probe(lower, upper, split_tol):
         half = 0.5 * (np.asarray(upper, float) - np.asarray(lower, float))
         t = np.sum(half ** 2 * inv_l2, axis=1)
-        return B * taylor_remainder_sqrt_up(t), split_counts(t, B, n, split_tol) ** n
+        return split_term(t, B), split_counts(t, B, n, split_tol) ** n
 
     return probe
 
