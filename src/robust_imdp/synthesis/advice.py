@@ -350,8 +350,8 @@ def _sub_boxes(ctx: _Context, rkhs_bound: float, probe, say) -> Lever:
     on those sub-boxes. The grid, and so the abstraction's size, stay as they are.
 
     Why one halving: it divides the term by about 4, and that took most of the gain where measured (the
-    issue-20 newcomer system, B = 6, r/l 0.125: Q_yes 141 unsplit, 171 with s = 2 at 3.8x the bound time,
-    174 with the s = 10 of ``SPLIT_TOL`` at 31x; ``benchmarks/results/advice_sub_boxes.md``)."""
+    issue-20 newcomer system, B = 6, r/l 0.125: Q_yes 141 unsplit, 171 with s = 2 at about 3x the bound time,
+    174 with the s = 10 of ``SPLIT_TOL`` at about 30x; ``benchmarks/results/advice_sub_boxes.md``)."""
     from robust_imdp.bounds.rkhs import SPLIT_TOL
 
     partition, pilot = ctx.partition, ctx.pilot
