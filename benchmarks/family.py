@@ -308,6 +308,25 @@ def true_boxes(sy: dict) -> dict:
     return out
 
 
+def warm_up(seed: int, config: dict | None = None) -> None:
+    """numba loads (or compiles) the kernels on first use: one small untimed configuration (``config`` in
+    1-D, by default the first of the default subset), without and with sub-boxes."""
+    sy = system(dict(config or configurations("default")[0], dim=1), seed)
+    our_boxes(sy, None)
+    our_boxes(sy, rkhs.SPLIT_TOL)
+
+
+def middle_3d(ratio: float, density: float | None = None) -> dict:
+    """The 3-D configuration at ``ratio`` with the middle noise and (unless given) the middle density."""
+    return dict(dim=3, ratio=ratio, noise=MIDDLE["noise"], density=MIDDLE["density"] if density is None else density)
+
+
+def slack_cells(sy: dict) -> np.ndarray:
+    """The cells sampled for the slack (a): ``SLACK_CELLS[d]`` of them, the next draw of the system's rng."""
+    n = sy["partition"].n_cells
+    return np.sort(sy["rng"].choice(n, size=min(SLACK_CELLS[sy["dim"]], n), replace=False))
+
+
 def our_boxes(sy: dict, split_tol, local="auto") -> dict:
     """Our certified image boxes of every mode, cell and output (``bound_chunk`` as the pipeline runs it).
 
@@ -437,7 +456,7 @@ def run_config(c: dict, seed: int, verify: int) -> dict:
            "t_max": float(d * c["ratio"] ** 2)}
     tb = true_boxes(sy)
     row["reference_remainder_max"] = tb["remainder_max"]
-    cells = np.sort(sy["rng"].choice(part.n_cells, size=min(SLACK_CELLS[d], part.n_cells), replace=False))
+    cells = slack_cells(sy)
     opt = optimal_ranges(sy, cells)
     exc_up = opt["opt_up"] - opt["true_up"]  # what the data allow, per side
     exc_lo = opt["true_lo"] - opt["opt_lo"]
@@ -692,11 +711,7 @@ def main(argv=None) -> int:
         if not configs:
             raise SystemExit(f"--only: no configuration of subset {subset!r} is named {args.only}")
     t0 = time.perf_counter()
-    # numba loads (or compiles) the kernels on first use: one small untimed configuration first
-    warm = dict(configs[0], dim=1)
-    sy = system(warm, args.seed)
-    our_boxes(sy, None)
-    our_boxes(sy, rkhs.SPLIT_TOL)
+    warm_up(args.seed, configs[0])
     rows = []
     verified = set()
     for c in configs:

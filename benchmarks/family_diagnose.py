@@ -48,8 +48,7 @@ def run(key: str, seed: int, grid: int | None, splits: dict) -> dict:
     out = {"key": key, "grid": g}
     out["reference"] = F.q_yes(sy, tb["outer_lo"], tb["outer_up"])["yes"]
     # the family's widening: median optimal excess of its sampled cells (same rng draws as run_config)
-    cells = np.sort(sy["rng"].choice(sy["partition"].n_cells, size=min(F.SLACK_CELLS[d], sy["partition"].n_cells),
-                                     replace=False))
+    cells = F.slack_cells(sy)
     opt_s = F.optimal_ranges(sy, cells)
     w_lo = max(0.0, F._median(opt_s["true_lo"] - opt_s["opt_lo"]))
     w_up = max(0.0, F._median(opt_s["opt_up"] - opt_s["true_up"]))

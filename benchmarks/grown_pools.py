@@ -70,14 +70,13 @@ def main(argv=None) -> int:
     ap.add_argument("--kappas", nargs="+", type=float, default=[0.9, 0.7, 0.5])
     ap.add_argument("--seed", type=int, default=20)
     args = ap.parse_args(argv)
-    warm = F.system(dict(F.configurations("default")[0], dim=1), args.seed)
-    F.our_boxes(warm, None)
+    F.warm_up(args.seed)
     rows = []
     for r in args.ratios:
-        sy = F.system(dict(dim=3, ratio=r, noise=F.MIDDLE["noise"], density=F.MIDDLE["density"]), args.seed)
+        sy = F.system(F.middle_3d(r), args.seed)
         sy["dfa"] = F.ltlf_to_dfa(F.FORMULA)
         part, m = sy["partition"], sy["m"]
-        cells = np.sort(sy["rng"].choice(part.n_cells, size=min(F.SLACK_CELLS[3], part.n_cells), replace=False))
+        cells = F.slack_cells(sy)
         opt = F.optimal_ranges(sy, cells)
         X0 = sy["data"][0][0]
         variants = [("pools 100", np.full(part.n_cells, 100)), ("pools 400", np.full(part.n_cells, 400)),

@@ -44,17 +44,14 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=20)
     ap.add_argument("--name", default="local_auto", help="results file name (without .json / .md)")
     args = ap.parse_args(argv)
-    warm = F.system(dict(F.configurations("default")[0], dim=1), args.seed)
-    F.our_boxes(warm, None)
-    F.our_boxes(warm, rkhs.SPLIT_TOL)
+    F.warm_up(args.seed)
     rows = []
     t_all = time.perf_counter()
     for r in sorted(set(args.ratios) | set(args.split_ratios)):
-        c = dict(dim=3, ratio=r, noise=F.MIDDLE["noise"], density=F.MIDDLE["density"])
+        c = F.middle_3d(r)
         sy = F.system(c, args.seed)
         sy["dfa"] = F.ltlf_to_dfa(F.FORMULA)
-        part = sy["partition"]
-        cells = np.sort(sy["rng"].choice(part.n_cells, size=min(F.SLACK_CELLS[3], part.n_cells), replace=False))
+        cells = F.slack_cells(sy)
         opt = F.optimal_ranges(sy, cells)
         for tol in ([None] if r in args.ratios else []) + ([rkhs.SPLIT_TOL] if r in args.split_ratios else []):
             for local in (F.LOCAL_POINTS, None):

@@ -34,12 +34,11 @@ def main(argv=None) -> int:
     ap.add_argument("--pools", nargs="+", type=int, default=[100, 200, 400])
     ap.add_argument("--seed", type=int, default=20)
     args = ap.parse_args(argv)
-    warm = F.system(dict(F.configurations("default")[0], dim=1), args.seed)
-    F.our_boxes(warm, None)
+    F.warm_up(args.seed)
     rows = []
     for r in args.ratios:
         for dens in args.densities:
-            sy = F.system(dict(dim=3, ratio=r, noise=F.MIDDLE["noise"], density=dens), args.seed)
+            sy = F.system(F.middle_3d(r, dens), args.seed)
             sy["dfa"] = F.ltlf_to_dfa(F.FORMULA)
             part, l = sy["partition"], sy["lengthscale"]
             centres = 0.5 * (part.cells_lower + part.cells_upper)

@@ -37,15 +37,14 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=20)
     args = ap.parse_args(argv)
     shipped = rkhs_model.MAX_SUB
-    warm = F.system(dict(F.configurations("default")[0], dim=1), args.seed)
-    F.our_boxes(warm, rkhs.SPLIT_TOL)
+    F.warm_up(args.seed)
     rows = []
     try:
         for r in args.ratios:
-            c = dict(dim=3, ratio=r, noise=F.MIDDLE["noise"], density=F.MIDDLE["density"])
+            c = F.middle_3d(r)
             sy = F.system(c, args.seed)
             part = sy["partition"]
-            cells = np.sort(sy["rng"].choice(part.n_cells, size=min(F.SLACK_CELLS[3], part.n_cells), replace=False))
+            cells = F.slack_cells(sy)
             opt = F.optimal_ranges(sy, cells)
             X, Y, _ = sy["data"][0]
             A, b = sy["maps"][0]

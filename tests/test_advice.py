@@ -268,7 +268,8 @@ def test_sub_box_lever_estimates_a_real_split_run(split_runs):
 
 
 def test_sub_box_lever_says_when_sub_boxes_change_nothing():
-    # a rule that splits no cell: no pilot is bounded (bound_cells would raise) and the note says why
+    # cells so small against the lengthscale that no cell is split: no pilot is bounded on sub-boxes
+    # (bound_cells would fail), and the note says why
     part, fits, dfa = _robot_setup(0.25)
     noise = TruncatedGaussianNoise([0.01, 0.01], [0.02, 0.02])
     flo, fhi = fits.grid_ranges(part.breakpoints)
@@ -281,7 +282,7 @@ def test_sub_box_lever_says_when_sub_boxes_change_nothing():
 
     adv = advise(part, cb, fits, noise, dfa, threshold=0.9, classes=_solve_classes(part, cb, noise, dfa),
                  noise_floor=[0.02, 0.02], rkhs_bound=0.2, bound_cells=no_pilot,
-                 sub_boxes=lambda lo, up, tol: (np.full(lo.shape[0], 1e-4), np.ones(lo.shape[0], dtype=np.int64)))
+                 sub_box_t=lambda lo, up: np.full(lo.shape[0], 1e-6))  # B rho(1e-6) far below SPLIT_TOL
     lv = {v.name: v for v in adv.levers}["sub-boxes"]
     assert lv.gain is None and "change nothing" in lv.note and lv.setting.endswith("1 sub-boxes per cell")
     assert "sub-boxes: the Taylor term is below split_tol" in advice_line(adv.to_dict())

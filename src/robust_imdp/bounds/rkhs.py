@@ -111,6 +111,7 @@ from robust_imdp.bounds.rkhs_model import (  # noqa: F401  (re-exported)
     certify_weights,
     split_counts,
     sub_boxes,
+    t_max_up,
     taylor_remainder_sqrt_up,
     unit_kernel,
     vertex_problems,
@@ -229,8 +230,7 @@ def cell_ranges(model: KernelModel, cells_lower, cells_upper, *, rkhs_bound: flo
     c, r = cell_centres(lower, upper)
     signs = vertex_signs(d)
     n_cells = lower.shape[0]
-    t_cell = _up(np.sum(r * r * model.inv_l2, axis=1) * (1 + (d + 4) * _U))
-    s_split = split_counts(t_cell, G_eff, d, split_tol)
+    s_split = split_counts(t_max_up(r, model.inv_l2), G_eff, d, split_tol)
     if np.any(s_split > 1):  # certify on sub-boxes (their union covers the cell): the hull is sound
         box_lo, box_up, parent, starts = sub_boxes(lower, upper, s_split)
         c, r = cell_centres(box_lo, box_up)
@@ -238,7 +238,7 @@ def cell_ranges(model: KernelModel, cells_lower, cells_upper, *, rkhs_bound: flo
         parent = np.arange(n_cells, dtype=np.int64)
         starts = parent
     lin_v, lin_err = _known_at_vertices(c, r, signs, a_row, float(known_offset))
-    t_max = _up(np.sum(r * r * model.inv_l2, axis=1) * (1 + (d + 4) * _U))
+    t_max = t_max_up(r, model.inv_l2)
     n_unconv = 0
     if method == "optimal":
         cap = int(min(model.m, MAX_SUPPORT))

@@ -12,7 +12,7 @@ from robust_imdp._kernels import inv_l2_up as _inv_l2, kernel_matrix as _kernel_
 from robust_imdp.bounds.rkhs_model import (CELL_BLOCK, _blocks, _certified_norms, _certified_value, _certify, _certify_parts,
                                            _check_cells, _weight_parts,
                                            _combine_vertices, _known_at_vertices, _vertex_functional, _writable, cell_centres,
-                                           split_counts, sub_boxes, vertex_signs)
+                                           split_counts, sub_boxes, t_max_up, vertex_signs)
 from robust_imdp.bounds.rkhs_weights import METHODS, _active_set, _chol_factor, _chol_solve
 from robust_imdp.errors import InvalidInputError
 
@@ -303,7 +303,7 @@ def _local_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_boun
         lam = local_lambda(X, lower, upper, lengthscale=lengthscale, rkhs_bound=rkhs_bound, noise_l1=float(dbar.max()),
                            k=k)
     n_cells = lower.shape[0]
-    s_split = split_counts(_up(np.sum(r * r * inv_l2, axis=1) * (1 + (d + 4) * _U)), G_eff, d, split_tol)
+    s_split = split_counts(t_max_up(r, inv_l2), G_eff, d, split_tol)
     if np.any(s_split > 1):  # certify on sub-boxes (their union covers the cell), each with its cell's pool
         box_lo, box_up, parent, starts = sub_boxes(lower, upper, s_split)
         c, r = cell_centres(box_lo, box_up)
@@ -327,7 +327,7 @@ def _local_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_boun
                              G_eff, False, 0, 0.0, ptr, parent, lin)
         val[..., 0] = np.minimum(val[..., 0], iv[..., 0])  # both intervals hold: intersect
         val[..., 1] = np.maximum(val[..., 1], iv[..., 1])
-    t_max = _up(np.sum(r * r * inv_l2, axis=1) * (1 + (d + 4) * _U))
+    t_max = t_max_up(r, inv_l2)
     out = {key: np.empty((n_cells, n)) for key in ("lower", "upper", "eps")}
     for i in range(n):
         lin_v, lin_err = known[i]

@@ -491,6 +491,13 @@ def _blocks(n_parents: int, starts, n_boxes: int, block: int) -> np.ndarray:
     return np.ascontiguousarray(np.append(np.asarray(starts, np.int64)[0:n_parents:block], n_boxes), dtype=np.int64)
 
 
+def t_max_up(r, inv_l2) -> np.ndarray:
+    """``t_max = sum_a r_a^2 / l_a^2`` of every box of half-widths ``r`` (n, d) (the argument of eq. C's
+    remainder), rounded up: d products and d - 1 sums of non-negative terms, covered by ``1 + (d + 4) U``."""
+    r = np.asarray(r, float)
+    return _up(np.sum(r * r * inv_l2, axis=1) * (1 + (r.shape[1] + 4) * _U))
+
+
 def split_term(t_max, rkhs_bound: float) -> np.ndarray:
     """The Taylor term ``B rho(t_max)`` that :func:`split_counts` weighs against ``split_tol`` (a choice of
     sub-boxes, not a bound: eq. C takes its own remainder on every box)."""

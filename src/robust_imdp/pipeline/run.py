@@ -345,8 +345,7 @@ def _advice(problem: Problem, partition, cell_bounds, dfa, classes, log: _Log, r
     def bound_cells(lower, upper, rkhs_bound, split_tol=None):
         key = (rkhs_bound, split_tol)
         if key not in bounders:
-            p = problem.replace(rkhs_bound=rkhs_bound) if split_tol is None else \
-                problem.replace(rkhs_bound=rkhs_bound, split_tol=split_tol)
+            p = problem.replace(rkhs_bound=rkhs_bound, split_tol=problem.split_tol if split_tol is None else split_tol)
             bounders[key] = _cell_bounder(p, partition, _Log(False), run, task=_pilot_task)
         return bounders[key](lower, upper)
 
@@ -357,7 +356,7 @@ def _advice(problem: Problem, partition, cell_bounds, dfa, classes, log: _Log, r
                      abstraction_options={"eta": problem.eta, "eps_rule": problem.eps_rule,
                                           "combine": problem.combine},
                      bound_cells=bound_cells, max_cells=MAX_CELLS if want == "auto" else 2 ** 62,
-                     sub_boxes=_sub_box_counter(problem))
+                     sub_box_t=_sub_box_t(problem))
     from robust_imdp.jsonable import jsonable as _jsonable
 
     out = _jsonable(adv.to_dict())
@@ -365,24 +364,17 @@ def _advice(problem: Problem, partition, cell_bounds, dfa, classes, log: _Log, r
     return out
 
 
-def _sub_box_counter(problem: Problem):
-    """``probe(lower, upper, split_tol) -> (taylor, sub_boxes)`` per cell: the Taylor term ``B rho(t_max)``
-    (eq. C) and the sub-boxes ``split_tol`` would certify (``rkhs.split_counts`` on the problem's one B and
-    lengthscale), or None where the run cannot split or already does."""
-    if getattr(problem, "split_tol", None) is not None or not problem.method.split:
+def _sub_box_t(problem: Problem):
+    """``t(lower, upper)``: every cell's ``t_max = sum r^2 / l^2`` on the problem's one lengthscale (what
+    ``rkhs.split_counts`` weighs, as the bound stage computes it), or None where the run cannot split or
+    already does (no sub-box lever)."""
+    if problem.split_tol is not None or not problem.method.split:
         return None
-    from robust_imdp.bounds.rkhs_model import split_counts, split_term
+    from robust_imdp._kernels import inv_l2_up
+    from robust_imdp.bounds.rkhs_model import cell_centres, t_max_up
 
-    n = int(np.size(problem.space_lower))
-    inv_l2 = 1.0 / np.broadcast_to(np.asarray(problem.gp_options.get("lengthscale", 1.0), float), (n,)) ** 2
-    B = float(problem.rkhs_bound)
-
-    def probe(lower, upper, split_tol):
-        half = 0.5 * (np.asarray(upper, float) - np.asarray(lower, float))
-        t = np.sum(half ** 2 * inv_l2, axis=1)
-        return split_term(t, B), split_counts(t, B, n, split_tol) ** n
-
-    return probe
+    inv_l2 = inv_l2_up(problem.gp_options.get("lengthscale", 1.0), int(np.size(problem.space_lower)))
+    return lambda lower, upper: t_max_up(cell_centres(lower, upper)[1], inv_l2)
 
 
 def _refine(problem: Problem, partition, abstraction, syn, cell_bounds, dfa, log: _Log, run: _Run, cache_dir,

@@ -165,7 +165,7 @@ def _ratio(num, den) -> np.ndarray:
 def advise(partition, cell_bounds, fits: FittedModes, noise, dfa, *, threshold: float, horizon=None,
            classes, noise_floor, rkhs_bound: float, min_norm: float = 0.0, abstraction_options=None,
            bound_cells=None, max_cells: int = MAX_CELLS, pilot_cells: int = PILOT_CELLS,
-           progress=None, sub_boxes=None) -> Advice:
+           progress=None, sub_box_t=None) -> Advice:
     """Estimate the Q_yes share of X that a finer grid, more data, a smaller B or sub-boxes would give.
 
     Parameters
@@ -193,9 +193,9 @@ def advise(partition, cell_bounds, fits: FittedModes, noise, dfa, *, threshold: 
         shape ``(n_modes, k, n)``, optional
         The run's bound stage for a few pilot cells; without it the excess ratios are 1 (finer
         grid) and ``B' / B`` (smaller B), and sub-boxes are not estimated.
-    sub_boxes : callable ``(lower (k, d), upper (k, d), split_tol) -> (taylor (k,), sub_boxes (k,))``, optional
-        Per cell the Taylor term of eq. C and the sub-boxes ``split_tol`` would certify
-        (``rkhs.split_counts``); None: the run cannot split or already does (no sub-box estimate).
+    sub_box_t : callable ``(lower (k, d), upper (k, d)) -> (k,)``, optional
+        Every cell's ``t_max = sum r^2 / l^2`` (``rkhs_model.t_max_up``), from which ``rkhs.split_counts``
+        picks the sub-boxes; None: the run cannot split or already does (no sub-box estimate).
     max_cells : int
         An estimate that would abstract more cells than this is skipped (its note says so).
     pilot_cells : int
@@ -231,8 +231,8 @@ def advise(partition, cell_bounds, fits: FittedModes, noise, dfa, *, threshold: 
     floor = np.broadcast_to(np.asarray(noise_floor, float), (lo.shape[2],))
     levers = [_finer_grid(ctx, fits, rkhs_bound, say), _more_data(ctx, floor, say),
               _smaller_b(ctx, rkhs_bound, min_norm, say)]
-    if sub_boxes is not None:
-        levers.append(_sub_boxes(ctx, rkhs_bound, sub_boxes, say))
+    if sub_box_t is not None:
+        levers.append(_sub_boxes(ctx, rkhs_bound, sub_box_t, say))
     est = [lv for lv in levers if lv.gain is not None and lv.gain >= MIN_GAIN]
     winner = max(est, key=lambda lv: lv.gain).name if est else None
     return Advice(base, tuple(levers), winner, time.perf_counter() - t_all)
@@ -343,7 +343,7 @@ def _smaller_b(ctx: _Context, rkhs_bound: float, min_norm: float, say) -> Lever:
                  float(np.median(r)), time.perf_counter() - t0, note)
 
 
-def _sub_boxes(ctx: _Context, rkhs_bound: float, probe, say) -> Lever:
+def _sub_boxes(ctx: _Context, rkhs_bound: float, cell_t, say) -> Lever:
     """Lever (d), sub-box certification: one halving per axis where the Taylor term of eq. C is largest
     (``split_tol`` = the grid's largest term / 2.25, so ``s = ceil(sqrt(term / split_tol)) = 2`` there,
     but at least ``rkhs.SPLIT_TOL``); the excess scaled by the ratio measured on the pilot cells certified
@@ -352,13 +352,13 @@ def _sub_boxes(ctx: _Context, rkhs_bound: float, probe, say) -> Lever:
     Why one halving: it divides the term by about 4, and that took most of the gain where measured (the
     issue-20 newcomer system, B = 6, r/l 0.125: Q_yes 141 unsplit, 171 with s = 2 at about 3x the bound time,
     174 with the s = 10 of ``SPLIT_TOL`` at about 30x; ``benchmarks/results/advice_sub_boxes.md``)."""
-    from robust_imdp.bounds.rkhs import SPLIT_TOL
+    from robust_imdp.bounds.rkhs_model import SPLIT_TOL, split_counts, split_term
 
     partition, pilot = ctx.partition, ctx.pilot
     t0 = time.perf_counter()
-    term, _ = probe(partition.cells_lower, partition.cells_upper, SPLIT_TOL)
-    tol = max(SPLIT_TOL, float(np.max(term)) / 2.25 * (1 + 1e-9))
-    _, n_sub = probe(partition.cells_lower, partition.cells_upper, tol)
+    t = cell_t(partition.cells_lower, partition.cells_upper)
+    tol = max(SPLIT_TOL, float(np.max(split_term(t, rkhs_bound))) / 2.25 * (1 + 1e-9))
+    n_sub = split_counts(t, rkhs_bound, partition.dim, tol) ** partition.dim
     setting = f"split_tol = {tol:.3g}, {float(np.mean(n_sub)):.3g} sub-boxes per cell"
     if np.all(n_sub[pilot] <= 1):
         return Lever("sub-boxes", setting, None, None, partition.n_cells,
