@@ -528,8 +528,23 @@ def startup() -> dict:
 
 def pipeline_run(c: dict, seed: int, ours_yes: int) -> dict:
     """``synthesize_from_data`` on configuration ``c`` (same data): stage timings and Q_yes."""
-    from robust_imdp.pipeline.problem import Problem
     from robust_imdp.pipeline.run import synthesize_from_data
+
+    problem = pipeline_problem(c, seed)
+    t0 = time.perf_counter()
+    try:
+        res = synthesize_from_data(problem, progress=False, advice=False)
+    except Exception as exc:  # another engineer's work in progress may break the pipeline: report it
+        return {"key": key_of(c), "error": f"{type(exc).__name__}: {exc}"}
+    wall = time.perf_counter() - t0
+    yes = res.counts()["yes"]
+    return {"key": key_of(c), "wall_s": wall, "timings_s": {k: float(v) for k, v in res.timings.items()},
+            "q_yes": yes, "ours_low_level_q_yes": ours_yes, "agrees": yes == ours_yes}
+
+
+def pipeline_problem(c: dict, seed: int):
+    """Configuration ``c`` (the same data as :func:`system`) as a pipeline ``Problem``."""
+    from robust_imdp.pipeline.problem import Problem
 
     sy = system(c, seed)
     x = np.concatenate([X for X, _, _ in sy["data"]])
@@ -541,15 +556,7 @@ def pipeline_run(c: dict, seed: int, ours_yes: int) -> dict:
         regions=sy["regions"], formula=FORMULA, threshold=THRESHOLD,
         modes={n: m for n, m in zip(names, sy["maps"])}, noise=sy["noise"], rkhs_bound=sy["B"],
         lengthscale=sy["lengthscale"])
-    t0 = time.perf_counter()
-    try:
-        res = synthesize_from_data(problem, progress=False, advice=False)
-    except Exception as exc:  # another engineer's work in progress may break the pipeline: report it
-        return {"key": key_of(c), "error": f"{type(exc).__name__}: {exc}"}
-    wall = time.perf_counter() - t0
-    yes = res.counts()["yes"]
-    return {"key": key_of(c), "wall_s": wall, "timings_s": {k: float(v) for k, v in res.timings.items()},
-            "q_yes": yes, "ours_low_level_q_yes": ours_yes, "agrees": yes == ours_yes}
+    return problem
 
 
 # --------------------------------------------------------------------------- report

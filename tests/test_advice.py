@@ -211,7 +211,7 @@ def test_the_run_prints_and_saves_the_advice(tiny_runs):
 
     first, again, off, out = tiny_runs
     adv = first.advice
-    assert [lv["name"] for lv in adv["levers"]] == ["finer grid", "more data", "smaller B", "sub-boxes"]
+    assert [lv["name"] for lv in adv["levers"]] == ["finer grid", "more data", "smaller B", "sub-boxes"]  # all points: no pool lever
     assert adv["baseline_share"] == pytest.approx(np.mean(first.class_names == "yes"))  # equal cells: share = count
     for lv in adv["levers"]:
         assert lv["gain"] is None or lv["gain"] == pytest.approx(lv["q_yes_share"] - adv["baseline_share"])
@@ -286,3 +286,50 @@ def test_sub_box_lever_says_when_sub_boxes_change_nothing():
     lv = {v.name: v for v in adv.levers}["sub-boxes"]
     assert lv.gain is None and "change nothing" in lv.note and lv.setting.endswith("1 sub-boxes per cell")
     assert "sub-boxes: the Taylor term is below split_tol" in advice_line(adv.to_dict())
+
+
+# =========================================================================== the local-pools lever
+def test_local_pool_lever_estimates_a_real_run_with_all_points():
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_pipeline import tiny_problem
+
+    pooled = synthesize_from_data(tiny_problem(local_points=5), progress=False)  # 40 points per mode, pools of 5
+    lv = {v["name"]: v for v in pooled.advice["levers"]}["larger local pools"]
+    assert lv["setting"] == "local_points = 40 (all points), now 5"  # at most POOL_ALL_MAX points: all of them
+    full = synthesize_from_data(tiny_problem(), progress=False)  # all 40 points (the default below LOCAL_AUTO)
+    base = pooled.advice["baseline_share"]
+    real = float(np.mean(full.class_names == "yes"))
+    assert real > base + 0.05  # the pools cost Q_yes here (0.156 -> 0.25 when written)
+    # the pilot cells' median excess ratio applied to every cell lands within 0.05 of X of the real run
+    # (0.25 against 0.25 when written); tighter boxes never lose Q_yes
+    assert lv["q_yes_share"] >= base and abs(lv["q_yes_share"] - real) <= 0.05
+    assert 0 < lv["excess_ratio"] < 1
+    # a run on all points gets no pool lever
+    assert "larger local pools" not in [v["name"] for v in full.advice["levers"]]
+
+
+def test_local_pool_rule_of_the_run_and_the_proposal():
+    import sys
+    from pathlib import Path
+
+    from robust_imdp.pipeline.problem import LOCAL_AUTO, LOCAL_DEFAULT
+    from robust_imdp.pipeline.run import _local_pools, _residual_data
+    from robust_imdp.synthesis.advice import POOL_ALL_MAX, POOL_FACTOR, pool_proposal
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_pipeline import tiny_problem, tiny_gp_problem
+
+    p = tiny_problem()
+    data = _residual_data(p)
+    assert _local_pools(p, data) is None  # 40 points per mode: all of them
+    assert _local_pools(p.replace(local_points=40), data) is None  # a pool of every point is all points
+    assert _local_pools(p.replace(local_points=7), data) == (7, 40)
+    assert _local_pools(tiny_gp_problem(), _residual_data(tiny_gp_problem())) is None  # no local weights
+    big = [(np.zeros((LOCAL_AUTO + 1, 2)), None, None), (np.zeros((10, 2)), None, None)]
+    assert _local_pools(p, big) == (LOCAL_DEFAULT, LOCAL_AUTO + 1)  # the bound stage's automatic rule
+    assert pool_proposal(100, POOL_ALL_MAX) == POOL_ALL_MAX
+    assert pool_proposal(100, POOL_ALL_MAX + 1) == POOL_FACTOR * 100
+    assert pool_proposal(3000, POOL_ALL_MAX + 1) == POOL_ALL_MAX + 1

@@ -342,10 +342,11 @@ def _advice(problem: Problem, partition, cell_bounds, dfa, classes, log: _Log, r
     mins = [c["minimum"] for c in diagnostics.get("assumption", {}).get("min_norm", [])]
     bounders: dict = {}
 
-    def bound_cells(lower, upper, rkhs_bound, split_tol=None):
-        key = (rkhs_bound, split_tol)
+    def bound_cells(lower, upper, rkhs_bound, split_tol=None, local_points=None):
+        key = (rkhs_bound, split_tol, local_points)
         if key not in bounders:
-            p = problem.replace(rkhs_bound=rkhs_bound, split_tol=problem.split_tol if split_tol is None else split_tol)
+            p = problem.replace(rkhs_bound=rkhs_bound, split_tol=problem.split_tol if split_tol is None else split_tol,
+                                local_points=problem.local_points if local_points is None else local_points)
             bounders[key] = _cell_bounder(p, partition, _Log(False), run, task=_pilot_task)
         return bounders[key](lower, upper)
 
@@ -356,12 +357,27 @@ def _advice(problem: Problem, partition, cell_bounds, dfa, classes, log: _Log, r
                      abstraction_options={"eta": problem.eta, "eps_rule": problem.eps_rule,
                                           "combine": problem.combine},
                      bound_cells=bound_cells, max_cells=MAX_CELLS if want == "auto" else 2 ** 62,
-                     sub_box_t=_sub_box_t(problem))
+                     sub_box_t=_sub_box_t(problem), local_pools=_local_pools(problem, data))
     from robust_imdp.jsonable import jsonable as _jsonable
 
     out = _jsonable(adv.to_dict())
     log.info(advice_line(out))
     return out
+
+
+def _local_pools(problem: Problem, data):
+    """``(k, m)`` when some mode's cells are certified with weights on its ``k`` nearest points (the bound
+    stage's rule: ``local_points``, or ``LOCAL_DEFAULT`` above ``LOCAL_AUTO`` points per mode) and the largest
+    mode has ``m`` points; None when every mode uses all its points or the method has no local weights."""
+    from robust_imdp.pipeline.problem import LOCAL_AUTO, LOCAL_DEFAULT
+
+    if not problem.method.local_points:  # the method has no local weights (the GP route)
+        return None
+    sizes = [x.shape[0] for x, _, _ in data]
+    ks = [problem.local_points if problem.local_points is not None else (None if m <= LOCAL_AUTO else LOCAL_DEFAULT)
+          for m in sizes]
+    pooled = [k for k, m in zip(ks, sizes) if k is not None and k < m]
+    return (int(min(pooled)), int(max(sizes))) if pooled else None
 
 
 def _sub_box_t(problem: Problem):

@@ -25,7 +25,11 @@ components are permuted (the boxes and the fit do; tested).
 * **sub-boxes** (only where the run did not split): ``split_tol`` set so the cells with the largest
   Taylor term are halved once per axis; the excess scaled by the ratio measured on pilot cells
   certified on those sub-boxes; the setting names the grid's mean number of sub-boxes per cell (the
-  bound stage's cost grows about with it).
+  bound stage's cost grows about with it);
+* **larger local pools** (only where a mode's cells are certified with weights on their ``k`` nearest
+  data points, ``local_points``): all of a mode's points where it has at most :data:`POOL_ALL_MAX`,
+  else ``POOL_FACTOR k``; the excess scaled by the ratio measured on the pilot cells bounded with those
+  pools.
 
 Each estimate re-abstracts (Thm 1, ``abstraction.abstract``) and re-solves
 (``synthesis.synthesize``) with the modified boxes; the bound stage, the expensive one, runs only
@@ -58,7 +62,12 @@ MAX_CELLS = 65536
 #: ``advice="auto"`` runs when the finer grid's IMDP has at most about this many listed transitions
 #: (cells x modes x 3^d): a few seconds of abstraction and solving at the case studies' speed.
 MAX_AUTO_TRANSITIONS = 3_000_000
-LEVERS = ("finer grid", "more data", "smaller B", "sub-boxes")
+LEVERS = ("finer grid", "more data", "smaller B", "sub-boxes", "larger local pools")
+#: The local-pools lever proposes all of a mode's points up to this many points per mode: in 3-D at 1,024
+#: points, all points cost less than pools of 400 (benchmarks/results/local_pool_size.md) and meet the
+#: slack target with sub-boxes (local_auto.md); above it, POOL_FACTOR times today's pool.
+POOL_ALL_MAX = 2048
+POOL_FACTOR = 4
 #: A lever wins only if it is estimated to move at least this share of X into Q_yes.
 MIN_GAIN = 0.005
 
@@ -165,8 +174,9 @@ def _ratio(num, den) -> np.ndarray:
 def advise(partition, cell_bounds, fits: FittedModes, noise, dfa, *, threshold: float, horizon=None,
            classes, noise_floor, rkhs_bound: float, min_norm: float = 0.0, abstraction_options=None,
            bound_cells=None, max_cells: int = MAX_CELLS, pilot_cells: int = PILOT_CELLS,
-           progress=None, sub_box_t=None) -> Advice:
-    """Estimate the Q_yes share of X that a finer grid, more data, a smaller B or sub-boxes would give.
+           progress=None, sub_box_t=None, local_pools=None) -> Advice:
+    """Estimate the Q_yes share of X that a finer grid, more data, a smaller B, sub-boxes or larger local
+    pools would give.
 
     Parameters
     ----------
@@ -189,13 +199,16 @@ def advise(partition, cell_bounds, fits: FittedModes, noise, dfa, *, threshold: 
         The data-implied minimum RKHS norm (largest over modes and components).
     abstraction_options : dict
         ``eta``, ``eps_rule``, ``combine`` of the run.
-    bound_cells : callable ``(lower (k, d), upper (k, d), rkhs_bound[, split_tol]) -> (lower, upper)`` of
-        shape ``(n_modes, k, n)``, optional
+    bound_cells : callable ``(lower (k, d), upper (k, d), rkhs_bound[, split_tol[, local_points]]) -> (lower,
+        upper)`` of shape ``(n_modes, k, n)``, optional
         The run's bound stage for a few pilot cells; without it the excess ratios are 1 (finer
         grid) and ``B' / B`` (smaller B), and sub-boxes are not estimated.
     sub_box_t : callable ``(lower (k, d), upper (k, d)) -> (k,)``, optional
         Every cell's ``t_max = sum r^2 / l^2`` (``rkhs_model.t_max_up``), from which ``rkhs.split_counts``
         picks the sub-boxes; None: the run cannot split or already does (no sub-box estimate).
+    local_pools : (int, int), optional
+        ``(k, m)``: the run certifies some mode's cells with weights on ``k`` nearest points, and the
+        largest mode has ``m`` points; None: every mode uses all its points (no pool estimate).
     max_cells : int
         An estimate that would abstract more cells than this is skipped (its note says so).
     pilot_cells : int
@@ -233,6 +246,8 @@ def advise(partition, cell_bounds, fits: FittedModes, noise, dfa, *, threshold: 
               _smaller_b(ctx, rkhs_bound, min_norm, say)]
     if sub_box_t is not None:
         levers.append(_sub_boxes(ctx, rkhs_bound, sub_box_t, say))
+    if local_pools is not None:
+        levers.append(_larger_pools(ctx, rkhs_bound, *local_pools, say))
     est = [lv for lv in levers if lv.gain is not None and lv.gain >= MIN_GAIN]
     winner = max(est, key=lambda lv: lv.gain).name if est else None
     return Advice(base, tuple(levers), winner, time.perf_counter() - t_all)
@@ -378,4 +393,37 @@ def _sub_boxes(ctx: _Context, rkhs_bound: float, cell_t, say) -> Lever:
     share = ctx.q_yes(partition, blo, bhi)
     say(f"advice: sub-boxes -> Q_yes {100 * share:.0f} % of X")
     return Lever("sub-boxes", setting, share, share - ctx.base, partition.n_cells, float(np.median(r)),
+                 time.perf_counter() - t0)
+
+
+def pool_proposal(k: int, m: int) -> int:
+    """The local-pools lever's ``local_points``: all ``m`` points up to :data:`POOL_ALL_MAX`, else
+    ``POOL_FACTOR k`` (at most ``m``)."""
+    return int(m) if int(m) <= POOL_ALL_MAX else int(min(int(m), POOL_FACTOR * int(k)))
+
+
+def _larger_pools(ctx: _Context, rkhs_bound: float, k: int, m: int, say) -> Lever:
+    """Lever (e), larger local pools (``local_points`` = :func:`pool_proposal`): the excess scaled by the ratio
+    measured on the pilot cells bounded with those pools. In 3-D the pools, not the certificate, are most of
+    the slack over the optimal range (``benchmarks/results/local_auto.md``: 0.0047 with pools of 100 against
+    0.0006 with all 1,024 points at r/l 0.03)."""
+    partition, pilot = ctx.partition, ctx.pilot
+    t0 = time.perf_counter()
+    K = pool_proposal(k, m)
+    setting = (f"local_points = {K} (all points)" if K >= m else f"local_points = {K}") + f", now {int(k)}"
+    if K <= k:
+        return Lever("larger local pools", setting, None, None, partition.n_cells,
+                     note="the pools already hold the proposed number of points")
+    if ctx.bound_cells is None or partition.n_cells > ctx.max_cells:
+        return Lever("larger local pools", setting, None, None, partition.n_cells,
+                     note="no pilot bound stage" if ctx.bound_cells is None
+                     else f"{partition.n_cells:,} cells > {ctx.max_cells:,}")
+    plo, phi = ctx.bound_cells(partition.cells_lower[pilot], partition.cells_upper[pilot], rkhs_bound, None, K)
+    s_lo, s_hi = _excess_sides(plo, phi, ctx.flo[:, pilot], ctx.fhi[:, pilot])
+    r = _ratio(np.concatenate([s_lo, s_hi], axis=1),
+               np.concatenate([ctx.e_lo[:, pilot], ctx.e_hi[:, pilot]], axis=1))
+    blo, bhi = _shrunk(ctx.lo, ctx.hi, ctx.flo, ctx.fhi, r[:, None] * ctx.e_lo, r[:, None] * ctx.e_hi)
+    share = ctx.q_yes(partition, blo, bhi)
+    say(f"advice: local_points = {K} -> Q_yes {100 * share:.0f} % of X")
+    return Lever("larger local pools", setting, share, share - ctx.base, partition.n_cells, float(np.median(r)),
                  time.perf_counter() - t0)
