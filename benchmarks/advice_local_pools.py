@@ -43,9 +43,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     family.warm_up(SEED)
     rows = []
-    for name, c in CONFIGS.items():
-        if args.only and name not in args.only:
-            continue
+    for name, c in family.chosen(CONFIGS, args.only):
         p = family.pipeline_problem(c, SEED)
         plain = synthesize_from_data(p, progress=False, advice=True)
         levers = {lv["name"]: lv for lv in plain.advice.get("levers", [])}

@@ -445,10 +445,21 @@ def _median(v) -> float:
     return float(np.median(np.asarray(v, float)))
 
 
-def run_config(c: dict, seed: int, verify: int) -> dict:
-    t_start = time.perf_counter()
+def system_with_dfa(c: dict, seed: int) -> dict:
+    """:func:`system` with the spec's DFA (``sy["dfa"]``, what :func:`q_yes` solves against)."""
     sy = system(c, seed)
     sy["dfa"] = ltlf_to_dfa(FORMULA)
+    return sy
+
+
+def chosen(configs: dict, only) -> list:
+    """The ``(key, configuration)`` pairs of ``configs`` that ``--only`` keeps (all without it)."""
+    return [(k, c) for k, c in configs.items() if not only or k in only]
+
+
+def run_config(c: dict, seed: int, verify: int) -> dict:
+    t_start = time.perf_counter()
+    sy = system_with_dfa(c, seed)
     part, d = sy["partition"], sy["dim"]
     row = {"key": key_of(c), **c, "lengthscale": sy["lengthscale"], "r": sy["r"], "cells": part.n_cells,
            "modes": len(sy["maps"]), "points_per_mode": sy["m"], "true_norm": sy["true_norm"],
