@@ -39,8 +39,8 @@ def measure(sy: dict, cells, opt: dict, local, tol) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--ratios", nargs="+", type=float, default=[0.03, 0.06, 0.125, 0.25, 0.5])
-    ap.add_argument("--split-ratios", nargs="+", type=float, default=[0.03, 0.06, 0.125])
+    ap.add_argument("--ratios", nargs="*", type=float, default=[0.03, 0.06, 0.125, 0.25, 0.5])
+    ap.add_argument("--split-ratios", nargs="*", type=float, default=[0.03, 0.06, 0.125])
     ap.add_argument("--seed", type=int, default=20)
     ap.add_argument("--name", default="local_auto", help="results file name (without .json / .md)")
     args = ap.parse_args(argv)
