@@ -211,7 +211,8 @@ def test_the_run_prints_and_saves_the_advice(tiny_runs):
 
     first, again, off, out = tiny_runs
     adv = first.advice
-    assert [lv["name"] for lv in adv["levers"]] == ["finer grid", "more data", "smaller B", "sub-boxes"]  # all points: no pool lever
+    # all 40 points per mode are used, so there is no local-pools lever
+    assert [lv["name"] for lv in adv["levers"]] == ["finer grid", "more data", "smaller B", "sub-boxes"]
     assert adv["baseline_share"] == pytest.approx(np.mean(first.class_names == "yes"))  # equal cells: share = count
     for lv in adv["levers"]:
         assert lv["gain"] is None or lv["gain"] == pytest.approx(lv["q_yes_share"] - adv["baseline_share"])

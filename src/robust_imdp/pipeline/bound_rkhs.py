@@ -27,7 +27,7 @@ from robust_imdp.pipeline.bound_stage import (
     _shared_allowance,
 )
 from robust_imdp.pipeline.cache import _load_npz, _savez, bounds_key, read_cache_entry, write_cache_entry
-from robust_imdp.pipeline.problem import LOCAL_AUTO, LOCAL_DEFAULT, Problem, _is_affine, _settings
+from robust_imdp.pipeline.problem import Problem, _is_affine, _settings, pool_size
 from robust_imdp.pipeline.runtime import _Log, _Run, _chunk_cells
 
 #: Cells per bound task unless the run says otherwise (``chunk_cells``; rounded to rkhs.CELL_BLOCK).
@@ -86,10 +86,8 @@ def _local_settings(problem: Problem, data, partition, noise_bound):
 
     out = []
     for x, _, _ in data:
-        k = problem.local_points
+        k = pool_size(problem.local_points, x.shape[0])
         if k is None:
-            k = None if x.shape[0] <= LOCAL_AUTO else LOCAL_DEFAULT
-        if k is None or k >= x.shape[0]:
             out.append(None)
             continue
         lam = None

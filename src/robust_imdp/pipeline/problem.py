@@ -22,6 +22,13 @@ CHECK_DELTA = 1e-6
 #: With ``local_points=None``: modes with more data points than this use local weights (100 points).
 LOCAL_AUTO = 1000
 LOCAL_DEFAULT = 100
+
+
+def pool_size(local_points: int | None, m: int) -> int | None:
+    """The local pool of a mode with ``m`` data points: ``local_points``, or with None ``LOCAL_DEFAULT``
+    above ``LOCAL_AUTO`` points; None (all points) where that pool would hold every point."""
+    k = local_points if local_points is not None else (None if m <= LOCAL_AUTO else LOCAL_DEFAULT)
+    return None if k is None or k >= m else int(k)
 #: Defaults of the GP route's image / std bounds: target certified gap, branch-and-bound boxes per cell.
 BOUND_TOL = 1e-3
 BOUND_MAX_BOXES = 2000

@@ -369,15 +369,13 @@ def _local_pools(problem: Problem, data):
     """``(k, m)`` when some mode's cells are certified with weights on its ``k`` nearest points (the bound
     stage's rule: ``local_points``, or ``LOCAL_DEFAULT`` above ``LOCAL_AUTO`` points per mode) and the largest
     mode has ``m`` points; None when every mode uses all its points or the method has no local weights."""
-    from robust_imdp.pipeline.problem import LOCAL_AUTO, LOCAL_DEFAULT
+    from robust_imdp.pipeline.problem import pool_size
 
     if not problem.method.local_points:  # the method has no local weights (the GP route)
         return None
     sizes = [x.shape[0] for x, _, _ in data]
-    ks = [problem.local_points if problem.local_points is not None else (None if m <= LOCAL_AUTO else LOCAL_DEFAULT)
-          for m in sizes]
-    pooled = [k for k, m in zip(ks, sizes) if k is not None and k < m]
-    return (int(min(pooled)), int(max(sizes))) if pooled else None
+    pooled = [k for k in (pool_size(problem.local_points, m) for m in sizes) if k is not None]
+    return (min(pooled), int(max(sizes))) if pooled else None
 
 
 def _sub_box_t(problem: Problem):

@@ -279,6 +279,20 @@ class _Context:
     def q_yes(self, partition, lower, upper) -> float:
         return _q_yes(partition, lower, upper, self.noise, self.dfa, self.threshold, self.horizon, self.opts)
 
+    def pilot_ratio(self, plo, phi) -> np.ndarray:
+        """Per (mode, component): the excess ratio of the pilot cells' boxes ``[plo, phi]`` (bounded with a
+        lever's setting) over their boxes as solved (:func:`_ratio`)."""
+        s_lo, s_hi = _excess_sides(plo, phi, self.flo[:, self.pilot], self.fhi[:, self.pilot])
+        return _ratio(np.concatenate([s_lo, s_hi], axis=1),
+                      np.concatenate([self.e_lo[:, self.pilot], self.e_hi[:, self.pilot]], axis=1))
+
+    def no_pilot(self) -> str:
+        """Why the pilot cells cannot be bounded (no bound stage, or too many cells to re-solve), or ``""``."""
+        if self.bound_cells is None:
+            return "no pilot bound stage"
+        n = self.partition.n_cells
+        return f"{n:,} cells > {self.max_cells:,}" if n > self.max_cells else ""
+
 
 def _finer_grid(ctx: _Context, fits: FittedModes, rkhs_bound: float, say) -> Lever:
     """Lever (a), a finer grid: every cell split in 2^d; the excess scaled by the pilot sub-cells' ratio."""
@@ -343,10 +357,7 @@ def _smaller_b(ctx: _Context, rkhs_bound: float, min_norm: float, say) -> Lever:
         return Lever("smaller B", f"B = {Bs:.3g}", None, None, partition.n_cells,
                      note=f"{partition.n_cells:,} cells > {ctx.max_cells:,}")
     if ctx.bound_cells is not None:
-        plo, phi = ctx.bound_cells(partition.cells_lower[pilot], partition.cells_upper[pilot], Bs)
-        s_lo, s_hi = _excess_sides(plo, phi, ctx.flo[:, pilot], ctx.fhi[:, pilot])
-        r = _ratio(np.concatenate([s_lo, s_hi], axis=1),
-                   np.concatenate([ctx.e_lo[:, pilot], ctx.e_hi[:, pilot]], axis=1))
+        r = ctx.pilot_ratio(*ctx.bound_cells(partition.cells_lower[pilot], partition.cells_upper[pilot], Bs))
         note = ""
     else:
         r = np.full((lo.shape[0], lo.shape[2]), Bs / B)
@@ -378,14 +389,9 @@ def _sub_boxes(ctx: _Context, rkhs_bound: float, cell_t, say) -> Lever:
     if np.all(n_sub[pilot] <= 1):
         return Lever("sub-boxes", setting, None, None, partition.n_cells,
                      note="the Taylor term is below split_tol in the undecided cells: sub-boxes change nothing")
-    if ctx.bound_cells is None or partition.n_cells > ctx.max_cells:
-        return Lever("sub-boxes", setting, None, None, partition.n_cells,
-                     note="no pilot bound stage" if ctx.bound_cells is None
-                     else f"{partition.n_cells:,} cells > {ctx.max_cells:,}")
-    plo, phi = ctx.bound_cells(partition.cells_lower[pilot], partition.cells_upper[pilot], rkhs_bound, tol)
-    s_lo, s_hi = _excess_sides(plo, phi, ctx.flo[:, pilot], ctx.fhi[:, pilot])
-    r = _ratio(np.concatenate([s_lo, s_hi], axis=1),
-               np.concatenate([ctx.e_lo[:, pilot], ctx.e_hi[:, pilot]], axis=1))
+    if ctx.no_pilot():
+        return Lever("sub-boxes", setting, None, None, partition.n_cells, note=ctx.no_pilot())
+    r = ctx.pilot_ratio(*ctx.bound_cells(partition.cells_lower[pilot], partition.cells_upper[pilot], rkhs_bound, tol))
     # cells the rule leaves whole keep their boxes
     split = (n_sub > 1)[None, :, None]
     blo, bhi = _shrunk(ctx.lo, ctx.hi, ctx.flo, ctx.fhi, np.where(split, r[:, None] * ctx.e_lo, ctx.e_lo),
@@ -414,14 +420,10 @@ def _larger_pools(ctx: _Context, rkhs_bound: float, k: int, m: int, say) -> Leve
     if K <= k:
         return Lever("larger local pools", setting, None, None, partition.n_cells,
                      note="the pools already hold the proposed number of points")
-    if ctx.bound_cells is None or partition.n_cells > ctx.max_cells:
-        return Lever("larger local pools", setting, None, None, partition.n_cells,
-                     note="no pilot bound stage" if ctx.bound_cells is None
-                     else f"{partition.n_cells:,} cells > {ctx.max_cells:,}")
-    plo, phi = ctx.bound_cells(partition.cells_lower[pilot], partition.cells_upper[pilot], rkhs_bound, None, K)
-    s_lo, s_hi = _excess_sides(plo, phi, ctx.flo[:, pilot], ctx.fhi[:, pilot])
-    r = _ratio(np.concatenate([s_lo, s_hi], axis=1),
-               np.concatenate([ctx.e_lo[:, pilot], ctx.e_hi[:, pilot]], axis=1))
+    if ctx.no_pilot():
+        return Lever("larger local pools", setting, None, None, partition.n_cells, note=ctx.no_pilot())
+    r = ctx.pilot_ratio(*ctx.bound_cells(partition.cells_lower[pilot], partition.cells_upper[pilot], rkhs_bound,
+                                         None, K))
     blo, bhi = _shrunk(ctx.lo, ctx.hi, ctx.flo, ctx.fhi, r[:, None] * ctx.e_lo, r[:, None] * ctx.e_hi)
     share = ctx.q_yes(partition, blo, bhi)
     say(f"advice: local_points = {K} -> Q_yes {100 * share:.0f} % of X")
