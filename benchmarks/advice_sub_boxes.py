@@ -26,7 +26,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results"
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from reference import results_record, write_results  # noqa: E402
+from reference import merged_rows, results_record, write_results  # noqa: E402
 from serial_parts import build_problem  # noqa: E402
 
 
@@ -95,8 +95,7 @@ def main(argv=None) -> int:
         print(json.dumps(row), flush=True)
     old = OUT / "advice_sub_boxes.json"
     if args.only and old.exists():  # --only: replace those rows of the earlier record, keep the others
-        fresh = {r["problem"]: r for r in rows}
-        rows = [fresh.pop(r["problem"], r) for r in json.loads(old.read_text())["rows"]] + list(fresh.values())
+        rows = merged_rows(json.loads(old.read_text())["rows"], rows, "problem")
     data = results_record(rows)
 
     def pct(v):

@@ -87,7 +87,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from reference import _counts, _git_commit  # noqa: E402
+from reference import _counts, _git_commit, merged_rows  # noqa: E402
 
 import robust_imdp  # noqa: E402
 from robust_imdp.bounds import rkhs  # noqa: E402
@@ -760,8 +760,7 @@ def main(argv=None) -> int:
     merged_from = None
     if args.merge and args.only and (OUT / "family.json").exists():
         old = json.loads((OUT / "family.json").read_text())
-        fresh = {r["key"]: r for r in rows}
-        rows = [fresh.pop(r["key"], r) for r in old["rows"]] + list(fresh.values())
+        rows = merged_rows(old["rows"], rows, "key")
         data = {**{k: v for k, v in old.items() if k in ("pipeline", "startup")}, **data, "rows": rows}
         merged_from = old["meta"]
     data["summary"] = summary(rows)

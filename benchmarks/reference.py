@@ -230,6 +230,13 @@ def results_record(rows: list, **extra) -> dict:
             "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
 
 
+def merged_rows(old_rows: list, rows: list, key: str) -> list:
+    """``rows`` in place of the rows of an earlier record with the same ``key`` (in the old order), the other old
+    rows kept, new keys at the end (``--only`` / ``--merge`` re-runs)."""
+    fresh = {r[key]: r for r in rows}
+    return [fresh.pop(r[key], r) for r in old_rows] + list(fresh.values())
+
+
 def write_results(name: str, data: dict, lines: list[str]) -> None:
     """Write ``benchmarks/results/NAME.json`` (the record) and ``NAME.md`` (the table's lines)."""
     out = ROOT / "benchmarks" / "results"
