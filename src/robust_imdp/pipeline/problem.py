@@ -29,6 +29,38 @@ def pool_size(local_points: int | None, m: int) -> int | None:
     above ``LOCAL_AUTO`` points; None (all points) where that pool would hold every point."""
     k = local_points if local_points is not None else (None if m <= LOCAL_AUTO else LOCAL_DEFAULT)
     return None if k is None or k >= m else int(k)
+
+
+#: Larger pools (the advice's pool lever and the ``tight`` preset) hold all of a mode's points up to this many
+#: points per mode: in 3-D at 1,024 points, all points cost less than pools of 400
+#: (benchmarks/results/local_pool_size.md) and meet the slack target with sub-boxes (local_auto.md); above it,
+#: ``POOL_FACTOR`` times the pool.
+POOL_ALL_MAX = 2048
+POOL_FACTOR = 4
+#: The ``tight`` preset's ``split_tol`` (:meth:`Problem.tightened`): on the benchmark family it reaches the
+#: per-cell optimal boxes' Q_yes where ``rkhs.SPLIT_TOL`` (1.5e-3) does not (2-D r/l 0.5: 118 of 118 against
+#: 109; benchmarks/results/split_tol_sweep.md, tight_preset.md).
+TIGHT_SPLIT_TOL = 4e-4
+
+
+def pool_proposal(k: int, m: int) -> int:
+    """A larger ``local_points`` than a pool of ``k``: all ``m`` points up to :data:`POOL_ALL_MAX`, else
+    ``POOL_FACTOR k`` (at most ``m``)."""
+    return int(m) if int(m) <= POOL_ALL_MAX else int(min(int(m), POOL_FACTOR * int(k)))
+
+
+def tight_settings(points_per_mode, local_points: int | None = None, split_tol: float | None = None) -> dict:
+    """The ``tight`` preset's ``split_tol`` and ``local_points`` for modes of ``points_per_mode`` points; a
+    value the user gave (not None) is kept.
+
+    ``split_tol``: :data:`TIGHT_SPLIT_TOL`. ``local_points``: unchanged where every mode already uses all
+    its points (at most ``LOCAL_AUTO``), else :func:`pool_proposal` of the default pool for the largest
+    mode (all points for every mode up to :data:`POOL_ALL_MAX` points per mode, else pools of 400).
+    """
+    m = int(max(points_per_mode)) if len(points_per_mode) else 0
+    if local_points is None and m > LOCAL_AUTO:
+        local_points = pool_proposal(LOCAL_DEFAULT, m)
+    return {"split_tol": TIGHT_SPLIT_TOL if split_tol is None else split_tol, "local_points": local_points}
 #: Defaults of the GP route's image / std bounds: target certified gap, branch-and-bound boxes per cell.
 BOUND_TOL = 1e-3
 BOUND_MAX_BOXES = 2000
@@ -307,6 +339,20 @@ class Problem:
     def method(self) -> methods.BoundMethod:
         """The error-bound method's registry entry: ask its capabilities, not its name."""
         return methods.get(self.error_bound)
+
+    def tightened(self) -> "Problem":
+        """A copy with the ``tight`` preset (:func:`tight_settings`; ``robust-imdp run --tight``): certification
+        sub-boxes down to a Taylor term of :data:`TIGHT_SPLIT_TOL` and, where local pools would be used, all of
+        a mode's points up to :data:`POOL_ALL_MAX` (else pools of 400). ``split_tol`` and ``local_points`` the
+        problem already sets are kept. Tighter bounds at a higher bound cost: on the benchmark family every
+        configuration reaches >= 0.95 of the per-cell optimal boxes' Q_yes with it, at up to ~25x the default's
+        bound time in 3-D (benchmarks/results/tight_preset.md).
+
+        Raises InvalidInputError for an error-bound method without sub-box certificates (the GP route).
+        """
+        self.method.check_split()
+        counts = np.bincount(np.asarray(self.data.u, dtype=np.int64), minlength=len(self.mode_names))
+        return self.replace(**tight_settings(counts, self.local_points, self.split_tol))
 
     def replace(self, **changes) -> "Problem":
         """A copy with some attributes changed (e.g. ``formula=...``)."""

@@ -1,0 +1,110 @@
+"""The ``tight`` preset (``Problem.tightened``, ``robust-imdp run --tight``, issue 20).
+
+The preset only chooses settings (sub-box certificates, larger pools), whose bounds are tested on their own
+(test_split_option.py, test_rkhs_local.py, the mutation table); here: the rule, that a problem's own values
+win, that the preset reaches the bound stage (tighter than ``SPLIT_TOL`` and still containing the true
+images, by dense sampling), the GP route's refusal, and the command line's flag.
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+from robust_imdp.bounds import rkhs
+from robust_imdp.casestudies.systems import get_case_study
+from robust_imdp.cli import main
+from robust_imdp.errors import InvalidInputError
+from robust_imdp.models.system import Dataset
+from robust_imdp.pipeline.problem import (LOCAL_AUTO, LOCAL_DEFAULT, POOL_ALL_MAX, POOL_FACTOR, TIGHT_SPLIT_TOL,
+                                          pool_size, tight_settings)
+
+from problem_texts import ONE_D
+from test_pipeline import tiny_gp_problem, tiny_problem
+from test_split_option import _bounds
+
+CASE = get_case_study("three_mode_linear")
+
+
+def test_tight_settings_rule():
+    # every mode already on all points: local_points stays None (the automatic rule keeps all points)
+    assert tight_settings([40, LOCAL_AUTO]) == {"split_tol": TIGHT_SPLIT_TOL, "local_points": None}
+    # above LOCAL_AUTO and up to POOL_ALL_MAX: all points of the largest mode, so of every mode
+    s = tight_settings([300, LOCAL_AUTO + 1])
+    assert s["local_points"] == LOCAL_AUTO + 1
+    assert pool_size(s["local_points"], 300) is None and pool_size(s["local_points"], LOCAL_AUTO + 1) is None
+    assert tight_settings([POOL_ALL_MAX])["local_points"] == POOL_ALL_MAX
+    # above POOL_ALL_MAX: POOL_FACTOR times the default pool
+    assert tight_settings([POOL_ALL_MAX + 1, 10])["local_points"] == POOL_FACTOR * LOCAL_DEFAULT
+    # the user's values win
+    assert tight_settings([5000], local_points=50, split_tol=1e-3) == {"split_tol": 1e-3, "local_points": 50}
+    assert TIGHT_SPLIT_TOL < rkhs.SPLIT_TOL
+
+
+def test_tightened_is_a_copy_that_keeps_the_problems_values():
+    p = tiny_problem(split_tol=2e-3)
+    t = p.tightened()
+    assert t is not p and p.split_tol == 2e-3 and p.local_points is None
+    assert t.split_tol == 2e-3 and t.local_points is None  # 40 points per mode: all points already
+    assert tiny_problem().tightened().split_tol == TIGHT_SPLIT_TOL
+    assert tiny_problem(local_points=7).tightened().local_points == 7
+
+
+def test_tightened_counts_points_per_mode():
+    # 1,200 points in mode 0 and 40 in the others: above LOCAL_AUTO, so all points (1,200) for every mode
+    x, u, xn = CASE.system.sample_dataset(40, CASE.lower, CASE.upper, rng=3)
+    rng = np.random.default_rng(5)
+    extra = rng.uniform(CASE.lower, CASE.upper, (1160, 2))
+    xe = CASE.system.step(extra, np.zeros(1160, dtype=int), rng)
+    data = Dataset(np.vstack([x, extra]), np.concatenate([u, np.zeros(1160, dtype=int)]), np.vstack([xn, xe]),
+                   modes=CASE.system.mode_names)
+    t = tiny_problem(data=data).tightened()
+    assert t.local_points == 1200 and t.split_tol == TIGHT_SPLIT_TOL
+
+
+def test_tightened_on_the_gp_route_is_refused():
+    with pytest.raises(InvalidInputError, match="split_tol applies to error_bound"):
+        tiny_gp_problem().tightened()
+
+
+@pytest.fixture(scope="module")
+def bounds_pair():
+    # r / l = 0.125 (cells of 0.5, lengthscale 2), B = 6: SPLIT_TOL gives 10 pieces per axis, the preset 14
+    # (the 2-D cap; at lengthscale 1 both sit at the cap and give the same boxes)
+    p = tiny_problem()
+    return _bounds(p.replace(split_tol=rkhs.SPLIT_TOL)), _bounds(p.tightened())
+
+
+def test_tight_bounds_are_tighter_than_split_tol_and_contain_the_true_images(bounds_pair):
+    (part, cb_s), (_, cb_t) = bounds_pair
+    w_s = cb_s.image_upper - cb_s.image_lower
+    w_t = cb_t.image_upper - cb_t.image_lower
+    assert np.median(w_s - w_t) > 0  # the preset's split_tol reaches the bound stage
+    assert np.mean(w_t <= w_s + 1e-12) > 0.9
+    rng = np.random.default_rng(12)
+    lo, up = part.cells_lower, part.cells_upper
+    for u in range(3):
+        pts = lo[:, None, :] + rng.random((lo.shape[0], 400, 2)) * (up - lo)[:, None, :]
+        img = CASE.system.g(pts.reshape(-1, 2), np.full(pts.shape[0] * pts.shape[1], u)).reshape(pts.shape)
+        assert np.all(img >= cb_t.image_lower[u][:, None, :]) and np.all(img <= cb_t.image_upper[u][:, None, :])
+
+
+@pytest.mark.slow
+def test_run_tight_on_the_command_line(tmp_path, capsys):
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0, 4, 30)
+    xn = 0.5 * x + 1 + 0.1 * np.sin(x) + rng.uniform(-0.01, 0.01, 30)
+    (tmp_path / "d.csv").write_text("x_1,u,x_next_1\n" + "".join(f"{a:.17g},a,{b:.17g}\n" for a, b in zip(x, xn)))
+    (tmp_path / "p.toml").write_text(ONE_D)
+    code = main(["run", str(tmp_path / "p.toml"), "--out", str(tmp_path / "o"), "--tight", "--no-figures"])
+    _, err = capsys.readouterr()
+    assert code == 0, err
+    assert f"tight preset: split_tol = {TIGHT_SPLIT_TOL:g}, local_points = all points" in err
+    doc = json.loads((tmp_path / "o" / "result.json").read_text())
+    assert doc["parameters"]["split_tol"] == TIGHT_SPLIT_TOL
+    # with the file's own split_tol the preset keeps it
+    (tmp_path / "q.toml").write_text(ONE_D + "split_tol = 0.003\n")
+    code = main(["run", str(tmp_path / "q.toml"), "--out", str(tmp_path / "o2"), "--tight", "--no-figures",
+                 "--quiet"])
+    assert code == 0
+    assert json.loads((tmp_path / "o2" / "result.json").read_text())["parameters"]["split_tol"] == 0.003
