@@ -16,8 +16,8 @@ from robust_imdp.casestudies.systems import get_case_study
 from robust_imdp.cli import main
 from robust_imdp.errors import InvalidInputError
 from robust_imdp.models.system import Dataset
-from robust_imdp.pipeline.problem import (LOCAL_AUTO, LOCAL_DEFAULT, POOL_ALL_MAX, POOL_FACTOR, TIGHT_SPLIT_TOL,
-                                          pool_size, tight_settings)
+from robust_imdp.pipeline.problem import LOCAL_AUTO, LOCAL_DEFAULT, TIGHT_SPLIT_TOL, pool_size, tight_settings
+from robust_imdp.synthesis.advice import POOL_ALL_MAX, POOL_FACTOR
 
 from problem_texts import ONE_D
 from test_pipeline import tiny_gp_problem, tiny_problem

@@ -31,22 +31,10 @@ def pool_size(local_points: int | None, m: int) -> int | None:
     return None if k is None or k >= m else int(k)
 
 
-#: Larger pools (the advice's pool lever and the ``tight`` preset) hold all of a mode's points up to this many
-#: points per mode: in 3-D at 1,024 points, all points cost less than pools of 400
-#: (benchmarks/results/local_pool_size.md) and meet the slack target with sub-boxes (local_auto.md); above it,
-#: ``POOL_FACTOR`` times the pool.
-POOL_ALL_MAX = 2048
-POOL_FACTOR = 4
 #: The ``tight`` preset's ``split_tol`` (:meth:`Problem.tightened`): on the benchmark family it reaches the
 #: per-cell optimal boxes' Q_yes where ``rkhs.SPLIT_TOL`` (1.5e-3) does not (2-D r/l 0.5: 118 of 118 against
 #: 109; benchmarks/results/split_tol_sweep.md, tight_preset.md).
 TIGHT_SPLIT_TOL = 4e-4
-
-
-def pool_proposal(k: int, m: int) -> int:
-    """A larger ``local_points`` than a pool of ``k``: all ``m`` points up to :data:`POOL_ALL_MAX`, else
-    ``POOL_FACTOR k`` (at most ``m``)."""
-    return int(m) if int(m) <= POOL_ALL_MAX else int(min(int(m), POOL_FACTOR * int(k)))
 
 
 def tight_settings(points_per_mode, local_points: int | None = None, split_tol: float | None = None) -> dict:
@@ -54,9 +42,12 @@ def tight_settings(points_per_mode, local_points: int | None = None, split_tol: 
     value the user gave (not None) is kept.
 
     ``split_tol``: :data:`TIGHT_SPLIT_TOL`. ``local_points``: unchanged where every mode already uses all
-    its points (at most ``LOCAL_AUTO``), else :func:`pool_proposal` of the default pool for the largest
-    mode (all points for every mode up to :data:`POOL_ALL_MAX` points per mode, else pools of 400).
+    its points (at most ``LOCAL_AUTO``), else the advice's pool lever's proposal
+    (``synthesis.advice.pool_proposal``) for the default pool and the largest mode: all points for every
+    mode up to ``POOL_ALL_MAX`` (2,048) points per mode, else pools of 400.
     """
+    from robust_imdp.synthesis.advice import pool_proposal  # one rule for the lever and the preset
+
     m = int(max(points_per_mode)) if len(points_per_mode) else 0
     if local_points is None and m > LOCAL_AUTO:
         local_points = pool_proposal(LOCAL_DEFAULT, m)
@@ -343,7 +334,7 @@ class Problem:
     def tightened(self) -> "Problem":
         """A copy with the ``tight`` preset (:func:`tight_settings`; ``robust-imdp run --tight``): certification
         sub-boxes down to a Taylor term of :data:`TIGHT_SPLIT_TOL` and, where local pools would be used, all of
-        a mode's points up to :data:`POOL_ALL_MAX` (else pools of 400). ``split_tol`` and ``local_points`` the
+        a mode's points up to 2,048 per mode (else pools of 400). ``split_tol`` and ``local_points`` the
         problem already sets are kept. Tighter bounds at a higher bound cost: on the benchmark family every
         configuration reaches >= 0.95 of the per-cell optimal boxes' Q_yes with it, at up to ~25x the default's
         bound time in 3-D (benchmarks/results/tight_preset.md).

@@ -46,7 +46,6 @@ import numpy as np
 
 from robust_imdp.bounds.fit import FIT_POINTS, FittedModes, _excess_sides, excess_radius, fit_modes  # noqa: F401
 from robust_imdp.errors import DimensionError
-from robust_imdp.pipeline.problem import POOL_ALL_MAX, POOL_FACTOR, pool_proposal  # noqa: F401 (the lever's rule)
 
 __all__ = ["FittedModes", "fit_modes", "excess_radius", "Lever", "Advice", "advise", "advice_line", "LEVERS",
            "MAX_CELLS", "MAX_AUTO_TRANSITIONS", "FIT_POINTS", "PILOT_CELLS", "MIN_GAIN"]
@@ -66,6 +65,12 @@ MAX_AUTO_TRANSITIONS = 3_000_000
 LEVERS = ("finer grid", "more data", "smaller B", "sub-boxes", "larger local pools")
 #: A lever wins only if it is estimated to move at least this share of X into Q_yes.
 MIN_GAIN = 0.005
+#: The local-pools lever (and the ``tight`` preset, ``pipeline.problem.tight_settings``) proposes all of a
+#: mode's points up to this many points per mode: in 3-D at 1,024 points, all points cost less than pools of
+#: 400 (benchmarks/results/local_pool_size.md) and meet the slack target with sub-boxes (local_auto.md);
+#: above it, POOL_FACTOR times today's pool.
+POOL_ALL_MAX = 2048
+POOL_FACTOR = 4
 
 
 # ============================================================================ the advice
@@ -396,6 +401,12 @@ def _sub_boxes(ctx: _Context, rkhs_bound: float, cell_t, say) -> Lever:
     say(f"advice: sub-boxes -> Q_yes {100 * share:.0f} % of X")
     return Lever("sub-boxes", setting, share, share - ctx.base, partition.n_cells, float(np.median(r)),
                  time.perf_counter() - t0)
+
+
+def pool_proposal(k: int, m: int) -> int:
+    """The local-pools lever's ``local_points``: all ``m`` points up to :data:`POOL_ALL_MAX`, else
+    ``POOL_FACTOR k`` (at most ``m``)."""
+    return int(m) if int(m) <= POOL_ALL_MAX else int(min(int(m), POOL_FACTOR * int(k)))
 
 
 def _larger_pools(ctx: _Context, rkhs_bound: float, k: int, m: int, say) -> Lever:
