@@ -4,7 +4,7 @@
 
 For every configuration of the family's default subset (``family.configurations("default")``, seed 20):
 our cell bounds with the preset's settings (``pipeline.problem.tight_settings``: ``split_tol =
-TIGHT_SPLIT_TOL`` and, above ``LOCAL_AUTO`` points per mode, all points up to ``POOL_ALL_MAX``) and with the
+TIGHT_SPLIT_TOL`` (``TIGHT_SPLIT_TOL_3D`` in 3-D) and, above ``LOCAL_AUTO`` points per mode, all points up to ``POOL_ALL_MAX``) and with the
 default settings, one after the other in this run, against
 
 * the optimal range of the family's sampled cells (``family.slack_cells``, first mode and output: the
@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import family  # noqa: E402
 from reference import merged_rows, results_record, write_results  # noqa: E402
 
-from robust_imdp.pipeline.problem import TIGHT_SPLIT_TOL, pool_size, tight_settings  # noqa: E402
+from robust_imdp.pipeline.problem import TIGHT_SPLIT_TOL, TIGHT_SPLIT_TOL_3D, pool_size, tight_settings  # noqa: E402
 
 SEED = 20
 NAME = "tight_preset"
@@ -45,7 +45,7 @@ def measure(key: str, c: dict, old: dict) -> dict:
     if cells.tolist() != old["optimal"]["cells"]:
         raise SystemExit(f"{key}: the sampled cells differ from family.json's: not the same system")
     opt = family.optimal_ranges(sy, cells)
-    settings = tight_settings([sy["m"]] * len(sy["maps"]))
+    settings = tight_settings([sy["m"]] * len(sy["maps"]), c["dim"])
     row = {"key": key, "dim": c["dim"], "ratio": c["ratio"], "points_per_mode": sy["m"], "settings": settings,
            "optimal_boxes_q_yes": old["optimal_boxes"]["yes"], "widened_q_yes": old["widened"]["yes"],
            "reference_q_yes": old["reference"]["yes"]}
@@ -72,8 +72,9 @@ def lines_of(data: dict) -> list[str]:
     rows = data["rows"]
     out = ["# The `tight` preset on the benchmark family (`benchmarks/tight_preset.py`)", "",
            f"{data['date']}, commit {data['commit']}, load at the end {data['load'][0]:.1f}; seed {SEED}, the family's "
-           f"default subset. *tight* = `Problem.tightened()` (`split_tol = {TIGHT_SPLIT_TOL:g}`; above 1,000 points per "
-           "mode all points up to 2,048); *default* = no sub-boxes, pools of 100 above 1,000 points per mode; both "
+           f"default subset. *tight* = `Problem.tightened()` (`split_tol = {TIGHT_SPLIT_TOL:g}` in 1-D / 2-D, "
+           f"`{TIGHT_SPLIT_TOL_3D:g}` in 3-D; above 1,000 points per mode all points up to 2,048)"
+           "; *default* = no sub-boxes, pools of 100 above 1,000 points per mode; both "
            "bounded one after the other in this run. Slack: our range over the optimal range of the sampled cells, "
            "median per side (target <= 0.002 up to r/l 0.25, <= 0.005 at 0.5). Q_yes ratios against the per-cell "
            "optimal boxes and the widened reference of `family.json` (target >= 0.95). Violations: our boxes "

@@ -16,7 +16,8 @@ from robust_imdp.casestudies.systems import get_case_study
 from robust_imdp.cli import main
 from robust_imdp.errors import InvalidInputError
 from robust_imdp.models.system import Dataset
-from robust_imdp.pipeline.problem import LOCAL_AUTO, LOCAL_DEFAULT, TIGHT_SPLIT_TOL, pool_size, tight_settings
+from robust_imdp.pipeline.problem import (LOCAL_AUTO, LOCAL_DEFAULT, TIGHT_SPLIT_TOL, TIGHT_SPLIT_TOL_3D, pool_size,
+                                          tight_settings)
 from robust_imdp.synthesis.advice import POOL_ALL_MAX, POOL_FACTOR
 
 from problem_texts import ONE_D
@@ -28,16 +29,20 @@ CASE = get_case_study("three_mode_linear")
 
 def test_tight_settings_rule():
     # every mode already on all points: local_points stays None (the automatic rule keeps all points)
-    assert tight_settings([40, LOCAL_AUTO]) == {"split_tol": TIGHT_SPLIT_TOL, "local_points": None}
+    assert tight_settings([40, LOCAL_AUTO], 2) == {"split_tol": TIGHT_SPLIT_TOL, "local_points": None}
+    # from 3-D on the sub-boxes grow as s^d: the coarser SPLIT_TOL
+    assert tight_settings([40], 3)["split_tol"] == TIGHT_SPLIT_TOL_3D == rkhs.SPLIT_TOL
+    assert tight_settings([40], 4)["split_tol"] == TIGHT_SPLIT_TOL_3D
+    assert tight_settings([40], 1)["split_tol"] == TIGHT_SPLIT_TOL
     # above LOCAL_AUTO and up to POOL_ALL_MAX: all points of the largest mode, so of every mode
-    s = tight_settings([300, LOCAL_AUTO + 1])
+    s = tight_settings([300, LOCAL_AUTO + 1], 2)
     assert s["local_points"] == LOCAL_AUTO + 1
     assert pool_size(s["local_points"], 300) is None and pool_size(s["local_points"], LOCAL_AUTO + 1) is None
-    assert tight_settings([POOL_ALL_MAX])["local_points"] == POOL_ALL_MAX
+    assert tight_settings([POOL_ALL_MAX], 3)["local_points"] == POOL_ALL_MAX
     # above POOL_ALL_MAX: POOL_FACTOR times the default pool
-    assert tight_settings([POOL_ALL_MAX + 1, 10])["local_points"] == POOL_FACTOR * LOCAL_DEFAULT
+    assert tight_settings([POOL_ALL_MAX + 1, 10], 2)["local_points"] == POOL_FACTOR * LOCAL_DEFAULT
     # the user's values win
-    assert tight_settings([5000], local_points=50, split_tol=1e-3) == {"split_tol": 1e-3, "local_points": 50}
+    assert tight_settings([5000], 3, local_points=50, split_tol=1e-3) == {"split_tol": 1e-3, "local_points": 50}
     assert TIGHT_SPLIT_TOL < rkhs.SPLIT_TOL
 
 

@@ -31,27 +31,37 @@ def pool_size(local_points: int | None, m: int) -> int | None:
     return None if k is None or k >= m else int(k)
 
 
-#: The ``tight`` preset's ``split_tol`` (:meth:`Problem.tightened`): on the benchmark family it reaches the
-#: per-cell optimal boxes' Q_yes where ``rkhs.SPLIT_TOL`` (1.5e-3) does not (2-D r/l 0.5: 118 of 118 against
-#: 109; benchmarks/results/split_tol_sweep.md, tight_preset.md).
+#: The ``tight`` preset's ``split_tol`` (:meth:`Problem.tightened`) in 1-D and 2-D: on the benchmark family it
+#: reaches the per-cell optimal boxes' Q_yes where ``rkhs.SPLIT_TOL`` (1.5e-3) does not (2-D r/l 0.5: 118 of
+#: 118 against 109 at 1.3x the bound time; benchmarks/results/split_tol_sweep.md, tight_preset.md).
 TIGHT_SPLIT_TOL = 4e-4
+#: ... and from 3-D on: ``rkhs.SPLIT_TOL`` (a test checks they are equal). The sub-boxes per cell grow as
+#: ``(term / split_tol)^(d/2)``: on the family's 3-D r/l 0.125 configuration with all points, 4e-4 took 491 s
+#: for Q_yes 392 against 73 s for 392 at 1.5e-3 (tight_preset.md, local_auto.md), and 1.5e-3 already meets
+#: the slack target there.
+TIGHT_SPLIT_TOL_3D = 1.5e-3
 
 
-def tight_settings(points_per_mode, local_points: int | None = None, split_tol: float | None = None) -> dict:
-    """The ``tight`` preset's ``split_tol`` and ``local_points`` for modes of ``points_per_mode`` points; a
-    value the user gave (not None) is kept.
+def tight_settings(points_per_mode, dim: int, local_points: int | None = None,
+                   split_tol: float | None = None) -> dict:
+    """The ``tight`` preset's ``split_tol`` and ``local_points`` for ``dim`` dimensions and modes of
+    ``points_per_mode`` points; a value the user gave (not None) is kept.
 
-    ``split_tol``: :data:`TIGHT_SPLIT_TOL`. ``local_points``: unchanged where every mode already uses all
-    its points (at most ``LOCAL_AUTO``), else the advice's pool lever's proposal
-    (``synthesis.advice.pool_proposal``) for the default pool and the largest mode: all points for every
-    mode up to ``POOL_ALL_MAX`` (2,048) points per mode, else pools of 400.
+    ``split_tol``: :data:`TIGHT_SPLIT_TOL` up to 2-D, :data:`TIGHT_SPLIT_TOL_3D` from 3-D on. ``local_points``:
+    unchanged where every mode already uses all its points (at most ``LOCAL_AUTO``), else the advice's pool
+    lever's proposal (``synthesis.advice.pool_proposal``) for the default pool and the largest mode: all
+    points for every mode up to ``POOL_ALL_MAX`` (2,048) points per mode, else pools of 400.
     """
     from robust_imdp.synthesis.advice import pool_proposal  # one rule for the lever and the preset
 
     m = int(max(points_per_mode)) if len(points_per_mode) else 0
     if local_points is None and m > LOCAL_AUTO:
         local_points = pool_proposal(LOCAL_DEFAULT, m)
-    return {"split_tol": TIGHT_SPLIT_TOL if split_tol is None else split_tol, "local_points": local_points}
+    if split_tol is None:
+        split_tol = TIGHT_SPLIT_TOL if int(dim) <= 2 else TIGHT_SPLIT_TOL_3D
+    return {"split_tol": split_tol, "local_points": local_points}
+
+
 #: Defaults of the GP route's image / std bounds: target certified gap, branch-and-bound boxes per cell.
 BOUND_TOL = 1e-3
 BOUND_MAX_BOXES = 2000
@@ -333,17 +343,17 @@ class Problem:
 
     def tightened(self) -> "Problem":
         """A copy with the ``tight`` preset (:func:`tight_settings`; ``robust-imdp run --tight``): certification
-        sub-boxes down to a Taylor term of :data:`TIGHT_SPLIT_TOL` and, where local pools would be used, all of
-        a mode's points up to 2,048 per mode (else pools of 400). ``split_tol`` and ``local_points`` the
-        problem already sets are kept. Tighter bounds at a higher bound cost: on the benchmark family every
-        configuration reaches >= 0.95 of the per-cell optimal boxes' Q_yes with it, at up to ~25x the default's
-        bound time in 3-D (benchmarks/results/tight_preset.md).
+        sub-boxes down to a Taylor term of :data:`TIGHT_SPLIT_TOL` (1-D, 2-D) or :data:`TIGHT_SPLIT_TOL_3D`
+        (3-D and up) and, where local pools would be used, all of a mode's points up to 2,048 per mode (else
+        pools of 400). ``split_tol`` and ``local_points`` the problem already sets are kept. Tighter bounds where
+        cells are large against the lengthscale, at several times the bound time
+        (benchmarks/results/tight_preset.md on the benchmark family, tight_problems.md on the case studies).
 
         Raises InvalidInputError for an error-bound method without sub-box certificates (the GP route).
         """
         self.method.check_split()
         counts = np.bincount(np.asarray(self.data.u, dtype=np.int64), minlength=len(self.mode_names))
-        return self.replace(**tight_settings(counts, self.local_points, self.split_tol))
+        return self.replace(**tight_settings(counts, int(np.size(self.space_lower)), self.local_points, self.split_tol))
 
     def replace(self, **changes) -> "Problem":
         """A copy with some attributes changed (e.g. ``formula=...``)."""
