@@ -334,3 +334,15 @@ def test_local_pool_rule_of_the_run_and_the_proposal():
     assert pool_proposal(100, POOL_ALL_MAX) == POOL_ALL_MAX
     assert pool_proposal(100, POOL_ALL_MAX + 1) == POOL_FACTOR * 100
     assert pool_proposal(3000, POOL_ALL_MAX + 1) == POOL_ALL_MAX + 1
+
+
+def test_advice_line_names_the_tight_preset_only_when_its_levers_win():
+    def adv(winner):
+        levers = [{"name": n, "setting": "s", "gain": g, "q_yes_share": 0.1 + g, "note": ""}
+                  for n, g in (("finer grid", 0.2), ("sub-boxes", 0.3), ("larger local pools", 0.25))]
+        return {"winner": winner, "levers": levers, "baseline_share": 0.1}
+
+    for w in ("sub-boxes", "larger local pools"):
+        assert "`run --tight` (Problem.tightened())" in advice_line(adv(w))
+    assert "--tight" not in advice_line(adv("finer grid"))
+    assert "--tight" not in advice_line({**adv(None), "winner": None})

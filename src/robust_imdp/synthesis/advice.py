@@ -63,6 +63,9 @@ MAX_CELLS = 65536
 #: (cells x modes x 3^d): a few seconds of abstraction and solving at the case studies' speed.
 MAX_AUTO_TRANSITIONS = 3_000_000
 LEVERS = ("finer grid", "more data", "smaller B", "sub-boxes", "larger local pools")
+#: The levers the ``tight`` preset (``pipeline.problem.tight_settings``) pulls: the advice line names it when
+#: one of them wins.
+TIGHT_LEVERS = ("sub-boxes", "larger local pools")
 #: A lever wins only if it is estimated to move at least this share of X into Q_yes.
 MIN_GAIN = 0.005
 #: The local-pools lever (and the ``tight`` preset, ``pipeline.problem.tight_settings``) proposes all of a
@@ -130,6 +133,8 @@ def advice_line(adv: dict) -> str:
         w = next(lv for lv in adv["levers"] if lv["name"] == adv["winner"])
         text = (f"advice: {w['name']} ({w['setting']}) decides most: Q_yes {pct(adv['baseline_share'])} -> about "
                 f"{pct(w['q_yes_share'])} of X" + (f"; {others}" if others else ""))
+        if w["name"] in TIGHT_LEVERS:
+            text += "; `run --tight` (Problem.tightened()) sets sub-boxes and larger local pools together"
     if skipped:
         text += f"; not estimated: {skipped}"
     return text + " (estimated by re-solving with modified image boxes)"
