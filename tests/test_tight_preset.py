@@ -113,3 +113,17 @@ def test_run_tight_on_the_command_line(tmp_path, capsys):
                  "--quiet"])
     assert code == 0
     assert json.loads((tmp_path / "o2" / "result.json").read_text())["parameters"]["split_tol"] == 0.003
+
+
+def test_suggest_and_improve_take_the_flag_like_run(capsys):
+    from robust_imdp.cli import _parser, _tightened
+
+    p = _parser()
+    assert p.parse_args(["suggest", "D", "--problem", "p.toml", "--budget", "1", "--tight"]).tight
+    assert p.parse_args(["improve", "p.toml", "--true-system", "s", "--budget", "1", "--tight"]).tight
+    assert not p.parse_args(["run", "p.toml", "--out", "o"]).tight
+    prob = tiny_problem()
+    args = p.parse_args(["suggest", "D", "--problem", "p.toml", "--budget", "1", "--tight"])
+    assert _tightened(prob, args).split_tol == TIGHT_SPLIT_TOL
+    assert "tight preset: split_tol = 0.0004, local_points = all points" in capsys.readouterr().err
+    assert _tightened(prob, p.parse_args(["suggest", "D", "--problem", "p.toml", "--budget", "1"])) is prob

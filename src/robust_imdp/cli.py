@@ -129,12 +129,7 @@ def _parser() -> argparse.ArgumentParser:
                           "pools) would move most of X into Q_yes, by re-solving with modified image boxes; "
                           "auto: when the finer grid has at most 65,536 cells and ~3e6 listed transitions "
                           "(cells x modes x 3^d)")
-    run.add_argument("--tight", action="store_true",
-                     help="the tight preset (Problem.tightened): certification sub-boxes down to a Taylor term "
-                          "of 4e-4 and, where local pools would be used, all points up to 2,048 per mode "
-                          "(else pools of 400); [learning] split_tol / local_points the file sets are kept. "
-                          "Tighter where cells are large against the lengthscale, at several times the "
-                          "bound time (README, 'Tightness')")
+    _add_tight(run)
     run.add_argument("--quiet", action="store_true", help="no progress lines")
     run.add_argument("--workers", type=_at_least(1), default=None,
                      help="local cores: 1 = in this process on one core, N > 1 = a local Dask cluster "
@@ -199,6 +194,7 @@ def _parser() -> argparse.ArgumentParser:
     sg.add_argument("--budget", type=_at_least(1), required=True, help="number of sample requests")
     sg.add_argument("--out", type=Path, default=None, help="CSV file (default: DIR/suggestions.csv)")
     sg.add_argument("--cache", type=Path, default=None, help="the run's cache directory (default: DIR/cache)")
+    _add_tight(sg, "as the run was")
 
     im = sub.add_parser("improve", parents=[common], help="the sampling loop: suggest, simulate, re-bound, re-solve",
                         description="Collect --budget samples in --rounds rounds from the true system where they "
@@ -215,6 +211,7 @@ def _parser() -> argparse.ArgumentParser:
     im.add_argument("--seed", type=int, default=0, help="random seed of the simulations (default 0)")
     im.add_argument("--allow-outside", action="store_true", help="accept next states outside X")
     im.add_argument("--quiet", action="store_true", help="no progress lines (the per-round lines stay)")
+    _add_tight(im, "its local_points from the starting data")
 
     ex = sub.add_parser("example", parents=[common], help="write a case study's problem file and data",
                         description="Generate the data of a paper case study with a fixed seed "
@@ -287,6 +284,28 @@ def _cmd_run(args) -> int:
         raise
 
 
+def _add_tight(parser, what: str = "") -> None:
+    """The ``--tight`` flag (``run``, ``suggest``, ``improve``): :meth:`Problem.tightened`."""
+    parser.add_argument("--tight", action="store_true",
+                        help="the tight preset (Problem.tightened" + (f"; {what}" if what else "") + "): "
+                             "certification sub-boxes down to a Taylor term of 4e-4 (1-D, 2-D) or 1.5e-3 (3-D "
+                             "and up) and, where local pools would be used, all points up to 2,048 per mode "
+                             "(else pools of 400); [learning] split_tol / local_points the file sets are kept. "
+                             "Tighter where cells are large against the lengthscale, at several times the "
+                             "bound time (README, 'Tightness in one switch')")
+
+
+def _tightened(problem, args):
+    """``problem.tightened()`` with ``--tight`` (its settings on stderr unless ``--quiet``), else ``problem``."""
+    if not getattr(args, "tight", False):
+        return problem
+    problem = problem.tightened()
+    if not getattr(args, "quiet", False):
+        print(f"tight preset: split_tol = {problem.split_tol:g}, local_points = "
+              f"{'all points' if problem.local_points is None else problem.local_points}", file=sys.stderr)
+    return problem
+
+
 def _run_into(args, out: Path, cache: Path) -> int:
     from robust_imdp.io.files import load_problem, save_result
     from robust_imdp.pipeline.run import synthesize_from_data
@@ -299,11 +318,7 @@ def _run_into(args, out: Path, cache: Path) -> int:
         changes["threshold"] = args.threshold
     if changes:
         problem = problem.replace(**changes)
-    if args.tight:
-        problem = problem.tightened()
-        if not args.quiet:
-            print(f"tight preset: split_tol = {problem.split_tol:g}, local_points = "
-                  f"{'all points' if problem.local_points is None else problem.local_points}", file=sys.stderr)
+    problem = _tightened(problem, args)
     if args.slice:  # checked against the problem's dimensions before the long stages
         from robust_imdp.plotting import resolve_slice
 
@@ -547,7 +562,7 @@ def _cmd_suggest(args) -> int:
     if not (args.result / "result.json").exists():
         raise InvalidInputError(f"{args.result}: no result.json; run `robust-imdp run PROBLEM --out {args.result}` "
                                 "first")
-    problem = load_problem(args.problem)
+    problem = _tightened(load_problem(args.problem), args)
     cache = args.cache or args.result / "cache"
     result = synthesize_from_data(problem, progress=False, abstraction_cache=cache)
     if not result.from_cache:

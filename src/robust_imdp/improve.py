@@ -721,6 +721,8 @@ def command(args, true_system) -> int:
     from robust_imdp.io.files import load_problem
 
     problem = load_problem(args.problem)
+    if getattr(args, "tight", False):  # the run's --tight: Problem.tightened() on the starting data
+        problem = problem.tightened()
     args.interrupt_note = (f"interrupted; the completed rounds are saved in {args.out}: run the same command "
                            "again to resume")
     out = improve(problem, true_system, args.budget, rounds=args.rounds, out=args.out, seed=args.seed,
