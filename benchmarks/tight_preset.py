@@ -31,7 +31,8 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import family  # noqa: E402
 from reference import merged_rows, results_record, write_results  # noqa: E402
 
-from robust_imdp.pipeline.problem import TIGHT_SPLIT_TOL, TIGHT_SPLIT_TOL_3D, pool_size, tight_settings  # noqa: E402
+from robust_imdp.pipeline.problem import (TIGHT_SPLIT_TOL, TIGHT_SPLIT_TOL_3D, cell_taylor_term, pool_size,  # noqa: E402
+                                          tight_settings)
 
 SEED = 20
 NAME = "tight_preset"
@@ -45,7 +46,9 @@ def measure(key: str, c: dict, old: dict) -> dict:
     if cells.tolist() != old["optimal"]["cells"]:
         raise SystemExit(f"{key}: the sampled cells differ from family.json's: not the same system")
     opt = family.optimal_ranges(sy, cells)
-    settings = tight_settings([sy["m"]] * len(sy["maps"]), c["dim"])
+    part = sy["partition"]
+    term = cell_taylor_term(part.cells_upper[0] - part.cells_lower[0], sy["lengthscale"], sy["B"])
+    settings = tight_settings([sy["m"]] * len(sy["maps"]), c["dim"], n_cells=part.n_cells, taylor_term=term)
     row = {"key": key, "dim": c["dim"], "ratio": c["ratio"], "points_per_mode": sy["m"], "settings": settings,
            "optimal_boxes_q_yes": old["optimal_boxes"]["yes"], "widened_q_yes": old["widened"]["yes"],
            "reference_q_yes": old["reference"]["yes"]}

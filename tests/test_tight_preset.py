@@ -16,8 +16,9 @@ from robust_imdp.casestudies.systems import get_case_study
 from robust_imdp.cli import main
 from robust_imdp.errors import InvalidInputError
 from robust_imdp.models.system import Dataset
-from robust_imdp.pipeline.problem import (LOCAL_AUTO, LOCAL_DEFAULT, TIGHT_SPLIT_TOL, TIGHT_SPLIT_TOL_3D, pool_size,
-                                          tight_settings)
+from robust_imdp.bounds.rkhs_model import MAX_SUB, split_counts, split_term
+from robust_imdp.pipeline.problem import (LOCAL_AUTO, LOCAL_DEFAULT, TIGHT_MAX_BOXES, TIGHT_SPLIT_TOL, TIGHT_SPLIT_TOL_3D,
+                                          cell_taylor_term, pool_size, tight_settings, tight_split_tol)
 from robust_imdp.synthesis.advice import POOL_ALL_MAX, POOL_FACTOR
 
 from problem_texts import ONE_D
@@ -44,6 +45,51 @@ def test_tight_settings_rule():
     # the user's values win
     assert tight_settings([5000], 3, local_points=50, split_tol=1e-3) == {"split_tol": 1e-3, "local_points": 50}
     assert TIGHT_SPLIT_TOL < rkhs.SPLIT_TOL
+
+
+@pytest.mark.parametrize("dim,n_cells", [(2, 256), (2, 1024), (2, 65536), (3, 512), (3, 4096), (3, 262144),
+                                          (4, 4096), (4, 65536)])
+@pytest.mark.parametrize("term", [1e-4, 3e-3, 0.04, 0.5])
+def test_the_preset_stays_within_its_box_budget(dim, n_cells, term):
+    tol = tight_split_tol(dim, n_cells, term)
+    base = TIGHT_SPLIT_TOL if dim <= 2 else TIGHT_SPLIT_TOL_3D
+    if tol is None:  # not even 2 pieces per axis fit
+        assert n_cells * 2 ** dim > TIGHT_MAX_BOXES
+        return
+    assert tol >= base
+    # the bound stage's rule (split_counts, capped at MAX_SUB) on cells of that term: within the budget
+    s = int(split_counts(np.array([0.01]), term / split_term(np.array([0.01]), 1.0)[0], dim, tol)[0])
+    assert n_cells * s ** dim <= TIGHT_MAX_BOXES
+    # and the budget binds only where it must: the base tolerance's split would not have fitted
+    s_base = int(split_counts(np.array([0.01]), term / split_term(np.array([0.01]), 1.0)[0], dim, base)[0])
+    if tol > base:
+        assert n_cells * s_base ** dim > TIGHT_MAX_BOXES
+    else:
+        assert s == s_base
+    assert s <= max(1, int(np.floor(MAX_SUB ** (1 / dim) + 1e-9)))
+
+
+def test_cell_taylor_term_is_the_bound_stages_split_term():
+    from robust_imdp._fp import up
+    from robust_imdp._kernels import inv_l2_up, norm_inflation
+    from robust_imdp.bounds.rkhs_model import t_max_up
+
+    cs, ls, B = np.array([0.25, 0.5]), np.array([1.0, 2.0]), 1.5
+    r = 0.5 * cs[None, :]
+    want = split_term(t_max_up(r, inv_l2_up(ls, 2)), float(up(B * norm_inflation(2))))[0]
+    assert cell_taylor_term(cs, ls, B) == want
+    assert cell_taylor_term(cs, ls, 2 * B) > want and cell_taylor_term(cs / 2, ls, B) < want
+    p = tiny_problem()
+    assert p.grid_taylor_term() == cell_taylor_term(p.cell_size, 2.0, p.rkhs_bound)
+
+
+def test_tightened_on_a_fine_grid_takes_fewer_sub_boxes():
+    # 64 x 64 cells (4,096): 32 boxes per cell fit the budget, so at most 5 pieces per axis
+    p = tiny_problem(cell_size=np.array([1 / 16, 1 / 16]))
+    t = p.tightened()
+    s = split_counts(np.array([0.01]), p.grid_taylor_term() / split_term(np.array([0.01]), 1.0)[0], 2,
+                     t.split_tol)[0]
+    assert 4096 * s ** 2 <= TIGHT_MAX_BOXES and s >= 2
 
 
 def test_tightened_is_a_copy_that_keeps_the_problems_values():

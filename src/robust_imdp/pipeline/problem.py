@@ -42,15 +42,55 @@ TIGHT_SPLIT_TOL = 4e-4
 TIGHT_SPLIT_TOL_3D = 1.5e-3
 
 
-def tight_settings(points_per_mode, dim: int, local_points: int | None = None,
-                   split_tol: float | None = None) -> dict:
+#: The ``tight`` preset's budget: at most this many certification boxes (cells x sub-boxes) per mode and
+#: output, so that a fine grid does not turn the preset into an hours-long bound stage. The family's 3-D
+#: grid (512 cells x 216 sub-boxes = 110,592) fits, the 16^3 unicycle gets 3 pieces per axis instead of 5,
+#: and a 64^3 grid gets none (benchmarks/results/tight_problems.md).
+TIGHT_MAX_BOXES = 131072
+
+
+def tight_split_tol(dim: int, n_cells: int | None = None, taylor_term: float | None = None) -> float | None:
+    """The ``tight`` preset's ``split_tol``: :data:`TIGHT_SPLIT_TOL` up to 2-D, :data:`TIGHT_SPLIT_TOL_3D` from
+    3-D on, raised where ``n_cells`` cells of largest Taylor term ``taylor_term`` (``rkhs.split_term``) would
+    otherwise need more than :data:`TIGHT_MAX_BOXES` sub-boxes; None (no sub-boxes) where not even two
+    pieces per axis fit. A choice of sub-boxes only: any split is sound."""
+    tol = TIGHT_SPLIT_TOL if int(dim) <= 2 else TIGHT_SPLIT_TOL_3D
+    if n_cells is None or taylor_term is None:
+        return tol
+    s_fit = int(np.floor((TIGHT_MAX_BOXES / max(int(n_cells), 1)) ** (1.0 / int(dim)) + 1e-9))
+    if s_fit < 2:
+        return None
+    from robust_imdp.bounds.rkhs_model import MAX_SUB
+
+    if s_fit >= int(np.floor(MAX_SUB ** (1.0 / int(dim)) + 1e-9)):  # the cap of split_counts binds first
+        return tol
+    # s = ceil(sqrt(term / tol)) <= s_fit (rkhs.split_counts) for every cell with a term up to taylor_term
+    return max(tol, float(taylor_term) / s_fit ** 2 * (1 + 1e-6))
+
+
+def cell_taylor_term(cell_size, lengthscale, rkhs_bound: float) -> float:
+    """``rkhs.split_term`` of a cell of ``cell_size`` (its Taylor term ``B rho(t_max)``, with the bound stage's
+    inflated B and rounded-up ``t_max``): what ``rkhs.split_counts`` weighs against ``split_tol``."""
+    from robust_imdp._fp import up
+    from robust_imdp._kernels import inv_l2_up, norm_inflation
+    from robust_imdp.bounds.rkhs_model import split_term, t_max_up
+
+    r = 0.5 * np.asarray(cell_size, float).reshape(1, -1)
+    n = r.shape[1]
+    G = float(up(float(rkhs_bound) * norm_inflation(n)))
+    return float(split_term(t_max_up(r, inv_l2_up(lengthscale, n)), G)[0])
+
+
+def tight_settings(points_per_mode, dim: int, local_points: int | None = None, split_tol: float | None = None, *,
+                   n_cells: int | None = None, taylor_term: float | None = None) -> dict:
     """The ``tight`` preset's ``split_tol`` and ``local_points`` for ``dim`` dimensions and modes of
     ``points_per_mode`` points; a value the user gave (not None) is kept.
 
-    ``split_tol``: :data:`TIGHT_SPLIT_TOL` up to 2-D, :data:`TIGHT_SPLIT_TOL_3D` from 3-D on. ``local_points``:
-    unchanged where every mode already uses all its points (at most ``LOCAL_AUTO``), else the advice's pool
-    lever's proposal (``synthesis.advice.pool_proposal``) for the default pool and the largest mode: all
-    points for every mode up to ``POOL_ALL_MAX`` (2,048) points per mode, else pools of 400.
+    ``split_tol``: :func:`tight_split_tol` (with ``n_cells`` and the grid's largest Taylor term
+    ``taylor_term``, within the box budget). ``local_points``: unchanged where every mode already uses all
+    its points (at most ``LOCAL_AUTO``), else the advice's pool lever's proposal
+    (``synthesis.advice.pool_proposal``) for the default pool and the largest mode: all points for every
+    mode up to ``POOL_ALL_MAX`` (2,048) points per mode, else pools of 400.
     """
     from robust_imdp.synthesis.advice import pool_proposal  # one rule for the lever and the preset
 
@@ -58,7 +98,7 @@ def tight_settings(points_per_mode, dim: int, local_points: int | None = None,
     if local_points is None and m > LOCAL_AUTO:
         local_points = pool_proposal(LOCAL_DEFAULT, m)
     if split_tol is None:
-        split_tol = TIGHT_SPLIT_TOL if int(dim) <= 2 else TIGHT_SPLIT_TOL_3D
+        split_tol = tight_split_tol(dim, n_cells, taylor_term)
     return {"split_tol": split_tol, "local_points": local_points}
 
 
@@ -353,7 +393,19 @@ class Problem:
         """
         self.method.check_split()
         counts = np.bincount(np.asarray(self.data.u, dtype=np.int64), minlength=len(self.mode_names))
-        return self.replace(**tight_settings(counts, int(np.size(self.space_lower)), self.local_points, self.split_tol))
+        lo, up, cs = (np.asarray(a, float) for a in (self.space_lower, self.space_upper, self.cell_size))
+        n_cells = int(np.prod(np.ceil((up - lo) / cs - 1e-9)))  # the grid's cells (as estimate_resources)
+        return self.replace(**tight_settings(counts, lo.size, self.local_points, self.split_tol, n_cells=n_cells,
+                                             taylor_term=self.grid_taylor_term()))
+
+    def grid_taylor_term(self) -> float:
+        """The largest Taylor term of a grid cell over the modes and components (:func:`cell_taylor_term`;
+        0 for known components): what ``rkhs.split_counts`` weighs against ``split_tol``. Cells that the
+        regions cut are smaller."""
+        st = _settings(self)
+        return max([cell_taylor_term(self.cell_size, st.lengthscale[u, i], float(st.rkhs_bound[u, i]))
+                    for u in range(st.rkhs_bound.shape[0]) for i in range(st.rkhs_bound.shape[1])
+                    if st.rkhs_bound[u, i] > 0], default=0.0)
 
     def replace(self, **changes) -> "Problem":
         """A copy with some attributes changed (e.g. ``formula=...``)."""
