@@ -173,3 +173,7 @@ def test_suggest_and_improve_take_the_flag_like_run(capsys):
     assert _tightened(prob, args).split_tol == TIGHT_SPLIT_TOL
     assert "tight preset: split_tol = 0.0004, local_points = all points" in capsys.readouterr().err
     assert _tightened(prob, p.parse_args(["suggest", "D", "--problem", "p.toml", "--budget", "1"])) is prob
+    # a grid too fine for sub-boxes within the budget (512 x 512 cells): the line says so
+    fine = tiny_problem(cell_size=np.array([1 / 128, 1 / 128]))
+    assert _tightened(fine, args).split_tol is None
+    assert "split_tol = none (sub-boxes of this grid would exceed 131,072 boxes" in capsys.readouterr().err

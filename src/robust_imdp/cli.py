@@ -301,7 +301,11 @@ def _tightened(problem, args):
         return problem
     problem = problem.tightened()
     if not getattr(args, "quiet", False):
-        print(f"tight preset: split_tol = {problem.split_tol:g}, local_points = "
+        from robust_imdp.pipeline.problem import TIGHT_MAX_BOXES
+
+        split = (f"{problem.split_tol:g}" if problem.split_tol is not None else
+                 f"none (sub-boxes of this grid would exceed {TIGHT_MAX_BOXES:,} boxes per mode and output)")
+        print(f"tight preset: split_tol = {split}, local_points = "
               f"{'all points' if problem.local_points is None else problem.local_points}", file=sys.stderr)
     return problem
 
