@@ -37,8 +37,8 @@ def pool_size(local_points: int | None, m: int) -> int | None:
 TIGHT_SPLIT_TOL = 4e-4
 #: ... and from 3-D on: ``rkhs.SPLIT_TOL`` (a test checks they are equal). The sub-boxes per cell grow as
 #: ``(term / split_tol)^(d/2)``: on the family's 3-D r/l 0.125 configuration with all points, 4e-4 took 491 s
-#: for Q_yes 392 against 73 s for 392 at 1.5e-3 (tight_preset.md, local_auto.md), and 1.5e-3 already meets
-#: the slack target there.
+#: and 1.5e-3 142 s, both for Q_yes 392, at load about 4 (tight_preset_4e-4_3d.md, tight_preset.md), and
+#: 1.5e-3 already meets the slack target there.
 TIGHT_SPLIT_TOL_3D = 1.5e-3
 
 
