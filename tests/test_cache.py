@@ -16,18 +16,14 @@ import robust_imdp.pipeline.run as pipeline
 import robust_imdp.bounds.rkhs as rkhs
 from robust_imdp.errors import RobustImdpWarning
 from robust_imdp.io.files import load_problem
-from problem_texts import ONE_D
+from problem_texts import write_one_d
 
 
 
 @pytest.fixture
 def problem(tmp_path):
     # x+ = 0.5 x + 1 + 0.1 sin(x) + v: 16 cells, 30 points (seeded)
-    rng = np.random.default_rng(0)
-    x = rng.uniform(0, 4, 30)
-    xn = 0.5 * x + 1 + 0.1 * np.sin(x) + rng.uniform(-0.01, 0.01, 30)
-    (tmp_path / "d.csv").write_text("x_1,u,x_next_1\n" + "".join(f"{a:.17g},a,{b:.17g}\n" for a, b in zip(x, xn)))
-    (tmp_path / "p.toml").write_text(ONE_D)
+    write_one_d(tmp_path)
     return load_problem(tmp_path / "p.toml")
 
 

@@ -7,7 +7,7 @@ import sys
 import pytest
 
 from robust_imdp.cli import main
-from problem_texts import ONE_D
+from problem_texts import write_one_d
 
 GOOD_HEAD = """
 [space]
@@ -347,11 +347,7 @@ def test_simulate_user_system_errors_name_the_file_and_the_interface(synthetic_r
 @pytest.mark.slow
 def test_run_a_one_d_problem_writes_its_figure(tmp_path, capsys):
     # x+ = 0.5 x + 1 + 0.1 sin(x) + v: contracts towards x = 2.2 inside des = [2, 3].
-    rng = np.random.default_rng(0)
-    x = rng.uniform(0, 4, 30)
-    xn = 0.5 * x + 1 + 0.1 * np.sin(x) + rng.uniform(-0.01, 0.01, 30)
-    (tmp_path / "d.csv").write_text("x_1,u,x_next_1\n" + "".join(f"{a:.17g},a,{b:.17g}\n" for a, b in zip(x, xn)))
-    (tmp_path / "p.toml").write_text(ONE_D)
+    write_one_d(tmp_path)
     code, out, err = _run(["run", str(tmp_path / "p.toml"), "--out", str(tmp_path / "o"), "--quiet"], capsys)
     assert code == 0, err
     assert "cells: 16" in out and "1 figures in" in out

@@ -21,7 +21,7 @@ from robust_imdp.pipeline.problem import (LOCAL_AUTO, LOCAL_DEFAULT, TIGHT_MAX_B
                                           cell_taylor_term, pool_size, tight_settings, tight_split_tol)
 from robust_imdp.synthesis.advice import POOL_ALL_MAX, POOL_FACTOR
 
-from problem_texts import ONE_D
+from problem_texts import ONE_D, write_one_d
 from test_pipeline import tiny_gp_problem, tiny_problem
 from test_split_option import _bounds
 
@@ -142,11 +142,7 @@ def test_tight_bounds_are_tighter_than_split_tol_and_contain_the_true_images(bou
 
 @pytest.mark.slow
 def test_run_tight_on_the_command_line(tmp_path, capsys):
-    rng = np.random.default_rng(0)
-    x = rng.uniform(0, 4, 30)
-    xn = 0.5 * x + 1 + 0.1 * np.sin(x) + rng.uniform(-0.01, 0.01, 30)
-    (tmp_path / "d.csv").write_text("x_1,u,x_next_1\n" + "".join(f"{a:.17g},a,{b:.17g}\n" for a, b in zip(x, xn)))
-    (tmp_path / "p.toml").write_text(ONE_D)
+    write_one_d(tmp_path)
     code = main(["run", str(tmp_path / "p.toml"), "--out", str(tmp_path / "o"), "--tight", "--no-figures"])
     _, err = capsys.readouterr()
     assert code == 0, err
