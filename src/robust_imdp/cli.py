@@ -299,14 +299,11 @@ def _tightened(problem, args):
     """``problem.tightened()`` with ``--tight`` (its settings on stderr unless ``--quiet``), else ``problem``."""
     if not getattr(args, "tight", False):
         return problem
+    from robust_imdp.pipeline.problem import tight_line
+
     problem = problem.tightened()
     if not getattr(args, "quiet", False):
-        from robust_imdp.pipeline.problem import TIGHT_MAX_BOXES
-
-        split = (f"{problem.split_tol:g}" if problem.split_tol is not None else
-                 f"none (sub-boxes of this grid would exceed {TIGHT_MAX_BOXES:,} boxes per mode and output)")
-        print(f"tight preset: split_tol = {split}, local_points = "
-              f"{'all points' if problem.local_points is None else problem.local_points}", file=sys.stderr)
+        print(tight_line(problem), file=sys.stderr)
     return problem
 
 

@@ -722,7 +722,13 @@ def command(args, true_system) -> int:
 
     problem = load_problem(args.problem)
     if getattr(args, "tight", False):  # the run's --tight: Problem.tightened() on the starting data
+        import sys
+
+        from robust_imdp.pipeline.problem import tight_line
+
         problem = problem.tightened()
+        if not args.quiet:
+            print(tight_line(problem), file=sys.stderr)
     args.interrupt_note = (f"interrupted; the completed rounds are saved in {args.out}: run the same command "
                            "again to resume")
     out = improve(problem, true_system, args.budget, rounds=args.rounds, out=args.out, seed=args.seed,

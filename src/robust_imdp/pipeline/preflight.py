@@ -67,9 +67,8 @@ def estimate_resources(problem: Problem, n_dfa_states: int = 4) -> dict:
     dict with ``n_cells``, ``n_modes``, ``n_outputs``, ``bytes`` (estimated peak) and
     ``available`` (bytes the machine has free now, or None if unknown).
     """
-    lo, up, cs = (np.asarray(a, float) for a in (problem.space_lower, problem.space_upper, problem.cell_size))
-    n = lo.size
-    N = int(np.prod(np.ceil((up - lo) / cs - 1e-9)))
+    n = int(np.size(problem.space_lower))
+    N = problem.n_grid_cells
     M = len(problem.mode_names)
     succ = 3 ** n + 1
     imdp = N * M * (succ * 24 + 48)

@@ -68,6 +68,14 @@ def tight_split_tol(dim: int, n_cells: int | None = None, taylor_term: float | N
     return max(tol, float(taylor_term) / s_fit ** 2 * (1 + 1e-6))
 
 
+def tight_line(problem) -> str:
+    """What the ``tight`` preset chose for ``problem`` (a :meth:`Problem.tightened` copy), in one line."""
+    split = (f"{problem.split_tol:g}" if problem.split_tol is not None else
+             f"none (sub-boxes of this grid would exceed {TIGHT_MAX_BOXES:,} boxes per mode and output)")
+    pool = "all points" if problem.local_points is None else problem.local_points
+    return f"tight preset: split_tol = {split}, local_points = {pool}"
+
+
 def cell_taylor_term(cell_size, lengthscale, rkhs_bound: float) -> float:
     """``rkhs.split_term`` of a cell of ``cell_size`` (its Taylor term ``B rho(t_max)``, with the bound stage's
     inflated B and rounded-up ``t_max``): what ``rkhs.split_counts`` weighs against ``split_tol``."""
@@ -393,10 +401,15 @@ class Problem:
         """
         self.method.check_split()
         counts = np.bincount(np.asarray(self.data.u, dtype=np.int64), minlength=len(self.mode_names))
-        lo, up, cs = (np.asarray(a, float) for a in (self.space_lower, self.space_upper, self.cell_size))
-        n_cells = int(np.prod(np.ceil((up - lo) / cs - 1e-9)))  # the grid's cells (as estimate_resources)
-        return self.replace(**tight_settings(counts, lo.size, self.local_points, self.split_tol, n_cells=n_cells,
+        return self.replace(**tight_settings(counts, int(np.size(self.space_lower)), self.local_points,
+                                             self.split_tol, n_cells=self.n_grid_cells,
                                              taylor_term=self.grid_taylor_term()))
+
+    @property
+    def n_grid_cells(self) -> int:
+        """Cells of the plain grid of ``cell_size`` over X (regions that do not fit it add a few cells)."""
+        lo, up, cs = (np.asarray(a, float) for a in (self.space_lower, self.space_upper, self.cell_size))
+        return int(np.prod(np.ceil((up - lo) / cs - 1e-9)))
 
     def grid_taylor_term(self) -> float:
         """The largest Taylor term of a grid cell over the modes and components (:func:`cell_taylor_term`;
