@@ -69,9 +69,31 @@ def signature(obj) -> str:
         return ""
     params = [p.replace(annotation=_Source(p.annotation)) if isinstance(p.annotation, str) else p
               for p in sig.parameters.values()]
+    params = [p.replace(default=_stable(p.default)) if p.default is not inspect.Parameter.empty else p
+              for p in params]
     ret = sig.return_annotation
     sig = sig.replace(parameters=params, return_annotation=_Source(ret) if isinstance(ret, str) else ret)
     return _ADDRESS.sub("", str(sig))
+
+
+#: Significant digits of a float shown in the reference. The last digits of a float's repr differ
+#: between machines for values computed by numpy or libm (``np.logspace`` gave 316.22776601683796 on
+#: one machine and 316.2277660168379 on another), and the reference must not depend on them.
+FLOAT_DIGITS = 12
+
+
+def _stable(value):
+    """``value`` shown without machine-dependent digits: floats (also inside tuples and lists) with
+    ``FLOAT_DIGITS`` significant digits; anything else as it is."""
+    if isinstance(value, float):
+        text = f"{value:.{FLOAT_DIGITS}g}"
+        return _Source(text + ".0" if text.lstrip("-").isdigit() else text)
+    if isinstance(value, (tuple, list)) and any(isinstance(v, float) for v in value):
+        items = ", ".join(repr(_stable(v)) for v in value)
+        if isinstance(value, tuple):
+            return _Source(f"({items},)" if len(value) == 1 else f"({items})")
+        return _Source(f"[{items}]")
+    return value
 
 
 class _Source(str):
@@ -115,7 +137,7 @@ def describe(module, name: str) -> str:
     if callable(obj):
         text = first_paragraph(obj)
         return f"- **`{name}{signature(obj)}`**" + (f": {text}" if text else "")
-    value = " ".join(_ADDRESS.sub("", repr(obj)).split())
+    value = " ".join(_ADDRESS.sub("", repr(_stable(obj))).split())
     if len(value) > MAX_VALUE_CHARS:
         value = value[: MAX_VALUE_CHARS - 3] + "..."
     return f"- `{name} = {value}`"
