@@ -222,7 +222,7 @@ def test_problem_file_periodic():
     assert _parse("periodic = [false, false]")["periodic"] is None and _parse("")["periodic"] is None
     with pytest.raises(ProblemFileError, match=r"p\.toml: \[space\]\.periodic must be a list of 2 booleans.*3 values"):
         _parse("periodic = [false, true, true]")
-    with pytest.raises(ProblemFileError, match=r"p\.toml: \[regions\.goal\[0\]\] is 7 wide in dimension 2, which is periodic"):
+    with pytest.raises(ProblemFileError, match=r"p\.toml: region 'goal': \[regions\.goal\[0\]\] is 7 wide in dimension 2, which is periodic"):
         _parse("periodic = [false, true]", -0.5, 6.5)
     with pytest.raises(ProblemFileError, match="outside the space"):
         _parse("", 5.5, 7.0)
@@ -287,3 +287,117 @@ def test_shift_enclosure_contains_the_exact_multiple_of_the_period():
         assert Fraction(float(lo[0])) <= exact <= Fraction(float(hi[0]))
         inexact += Fraction(k * (H - L)) != exact
     assert inexact > 1000  # the draws do exercise the rounding
+
+
+PENDULUM = """
+[space]
+lower = [-3.141592653589793, -2.0]
+upper = [3.141592653589793, 2.0]
+cell_size = [0.39269908169872414, 0.5]
+periodic = [true, false]
+
+[[regions.upright]]
+lower = [{lo}, -0.5]
+upper = [{hi}, 0.5]
+
+[spec]
+formula = "F upright"
+threshold = 0.5
+
+[data]
+path = "d.csv"
+
+[modes.a]
+A = [[1.0, 0.1], [0.0, 1.0]]
+b = [0.0, 0.0]
+
+[noise]
+kind = "uniform"
+bound = [0.01, 0.01]
+
+[learning]
+rkhs_bound = 0.1
+lengthscale = 1.0
+"""
+
+
+def _write_pendulum(d, lo, hi):
+    rng = np.random.default_rng(0)
+    x = np.c_[rng.uniform(-3.1, 3.1, 40), rng.uniform(-2, 2, 40)]
+    xn = x @ np.array([[1.0, 0.1], [0.0, 1.0]]).T + 0.01 * np.sin(x)
+    (d / "d.csv").write_text("x_1,x_2,u,x_next_1,x_next_2\n" + "".join(
+        f"{a[0]:.17g},{a[1]:.17g},a,{b[0]:.17g},{b[1]:.17g}\n" for a, b in zip(x, xn)))
+    (d / "p.toml").write_text(PENDULUM.format(lo=lo, hi=hi))
+    return d / "p.toml"
+
+
+def test_problem_file_region_across_the_seam_loads_and_labels_both_sides(tmp_path):
+    # docs/periodic.md: a region box may cross the seam of a periodic dimension. The file's loader used to
+    # check the grid on 1-D partitions without the periodic flag and refused it with an internal message
+    # ("region 'upright' box Box(lower=[2.6], upper=[3.68]) must lie inside X").
+    import warnings
+
+    from robust_imdp.errors import RobustImdpWarning
+    from robust_imdp.io.files import load_problem
+
+    path = _write_pendulum(tmp_path, 2.6, 3.68)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        problem = load_problem(path)
+    # the cut adds the breakpoints 2.6 and 3.68 - 2 pi (both off the grid of pi/8): the warning names them
+    # and their region, with the wrapped value
+    refined = [str(w.message) for w in seen if issubclass(w.category, RobustImdpWarning)]
+    assert len(refined) == 1 and "16 -> 18 intervals" in refined[0] and "(upright)" in refined[0], refined
+    assert f"{3.68 - 2 * np.pi:g}" in refined[0]
+    part = Partition(Box(problem.space_lower, problem.space_upper), problem.cell_size,
+                     [Region(n, [Box(lo, up) for lo, up in b]) for n, b in problem.regions.items()],
+                     periodic=problem.periodic)
+    labelled = [q for q, s in enumerate(part.label_sets()) if "upright" in s]
+    centres = 0.5 * (part.cells_lower[labelled] + part.cells_upper[labelled])
+    # labelled cells on both sides of the seam: theta in [2.6, pi] and in [-pi, 3.68 - 2 pi], |omega| <= 0.5
+    assert np.any(centres[:, 0] > 2.6) and np.any(centres[:, 0] < 3.68 - 2 * np.pi)
+    assert np.all((centres[:, 0] > 2.6) | (centres[:, 0] < 3.68 - 2 * np.pi))
+    assert np.all(np.abs(centres[:, 1]) < 0.5)
+
+
+@pytest.mark.parametrize("lo,hi,match", [
+    # wider than the period on the periodic dimension
+    (-3.5, 3.5, r"p\.toml: region 'upright': \[regions\.upright\[0\]\] is 7 wide in dimension 1, which is "
+                r"periodic .* at most one period wide"),
+])
+def test_problem_file_refused_region_names_file_region_and_form(tmp_path, lo, hi, match):
+    from robust_imdp.io.files import load_problem
+
+    with pytest.raises(ProblemFileError, match=match):
+        load_problem(_write_pendulum(tmp_path, lo, hi))
+
+
+def test_problem_file_region_outside_a_non_periodic_dimension_says_the_expected_form(tmp_path):
+    from robust_imdp.io.files import load_problem
+
+    path = _write_pendulum(tmp_path, 2.6, 3.0)
+    path.write_text(path.read_text().replace("upper = [3.0, 0.5]", "upper = [3.0, 2.5]"))
+    with pytest.raises(ProblemFileError, match=r"p\.toml: region 'upright': \[regions\.upright\[0\]\] = .* lies "
+                                               r"outside the space .* in dimension 2; expected lower and upper of 2 "
+                                               r"numbers each .*only on a periodic dimension"):
+        load_problem(path)
+
+
+def test_overlap_warning_sees_regions_across_the_seam():
+    # Two regions meeting only across the seam overlap there (the cells carry both labels); the warning
+    # compared the uncut boxes and said nothing.
+    import warnings
+
+    from robust_imdp.errors import RegionOverlapWarning
+    from robust_imdp.pipeline.preflight import _warn_overlaps
+    from types import SimpleNamespace
+
+    problem = SimpleNamespace(
+        regions={"a": [(np.array([0.0, 5.5]), np.array([1.0, 7.0]))], "b": [(np.array([0.0, 0.0]), np.array([1.0, 0.5]))]},
+        space_lower=np.array([0.0, 0.0]), space_upper=np.array([1.0, 2 * np.pi]), periodic=(False, True),
+        dim_names=None, formula="F a & F b")
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        _warn_overlaps(problem, SimpleNamespace(atoms=("a", "b")))
+    assert [w.category for w in seen] == [RegionOverlapWarning], [str(w.message) for w in seen]
+    assert "regions 'a' and 'b' overlap" in str(seen[0].message)

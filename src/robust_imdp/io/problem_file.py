@@ -296,14 +296,19 @@ def _parse_regions(doc_regions, lower, upper, where: str, periodic=None) -> dict
                 if wide:
                     k = wide[0]
                     raise ProblemFileError(
-                        f"{where}: [{tname}] is {bup[k] - blo[k]:g} wide in dimension {k + 1}, which is periodic "
-                        f"with period {upper[k] - lower[k]:g}; a region box may be at most one period wide")
+                        f"{where}: region '{rname}': [{tname}] is {bup[k] - blo[k]:g} wide in dimension {k + 1}, which "
+                        f"is periodic with period {upper[k] - lower[k]:g}; a region box may be at most one period "
+                        "wide (it may cross the seam: e.g. lower = upper_X - a, upper = upper_X + b)")
             out = [k for k in range(n) if (blo[k] < lower[k] or bup[k] > upper[k])
                    and not (periodic is not None and periodic[k])]
             if out:
+                seam = ("" if periodic is None else
+                        "; only on a periodic dimension ([space].periodic) may a box cross the seam, at most one "
+                        "period wide")
                 raise ProblemFileError(
-                    f"{where}: [{tname}] = [{blo.tolist()}, {bup.tolist()}] lies outside the "
-                    f"space [{lower.tolist()}, {upper.tolist()}]"
+                    f"{where}: region '{rname}': [{tname}] = [{blo.tolist()}, {bup.tolist()}] lies outside the "
+                    f"space [{lower.tolist()}, {upper.tolist()}] in dimension {out[0] + 1}; expected lower and "
+                    f"upper of {n} numbers each with [space].lower <= lower < upper <= [space].upper{seam}"
                 )
             parsed.append((blo, bup))
         regions[rname] = parsed
@@ -611,7 +616,7 @@ def load_problem(path):
             "table needs data"
         )
     noise = make_noise(spec["noise"])
-    _check_known_domains(spec)
+    _check_known_domains(spec, str(path))
     _check_samples_possible(spec, noise, x, u, x_next, rows)
     _warn_few_samples(spec, u, rows)
     _warn_refined_grid(spec, str(path))
@@ -639,21 +644,39 @@ def load_problem(path):
     )
 
 
-def _check_known_domains(spec) -> None:
+def _check_known_domains(spec, where: str = "the problem file") -> None:
     """Refuse a nonlinear known part undefined on part of X, at load time: its interval enclosure over
     every cell of the grid (``KnownDynamics.image_bounds``, the natural extension the bound stage starts
     from) raises ``ExpressionDomainError`` naming the file, the mode's table, the component and the box."""
     nonlinear = [m for m in spec["modes"].values() if not isinstance(m, tuple)]
     if not nonlinear:
         return
-    from robust_imdp.models.geometry import Box, Partition, Region
-
-    regions = [Region(name, [Box(lo, up) for lo, up in boxes]) for name, boxes in spec["regions"].items()]
-    part = Partition(Box(spec["lower"], spec["upper"]), spec["cell_size"], regions, periodic=spec.get("periodic"))
+    part = _file_partition(spec, where, range(spec["lower"].shape[0]))
     for m in nonlinear:
         m.image_bounds(part.cells_lower, part.cells_upper, form="natural")
 
 
+
+
+def _file_partition(spec, where: str, dims):
+    """The grid of a parsed problem file on the dimensions ``dims`` (all of them, or one), its regions cut at
+    the seam of the periodic ones (``geometry.wrap_region_boxes``). A region the partition refuses is named with
+    the file and the form a region box must have (a ``ProblemFileError``), not as an internal box."""
+    from robust_imdp.models.geometry import Box, Partition, Region
+
+    dims = list(dims)
+    periodic = spec.get("periodic")
+    flags = None if periodic is None else tuple(bool(periodic[j]) for j in dims)
+    regions = [Region(name, [Box(np.asarray(lo)[dims], np.asarray(up)[dims]) for lo, up in boxes])
+               for name, boxes in spec["regions"].items()]
+    try:
+        return Partition(Box(spec["lower"][dims], spec["upper"][dims]), spec["cell_size"][dims], regions,
+                         periodic=flags if flags is not None and any(flags) else None)
+    except InvalidInputError as exc:
+        raise ProblemFileError(
+            f"{where}: the regions do not fit [space] ({exc}); each [[regions.NAME]] box needs lower < upper inside "
+            "[space].lower .. [space].upper, except on a periodic dimension, where it may cross the seam by at most "
+            "one period") from None
 
 
 def _warn_refined_grid(spec, where: str) -> None:
@@ -661,23 +684,23 @@ def _warn_refined_grid(spec, where: str) -> None:
     import warnings
 
     from robust_imdp.errors import RobustImdpWarning
-    from robust_imdp.models.geometry import Box, Partition, Region, dimension_text
+    from robust_imdp.models.geometry import dimension_text
 
     lower, upper, h = spec["lower"], spec["upper"], spec["cell_size"]
     uniform, refined, notes = [], [], []
     for j in range(lower.shape[0]):
-        # the breakpoints of dimension j depend only on dimension j: a 1-D partition has them
-        regions = [Region(name, [Box([lo[j]], [up[j]]) for lo, up in boxes])
-                   for name, boxes in spec["regions"].items()]
-        bp = Partition(Box([lower[j]], [upper[j]]), [h[j]], regions).breakpoints[0]
+        # the breakpoints of dimension j depend only on dimension j: a 1-D partition has them (with the
+        # seam-crossing boxes of a periodic dimension cut as the full partition cuts them)
+        part = _file_partition(spec, where, [j])
+        bp = part.breakpoints[0]
         k = int(round((upper[j] - lower[j]) / h[j]))
         uniform.append(k)
         refined.append(bp.size - 1)
         if bp.size - 1 > k:
             ticks = lower[j] + np.arange(k + 1) * ((upper[j] - lower[j]) / k)
             new = [v for v in bp.tolist() if np.min(np.abs(ticks - v)) > 1e-9 * h[j]]
-            owners = {v: sorted({name for name, boxes in spec["regions"].items() for lo, up in boxes
-                                 if v in (lo[j], up[j])}) for v in new}
+            owners = {v: sorted({r.name for r in part.regions for b in r.boxes
+                                 if v in (float(b.lower[0]), float(b.upper[0]))}) for v in new}
             notes.append(f"{dimension_text(j, spec.get('names'))}: {k} -> {bp.size - 1} intervals, at "
                          + ", ".join(f"{v:g} ({', '.join(owners[v])})" for v in new[:4])
                          + (f" and {len(new) - 4} more" if len(new) > 4 else ""))

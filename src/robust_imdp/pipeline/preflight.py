@@ -28,9 +28,11 @@ def _warn_overlaps(problem: Problem, dfa) -> None:
     import warnings
 
     from robust_imdp.errors import RegionOverlapWarning
-    from robust_imdp.models.geometry import region_overlaps
+    from robust_imdp.models.geometry import Box, region_overlaps, wrap_region_boxes
 
-    used = [r for r in _region_objects(problem) if r.name in dfa.atoms]
+    # seam-crossing boxes of periodic dimensions are compared as the partition labels them: cut into X
+    used = wrap_region_boxes([r for r in _region_objects(problem) if r.name in dfa.atoms],
+                             Box(problem.space_lower, problem.space_upper), problem.periodic, problem.dim_names)
     found = region_overlaps(used)
     pairs = list(dict.fromkeys((a, b) for a, b, _ in found))
     for a, b in pairs:
