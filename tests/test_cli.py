@@ -75,12 +75,14 @@ def test_bad_data_file_exit_1(tmp_path, capsys):
     assert code == 1 and "file not found" in err
 
 
-def test_stale_result_is_removed_when_a_run_fails(tmp_path, capsys):
+def test_a_failed_run_leaves_the_previous_result_as_it_was(tmp_path, capsys):
+    # The previous result is replaced only by a complete new one (tests/test_result_outputs.py has every
+    # failure kind); a failed run neither removes nor changes it.
     out = tmp_path / "o"
     out.mkdir()
     (out / "result.json").write_text("{}")
     code, _, _ = _run(["run", str(tmp_path / "missing.toml"), "--out", str(out)], capsys)
-    assert code == 1 and not (out / "result.json").exists()
+    assert code == 1 and (out / "result.json").read_text() == "{}"
 
 
 def test_example_then_simulate_on_a_saved_result(tmp_path, capsys):
@@ -355,9 +357,9 @@ def test_run_a_one_d_problem_writes_its_figure(tmp_path, capsys):
 
 
 # --------------------------------------------------------------------------- leftovers (issue 19)
-def test_run_removes_the_previous_results_outputs_but_not_other_files(tmp_path, capsys):
-    # The old result's validation and figures must not sit beside the new result (here: beside
-    # nothing, since the run fails on the missing data file).
+def test_run_replaces_the_previous_results_outputs_but_not_other_files(tmp_path, capsys):
+    # The old result's validation and figures must not sit beside the new result; a failed run (here: the
+    # data file is missing) leaves all of them as they were.
     out = tmp_path / "o"
     out.mkdir()
     stale = ["result.json", "result.npz", "validation.json", "trajectories.png", "classes.png", "p_low.png",
@@ -368,7 +370,12 @@ def test_run_removes_the_previous_results_outputs_but_not_other_files(tmp_path, 
     p.write_text(GOOD_HEAD)
     code, _, err = _run(["run", str(p), "--out", str(out)], capsys)
     assert code == 1 and "file not found" in err
-    assert [f.name for f in out.iterdir()] == ["notes.txt"]
+    assert sorted(f.name for f in out.iterdir()) == sorted(stale + ["notes.txt"])
+    write_one_d(tmp_path, "one.toml")  # a run that succeeds: its outputs replace every one of the old ones
+    code, _, err = _run(["run", str(tmp_path / "one.toml"), "--out", str(out), "--quiet", "--advice", "off"], capsys)
+    assert code == 0, err
+    assert sorted(f.name for f in out.iterdir()) == ["bounds.png", "cache", "notes.txt", "result.json", "result.npz"]
+    assert (out / "notes.txt").read_text() == "old" and (out / "bounds.png").read_bytes()[:4] == b"\x89PNG"
 
 
 def test_a_failed_run_leaves_no_empty_directories(tmp_path, capsys):

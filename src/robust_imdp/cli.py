@@ -256,10 +256,13 @@ def _remove_if_empty(directories) -> None:
 
 
 #: The files of a result directory: ``run`` writes the result and figures, ``simulate`` the
-#: validation. A new ``run`` removes them all first, so that nothing of the previous result is left
-#: beside the new one (or beside nothing, when the run fails).
+#: validation. A ``run`` writes its outputs beside the old ones and swaps them in only when all are
+#: complete (``io.result_file.staged_outputs``): then nothing of the previous result is left beside the
+#: new one, and a run that fails or is interrupted leaves the previous result exactly as it was.
 RESULT_OUTPUTS = ("result.json", "result.npz", "validation.json", "trajectories.png", "partition.png",
                   "classes.png", "p_low.png", "error.png", "bounds.png")
+#: The files ``simulate`` writes into the result directory, replaced as one the same way.
+VALIDATION_OUTPUTS = ("validation.json", "trajectories.png")
 
 
 def _cmd_run(args) -> int:
@@ -273,10 +276,6 @@ def _cmd_run(args) -> int:
         from robust_imdp.spec.ltlf import parse
 
         parse(args.formula)
-    # Neither a stale complete-looking result nor the old result's figures and validation may
-    # survive into the new result (or a failed run).
-    for name in RESULT_OUTPUTS:
-        (out / name).unlink(missing_ok=True)
     try:
         return _run_into(args, out, cache)
     except BaseException:
@@ -325,18 +324,23 @@ def _run_into(args, out: Path, cache: Path) -> int:
 
         resolve_slice(args.slice, problem.space_lower, problem.space_upper, getattr(problem, "dim_names", None))
     args.interrupt_note = (f"interrupted; the finished chunks are saved in {cache}: run the same command again "
-                           "to resume")
+                           "to resume" + (f" ({out}'s previous result is unchanged)" if (out / "result.json").exists()
+                                          else ""))
     result = synthesize_from_data(problem, progress=not args.quiet, abstraction_cache=cache,
                                   workers=args.workers, scheduler=args.scheduler, check_resources=not args.yes,
                                   advice={"auto": "auto", "on": True, "off": False}[args.advice])
-    figures = []
-    if not args.no_figures:
-        from robust_imdp.plotting import save_figures
+    from robust_imdp.io.result_file import staged_outputs
 
-        figures = save_figures(result, out, **({"slice": args.slice} if args.slice else {}))
-    path = save_result(result, out)
+    # the new result and figures are written beside the old ones and replace them only when all are complete
+    with staged_outputs(out, RESULT_OUTPUTS) as stage:
+        figures = []
+        if not args.no_figures:
+            from robust_imdp.plotting import save_figures
+
+            figures = save_figures(result, stage.path, **({"slice": args.slice} if args.slice else {}))
+        save_result(result, stage.path)
     print(result.summary())
-    print(f"wrote {path}" + (f" and {len(figures)} figures in {out}" if figures else " (no figures)"))
+    print(f"wrote {out / 'result.json'}" + (f" and {len(figures)} figures in {out}" if figures else " (no figures)"))
     return Exit.OK
 
 
@@ -437,20 +441,27 @@ def _cmd_simulate(args) -> int:
         "cells", "n_per_cell", "max_steps", "confidence", "satisfied", "capped", "empirical",
         "wilson_low", "wilson_up", "p_low", "p_up", "outside", "containment_rate",
         "expected_outside", "allowed_outside", "passed")}
-    (out / "validation.json").write_text(json.dumps(jsonable(doc), indent=1))
-    if not args.no_figures and args.paths > 0 and len(res.space_lower) == 2:
-        import matplotlib.pyplot as plt
+    from robust_imdp.io.result_file import staged_outputs
 
-        from robust_imdp.plotting import plot_trajectories
+    # validation.json and trajectories.png replace the previous validation together, once both are written
+    with staged_outputs(out, VALIDATION_OUTPUTS) as stage:
+        (stage.path / "validation.json").write_text(json.dumps(jsonable(doc), indent=1))
+        if not args.no_figures and args.paths > 0:
+            import matplotlib.pyplot as plt
 
-        rng = np.random.default_rng(args.seed + 1)
-        x0 = res.space_lower + rng.random((args.paths, len(res.space_lower))) * (
-            res.space_upper - res.space_lower)
-        tr = simulate(res, system, x0, max_steps=args.max_steps, rng=rng, record=True)
-        fig, ax = plt.subplots(figsize=(5.6, 5.6), constrained_layout=True)
-        plot_trajectories(res, tr, ax)
-        fig.savefig(out / "trajectories.png", dpi=130)
-        plt.close(fig)
+            from robust_imdp.plotting import plot_trajectories, plot_trajectory_panels
+
+            d = len(res.space_lower)
+            rng = np.random.default_rng(args.seed + 1)
+            x0 = res.space_lower + rng.random((args.paths, d)) * (res.space_upper - res.space_lower)
+            tr = simulate(res, system, x0, max_steps=args.max_steps, rng=rng, record=True)
+            if d == 2:
+                fig, ax = plt.subplots(figsize=(5.6, 5.6), constrained_layout=True)
+                plot_trajectories(res, tr, ax)
+            else:  # 1-D: the state against the step; 3-D and more: projections on pairs of coordinates
+                fig = plot_trajectory_panels(res, tr)
+            fig.savefig(stage.path / "trajectories.png", dpi=130)
+            plt.close(fig)
     if not report.passed:
         print(f"robust-imdp: validation failed: {len(report.outside)} of {len(report.cells)} cells are flagged, more "
               f"than the {report.allowed_outside} that chance allows at confidence {report.confidence:g}; the "
@@ -558,7 +569,7 @@ def _cmd_example(args) -> int:
 def _cmd_suggest(args) -> int:
     from robust_imdp.io.files import load_problem
     from robust_imdp.pipeline.run import synthesize_from_data
-    from robust_imdp.synthesis.suggest import suggest_samples, write_requests
+    from robust_imdp.synthesis.suggest import suggest_samples
 
     if not (args.result / "result.json").exists():
         raise InvalidInputError(f"{args.result}: no result.json; run `robust-imdp run PROBLEM --out {args.result}` "
@@ -570,15 +581,19 @@ def _cmd_suggest(args) -> int:
         print(f"robust-imdp: note: {cache} did not hold this problem's abstraction; it was computed again",
               file=sys.stderr)
     requests = suggest_samples(result, args.budget)
-    out = args.out or args.result / "suggestions.csv"
+    out = Path(args.out or args.result / "suggestions.csv")
     names = list(problem.dim_names) if getattr(problem, "dim_names", None) else \
         [f"x_{i + 1}" for i in range(len(problem.space_lower))]
-    write_requests(requests, out, names)
+    from robust_imdp.io.result_file import staged_outputs
+    from robust_imdp.synthesis import suggest as _suggest
+
+    with staged_outputs(out.parent, (out.name,)) as stage:  # the previous CSV stays until the new one is complete
+        _suggest.write_requests(requests, stage.path / out.name, names)
     undecided = int((result.class_names == "maybe").sum())
     print(f"wrote {out}: {len(requests)} sample requests for {undecided} undecided cells")
-    for r in requests[:5]:
+    for r in requests[:5]:  # radius_change as the CSV writes it (the decrease of the error radius, > 0)
         print(f"  x = {', '.join(f'{v:.4g}' for v in r.x)}  mode {r.mode}: cell {r.cell}, {r.reason}; "
-              f"radius -{r.radius_change:.3g}")
+              f"radius_change {r.radius_change:.6g}")
     return Exit.OK
 
 

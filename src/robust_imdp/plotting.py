@@ -6,6 +6,8 @@ returns the Axes. :func:`save_figures` writes the standard set of PNGs for any d
 
 * 1-D: ``bounds.png`` -- p_low and p_up against x over the cells' classes (:func:`plot_bounds_1d`);
 * 2-D: ``partition.png``, ``classes.png``, ``p_low.png``, ``error.png`` (and ``trajectories.png``);
+  simulated paths of any other dimension: :func:`plot_trajectory_panels` (1-D: state against step;
+  3-D and more: projections on pairs of coordinates);
 * 3-D and more: the same four as panels of 2-D slices x_3 = c at a few values c
   (:func:`plot_slices`): one of them, and every further coordinate, goes through the grid
   interval met by the most Q_yes cells (:func:`best_slice_value`); ``slice=`` (the command
@@ -43,6 +45,7 @@ __all__ = [
     "plot_classes",
     "plot_values",
     "plot_trajectories",
+    "plot_trajectory_panels",
     "plot_eta_sweep",
     "plot_bounds_1d",
     "plot_slices",
@@ -310,6 +313,106 @@ def plot_trajectories(result, trajectories, ax=None, *, title: str | None = None
     ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2,
               fontsize=7.5, frameon=False)
     return ax
+
+
+def _end_markers(ax, starts, ends, outcome) -> list:
+    """Start (o) and end markers (:data:`_END_STYLES`) of paths already projected to 2-D; the legend's handles."""
+    ax.plot(starts[:, 0], starts[:, 1], "o", ms=4, mfc="white", mec="black", ls="none", zorder=3)
+    for code, style in _END_STYLES.items():
+        sel = outcome == code
+        if np.any(sel):
+            ax.scatter(ends[sel, 0], ends[sel, 1], zorder=4, **style)
+    return [Line2D([], [], color="black", lw=0.8, label="path"),
+            Line2D([], [], marker="o", mfc="white", mec="black", ls="none", label="start")] + [
+        Line2D([], [], marker=st["marker"], mfc=st["c"], mec=st["edgecolors"], ms=9, ls="none", label=lab)
+        for lab, st in zip(("end: satisfied", "end: violated", "end: undecided (step cap)"), _END_STYLES.values())]
+
+
+def plot_trajectory_panels(result, trajectories, *, pairs=None, max_paths: int = 40, fig=None,
+                           suptitle: str | None = None):
+    """Simulated paths of a result of any dimension, as panels (``simulate``'s ``trajectories.png``
+    outside 2-D, where :func:`plot_trajectories` draws them over the classification).
+
+    1-D: one panel, the state ``x_1`` against the step, over the formula's regions (shaded bands).
+    d >= 2: one panel per pair of coordinates, the paths projected on it, over the projections of
+    the formula's regions (the cells labelled with them, shaded); a projection mixes cells, so no
+    classes are drawn. Paths are cut where they cross a periodic seam (:func:`seam_segments`).
+
+    Parameters
+    ----------
+    result : a result (any dimension)
+    trajectories : validate.Trajectories with recorded paths (``simulate(..., record=True)``)
+    pairs : sequence of (i, j), optional
+        Coordinates (0-based) of the panels; default every pair of the first four coordinates (at
+        most 6 panels).
+    max_paths : int
+
+    Returns
+    -------
+    Figure
+    """
+    res = _result(result, dims=None)
+    d = res.cells_lower.shape[1]
+    paths = [np.asarray(p, dtype=float) for p in trajectories.paths[:max_paths]]
+    if not paths or any(p.ndim != 2 or p.shape[0] == 0 or p.shape[1] != d for p in paths):
+        raise DimensionError(f"trajectories must hold recorded paths of shape (T + 1, {d}) (simulate(..., "
+                             "record=True))")
+    outcome = np.asarray(trajectories.outcome)[: len(paths)]
+    atoms = [a for a in res.dfa_atoms if any(a in lab for lab in res.labels)]
+    colours = {a: _REGION_COLOURS[k % len(_REGION_COLOURS)] for k, a in enumerate(atoms)}
+    region_handles = [Patch(facecolor=colours[a], alpha=0.35, label=a) for a in atoms]
+    if d == 1:
+        fig = fig or plt.figure(figsize=(6.4, 4.6), constrained_layout=True)
+        ax = fig.subplots()
+        for a in atoms:
+            has = np.array([a in lab for lab in res.labels])
+            for lo, up in zip(res.cells_lower[has, 0], res.cells_upper[has, 0]):
+                ax.axhspan(lo, up, color=colours[a], alpha=0.25, lw=0)
+        segments = [np.c_[np.arange(len(p)), p[:, 0]] for p in paths]
+        ax.add_collection(LineCollection([s for s in segments if len(s) > 1], colors="black", linewidths=0.8,
+                                         alpha=0.8))
+        starts = np.array([s[0] for s in segments])
+        ends = np.array([s[-1] for s in segments])
+        handles = _end_markers(ax, starts, ends, outcome)
+        ax.set_xlim(0, max(1, max(len(p) for p in paths) - 1))
+        ax.set_ylim(res.space_lower[0], res.space_upper[0])
+        ax.set_xlabel("step")
+        ax.set_ylabel(_axis_text(res, 0, tex=True))
+        fig.legend(handles=handles + region_handles, loc="outside lower center", ncol=3, fontsize=7.5, frameon=False)
+        fig.suptitle(suptitle or f"Simulated runs of the true system for {res.formula!r}", fontsize=11)
+        return fig
+    if pairs is None:
+        first = list(range(min(d, 4)))
+        pairs = [(i, j) for k, i in enumerate(first) for j in first[k + 1:]]
+    pairs = [tuple(int(v) for v in pr) for pr in pairs]
+    if not pairs or any(len(pr) != 2 or pr[0] == pr[1] or not all(0 <= v < d for v in pr) for pr in pairs):
+        raise DimensionError(f"pairs must be pairs (i, j) of different coordinates in [0, {d}); got {pairs!r}")
+    ncol = min(3, len(pairs))
+    nrow = -(-len(pairs) // ncol)
+    fig = fig or plt.figure(figsize=(3.8 * ncol + 0.6, 3.8 * nrow + 0.9), constrained_layout=True)
+    axes = np.atleast_1d(fig.subplots(nrow, ncol, squeeze=False)).ravel()
+    cut = [seg for p in paths for seg in seam_segments(p, res)]
+    handles = []
+    for ax, (i, j) in zip(axes, pairs):
+        for a in atoms:  # the region's cells projected on (i, j): each distinct rectangle once
+            has = np.array([a in lab for lab in res.labels])
+            r = np.unique(np.c_[res.cells_lower[has][:, [i, j]], res.cells_upper[has][:, [i, j]]], axis=0)
+            rects = np.stack([r[:, [0, 1]], r[:, [2, 1]], r[:, [2, 3]], r[:, [0, 3]]], axis=1)
+            ax.add_collection(PolyCollection(rects, facecolors=colours[a], alpha=0.2, edgecolors="none"))
+        ax.add_collection(LineCollection([s[:, [i, j]] for s in cut if len(s) > 1], colors="black",
+                                         linewidths=0.8, alpha=0.8))
+        handles = _end_markers(ax, np.array([p[0, [i, j]] for p in paths]), np.array([p[-1, [i, j]] for p in paths]),
+                               outcome)
+        ax.set_xlim(res.space_lower[i], res.space_upper[i])
+        ax.set_ylim(res.space_lower[j], res.space_upper[j])
+        ax.set_xlabel(_axis_text(res, i, tex=True))
+        ax.set_ylabel(_axis_text(res, j, tex=True))
+    for ax in axes[len(pairs):]:
+        ax.set_visible(False)
+    fig.legend(handles=handles + region_handles, loc="outside lower center", ncol=4, fontsize=7.5, frameon=False)
+    fig.suptitle(suptitle or f"Simulated runs of the true system for {res.formula!r} (projections; regions: "
+                 "their cells projected)", fontsize=10)
+    return fig
 
 
 def plot_eta_sweep(results, etas, *, which: str = "p_low", fig=None, suptitle: str | None = None):

@@ -2,13 +2,22 @@
 schema ``docs/result.schema.json``) and ``result.npz`` (the same arrays in binary form). Both are
 written under temporary names and renamed only when complete, so an interrupted run never leaves a
 result that looks finished. :class:`ResultFile` reads ``result.json`` back as arrays.
+
+A command's whole set of outputs (result, figures, validation) is replaced as one by
+:func:`staged_outputs`: the new files are written into a fresh folder inside the output directory
+and swapped in only when all of them are complete; a failure or an interrupt before or during the
+swap leaves the previous outputs exactly as they were.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import shutil
+import signal
 import tempfile
+import threading
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -19,7 +28,8 @@ from robust_imdp.errors import DimensionError, InvalidInputError, ProblemFileErr
 from robust_imdp.io.data_file import _read_text
 from robust_imdp.jsonable import jsonable as _jsonable
 
-__all__ = ["result_to_dict", "save_result", "load_result", "ResultFile", "as_result_file", "RESULT_FORMAT"]
+__all__ = ["result_to_dict", "save_result", "load_result", "ResultFile", "as_result_file", "RESULT_FORMAT",
+           "staged_outputs", "OutputStage"]
 
 
 def _umask() -> int:
@@ -48,6 +58,135 @@ def _atomic_write(path: Path, write) -> None:
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        raise
+
+
+# --------------------------------------------------------------------------- a command's outputs, swapped in as one
+#: Prefixes of the folders :class:`OutputStage` makes inside an output directory (hidden; removed when done).
+STAGE_PREFIX, BACKUP_PREFIX = ".robust-imdp-new-", ".robust-imdp-old-"
+
+
+def _fsync(path: Path, directory: bool = False) -> None:
+    """Flush ``path`` (a file, or a directory's entries) to disk; a no-op where the OS refuses (e.g. no
+    directory fsync)."""
+    try:
+        fd = os.open(path, os.O_RDONLY | (getattr(os, "O_DIRECTORY", 0) if directory else 0))
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+@contextmanager
+def _sigint_deferred():
+    """Hold a Ctrl-C back while the block runs and deliver it afterwards (the main thread only; elsewhere
+    Python delivers no SIGINT anyway). The block is the few renames of a swap, which must not stop half-way."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(frame))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if caught and callable(previous):  # Python's default handler raises KeyboardInterrupt here
+            previous(signal.SIGINT, caught[0])
+
+
+class OutputStage:
+    """A command's new outputs, written into a fresh folder inside ``out_dir`` and swapped in as one.
+
+    Parameters
+    ----------
+    out_dir : str or Path
+        The output directory (created if needed).
+    owned : sequence of str
+        The file names the command's outputs consist of. :meth:`commit` replaces all of them: a name the
+        new outputs do not contain is removed from ``out_dir`` (it belonged to the previous outputs: e.g.
+        the previous result's validation). Other files in ``out_dir`` (the cache folder, the user's own
+        files) are never touched.
+
+    Attributes
+    ----------
+    path : Path
+        The staging folder (``out_dir/.robust-imdp-new-*``, same file system, so the swap is renames).
+    written : list of Path
+        After :meth:`commit`: the final paths of the new files.
+    """
+
+    def __init__(self, out_dir, owned):
+        self.out = Path(out_dir)
+        self.owned = tuple(owned)
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.path = Path(tempfile.mkdtemp(dir=self.out, prefix=STAGE_PREFIX))
+        self.written: list = []
+
+    def discard(self) -> None:
+        """Remove the staging folder and what was written into it; ``out_dir`` is left as it was."""
+        shutil.rmtree(self.path, ignore_errors=True)
+
+    def commit(self) -> list:
+        """Swap the staged files in for the previous outputs; return their final paths.
+
+        Order: every file is flushed to disk; the previous outputs are renamed into a backup folder
+        (``result.json`` first, so that the old ``result.json`` never sits beside new files), then the
+        new ones into ``out_dir`` (``result.json`` last: its presence means the result is complete),
+        then the backup is deleted. A failure among the renames puts everything back; Ctrl-C is held
+        until the swap is over (:func:`_sigint_deferred`).
+        """
+        new = sorted(f.name for f in self.path.iterdir())
+        for name in new:
+            _fsync(self.path / name)
+        replaced = [n for n in dict.fromkeys([*self.owned, *new]) if os.path.lexists(self.out / n)]
+        backup = Path(tempfile.mkdtemp(dir=self.out, prefix=BACKUP_PREFIX))
+        moved_old, moved_new = [], []
+        with _sigint_deferred():
+            try:
+                for name in sorted(replaced, key=lambda n: n != "result.json"):
+                    os.replace(self.out / name, backup / name)
+                    moved_old.append(name)
+                for name in sorted(new, key=lambda n: n == "result.json"):
+                    os.replace(self.path / name, self.out / name)
+                    moved_new.append(name)
+                _fsync(self.out, directory=True)
+            except BaseException:
+                for name in reversed(moved_new):
+                    os.replace(self.out / name, self.path / name)
+                for name in reversed(moved_old):
+                    os.replace(backup / name, self.out / name)
+                shutil.rmtree(backup, ignore_errors=True)
+                raise
+        shutil.rmtree(backup, ignore_errors=True)
+        self.discard()
+        self.written = [self.out / name for name in new]
+        return self.written
+
+
+@contextmanager
+def staged_outputs(out_dir, owned):
+    """``with staged_outputs(out, names) as stage:`` write the new outputs into ``stage.path``; when the
+    block completes they replace the previous ones (:meth:`OutputStage.commit`), when it raises (an
+    error, Ctrl-C) they are discarded and ``out`` is left exactly as it was.
+
+    Yields
+    ------
+    OutputStage
+    """
+    stage = OutputStage(out_dir, owned)
+    try:
+        yield stage
+    except BaseException:
+        stage.discard()
+        raise
+    try:
+        stage.commit()
+    except BaseException:
+        stage.discard()
         raise
 
 
