@@ -79,7 +79,7 @@ from robust_imdp.synthesis.controller import Controller
 from robust_imdp.pipeline.problem import Problem
 from robust_imdp.pipeline.result import Result
 from robust_imdp.pipeline.run import resynthesize, synthesize_from_data
-from robust_imdp.io.files import load_problem, load_result, save_result
+from robust_imdp.io.files import load_problem, load_result, save_problem, save_result
 
 __version__ = "0.1.0"
 
@@ -111,6 +111,6 @@ __all__ = [
     "Abstraction", "CellBounds", "abstract", "confidence_cell_bounds",
     "SynthesisResult", "synthesize", "Controller",
     "Problem", "Result", "resynthesize", "synthesize_from_data",
-    "load_problem", "load_result", "save_result",
+    "load_problem", "load_result", "save_problem", "save_result",
     *_LAZY,
 ]

@@ -98,6 +98,11 @@ def _slice_spec(text: str) -> dict:
     return out
 
 
+#: The case studies ``example`` writes and ``--true-system`` simulates (``casestudies.systems.CASE_STUDIES``, named
+#: here so that ``--help`` does not import them; a test keeps the two equal).
+CASE_STUDY_NAMES = ("three_mode_linear", "four_mode_nonlinear", "unicycle_3d", "unicycle_3d_known", "vehicle_4d")
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="robust-imdp",
@@ -153,8 +158,8 @@ def _parser() -> argparse.ArgumentParser:
                                      "the bounds are contradicted by the system.")
     sim.add_argument("result", type=Path, help="directory holding result.json")
     sim.add_argument("--true-system", required=True, metavar="NAME | FILE.py:NAME",
-                     help="the true dynamics to simulate: a case study (three_mode_linear, "
-                          "four_mode_nonlinear), or NAME in your Python file: a class built with no "
+                     help="the true dynamics to simulate: a case study (" + ", ".join(CASE_STUDY_NAMES) + "), "
+                          "or NAME in your Python file: a class built with no "
                           "arguments, or an object, with mode_names (the result's mode names) and "
                           "step(x (k, n), modes (k,) int indices into mode_names, rng) -> (k, n)")
     sim.add_argument("--n-per-cell", type=_at_least(1), default=50, help="runs per cell (default 50)")
@@ -216,7 +221,7 @@ def _parser() -> argparse.ArgumentParser:
     ex = sub.add_parser("example", parents=[common], help="write a case study's problem file and data",
                         description="Generate the data of a paper case study with a fixed seed "
                                     "and write NAME.toml + NAME_data.csv into --out.")
-    ex.add_argument("name", help="three_mode_linear or four_mode_nonlinear")
+    ex.add_argument("name", help="the case study: " + ", ".join(CASE_STUDY_NAMES))
     ex.add_argument("--out", type=Path, required=True, help="output directory")
     ex.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     ex.add_argument("--formula", default=None, help="formula (default: the case study's first)")

@@ -2,4 +2,4 @@
 
 from robust_imdp._lazy import exports
 
-__getattr__, __dir__ = exports(__name__, ["files", "problem_file", "data_file", "result_file", "formats"])
+__getattr__, __dir__ = exports(__name__, ["files", "problem_file", "problem_writer", "data_file", "result_file", "formats"])

@@ -1,7 +1,9 @@
 """Result files: ``result.json`` (the documented contract, see :func:`result_to_dict` and the JSON
 schema ``docs/result.schema.json``) and ``result.npz`` (the same arrays in binary form). Both are
 written under temporary names and renamed only when complete, so an interrupted run never leaves a
-result that looks finished. :class:`ResultFile` reads ``result.json`` back as arrays.
+result that looks finished. :class:`ResultFile` reads ``result.json`` back as arrays; like the live ``Result`` it has a short
+``repr``, :meth:`~ResultFile.summary`, :attr:`~ResultFile.counts` and
+:meth:`~ResultFile.controller` (the deployable refined switching controller).
 
 A command's whole set of outputs (result, figures, validation) is replaced as one by
 :func:`staged_outputs`: the new files are written into a fresh folder inside the output directory
@@ -303,6 +305,14 @@ def save_result(result, out_dir) -> Path:
     Each file is written under a temporary name and renamed when complete; ``result.json``
     is written last, so its presence means the result is complete.
 
+    ``result.npz`` holds ``result.json``'s arrays: ``cells_lower``, ``cells_upper`` (n_cells, d),
+    ``strategy`` (n_cells, S) or (k, n_cells, S) mode indices into ``modes``, ``dfa_delta``, ``p_low``,
+    ``p_up``, ``p_up_star``, ``error``, ``classes``, ``no_strategy_can``, ``modes``; and what the controller
+    needs besides (``Controller.from_tables``; files written before they were added lack them, and
+    ``load_result`` reads ``result.json`` in any case): ``label_letters`` int64 (n_cells,) letters over
+    ``dfa_atoms`` (str (A,)), ``dfa_initial`` int64 (), ``dfa_accepting`` bool (S,), ``space_lower``,
+    ``space_upper`` float (d,), and ``periodic`` bool (d,) only when a dimension is periodic.
+
     Returns
     -------
     Path
@@ -311,6 +321,19 @@ def save_result(result, out_dir) -> Path:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     doc = result_to_dict(result)
+    atoms = list(doc["dfa"]["atoms"])
+    letters = np.zeros(len(doc["labels"]), dtype=np.int64)
+    for i, a in enumerate(atoms):  # a loop over the atoms (a handful); bit i = atoms[i] holds in the cell
+        letters |= np.array([a in lab for lab in doc["labels"]], dtype=np.int64) << i
+    accepting = np.zeros(len(doc["dfa"]["delta"]), dtype=bool)
+    accepting[np.asarray(doc["dfa"]["accepting"], dtype=np.int64)] = True
+    controller_arrays = {
+        "label_letters": letters, "dfa_atoms": np.asarray(atoms, dtype=str),
+        "dfa_initial": np.int64(doc["dfa"]["initial"]), "dfa_accepting": accepting,
+        "space_lower": np.asarray(doc["space"]["lower"], dtype=float),
+        "space_upper": np.asarray(doc["space"]["upper"], dtype=float),
+        **({"periodic": np.asarray(doc["space"]["periodic"], dtype=bool)} if "periodic" in doc["space"] else {}),
+    }
     arrays = {
         "cells_lower": np.asarray(doc["cells"]["lower"], dtype=float),
         "cells_upper": np.asarray(doc["cells"]["upper"], dtype=float),
@@ -323,6 +346,7 @@ def save_result(result, out_dir) -> Path:
         "classes": np.asarray(doc["classes"], dtype=str),
         "no_strategy_can": np.asarray(doc["no_strategy_can"], dtype=bool),
         "modes": np.asarray(doc["modes"], dtype=str),
+        **controller_arrays,
     }
 
     def write_npz(tmp: Path) -> None:
@@ -382,6 +406,9 @@ class ResultFile:
     parameters, timings : dict
     dim_names : tuple of str or None
         The dimension names (``space.names``), None when the problem gave none.
+    periodic : tuple of bool or None
+    diagnostics : dict
+        ``result.json``'s ``diagnostics`` (the advice under ``"advice"``); empty for files without it.
     """
 
     space_lower: np.ndarray
@@ -409,10 +436,68 @@ class ResultFile:
     strategy_by_time: np.ndarray | None = None
     dim_names: tuple | None = None
     periodic: tuple | None = None
+    diagnostics: dict = field(default_factory=dict)
 
     @property
     def n_cells(self) -> int:
         return self.cells_lower.shape[0]
+
+    @property
+    def mode_names(self) -> tuple:
+        """The mode names (``modes``; the name the live ``Result`` uses)."""
+        return self.modes
+
+    @property
+    def class_names(self) -> np.ndarray:
+        """(n_cells,) ``"yes"`` / ``"no"`` / ``"maybe"`` (``classes``; the name the live ``Result`` uses)."""
+        return self.classes
+
+    @property
+    def advice(self) -> dict:
+        """The advice estimated by the run (``diagnostics.advice``), or an empty dict."""
+        return dict(self.diagnostics.get("advice") or {})
+
+    @property
+    def counts(self):
+        """Number of cells per class: ``{"yes": .., "no": .., "maybe": ..}`` (``pipeline.result.ClassCounts``:
+        ``counts()`` works too)."""
+        from robust_imdp.pipeline.result import ClassCounts
+
+        return ClassCounts.of(self.classes)
+
+    def summary(self) -> str:
+        """The run's summary as ``Result.summary`` prints it: class counts (Q_no split by whether any controller
+        could do better), mean p_low and error, the bound diagnostics, the advice and the stage times."""
+        from robust_imdp.pipeline.result import summary_text
+
+        return summary_text(formula=self.formula, threshold=self.threshold, horizon=self.horizon,
+                            classes=self.classes, p_low=self.p_low, error=self.error, p_up_star=self.p_up_star,
+                            diagnostics=self.diagnostics, advice=self.advice, timings=self.timings,
+                            source="read from result.json")
+
+    def controller(self, mode_names=None):
+        """The refined switching controller of this result (``synthesis.controller.Controller``): the same
+        controller as the live ``Result.controller()`` of the run that wrote the file, ready to deploy
+        (``ctrl.reset(x0)``, ``ctrl.act(x)``, ``ctrl.save(prefix)``).
+
+        Parameters
+        ----------
+        mode_names : sequence of str, optional
+            Names :meth:`Controller.act` returns (default: the result's ``modes``).
+        """
+        from robust_imdp.synthesis.controller import Controller
+
+        return Controller.from_tables(self, mode_names)
+
+    def __repr__(self) -> str:  # a few lines: the dataclass default prints every array
+        c = self.counts
+        d = self.cells_lower.shape[1]
+        return (f"ResultFile({self.n_cells} cells in {d}-D: Q_yes {c['yes']}, Q_no {c['no']}, Q_? {c['maybe']}; "
+                f"formula {self.formula!r}, threshold {self.threshold:g}"
+                + ("" if self.horizon is None else f", horizon {self.horizon}") + "\n"
+                f"  mean p_low {float(np.mean(self.p_low)):.4f}, mean error {float(np.mean(self.error)):.4f}; "
+                f"modes {list(self.modes)}\n"
+                "  arrays: p_low, p_up, p_up_star, error, classes, strategy; summary(), counts, controller())")
 
     @property
     def no_strategy_can(self) -> np.ndarray:
@@ -462,6 +547,7 @@ class ResultFile:
                 strategy_by_time=by_time,
                 dim_names=None if doc["space"].get("names") is None else tuple(doc["space"]["names"]),
                 periodic=None if not any(doc["space"].get("periodic") or ()) else tuple(doc["space"]["periodic"]),
+                diagnostics=dict(doc.get("diagnostics") or {}),
             )
         except (KeyError, TypeError, IndexError, ValueError) as exc:
             raise InvalidInputError(
@@ -493,15 +579,13 @@ class ResultFile:
         the breakpoint grid belongs to exactly one cell, so a per-dimension ``searchsorted``
         followed by a table lookup finds the cell.
         """
+        from robust_imdp.synthesis.controller import grid_of_cells
+
         n = self.cells_lower.shape[1]
-        bps = [np.unique(np.concatenate([self.cells_lower[:, i], self.cells_upper[:, i]]))
-               for i in range(n)]
+        bps, table = grid_of_cells(self.cells_lower, self.cells_upper)
         shape = tuple(len(b) - 1 for b in bps)
-        table = np.full(shape, -1, dtype=np.int64)
-        lo_idx = [np.searchsorted(bps[i], self.cells_lower[:, i]) for i in range(n)]
-        hi_idx = [np.searchsorted(bps[i], self.cells_upper[:, i]) for i in range(n)]
-        for q in range(self.n_cells):  # set-up only, once per result
-            table[tuple(slice(lo_idx[i][q], hi_idx[i][q]) for i in range(n))] = q
+        if table is None:  # the cells are the grid's boxes in C order
+            table = np.arange(self.n_cells, dtype=np.int64).reshape(shape)
         slo, sup = self.space_lower, self.space_upper
 
         def locate(x):

@@ -243,9 +243,14 @@ def _preflight(problem: Problem, data, partition, settings, local, extras, run: 
     per_cell = pilot["seconds"] / k  # wall seconds per cell and mode, on ``threads`` threads
     lanes = max(1, sched.n_workers // threads)  # tasks running at once
     wall = per_cell * N * M * n_missing / n_tasks / lanes
+    from robust_imdp.pipeline.preflight import load_text
+
+    # the pilot's speed is this machine's at its load now (not known for a remote cluster)
+    remote = run.client is not None or run.scheduler_address is not None
     log.info(f"pre-flight: {N:,} cells x {M} modes x {n} outputs = {N * M * n:,} cell bounds; about "
              f"{wall * sched.n_workers:.0f} s of work ({per_cell * threads * 1e3:.2f} ms per cell and mode "
-             f"on one core), about {wall:.0f} s on {sched.n_workers} core{'s' if sched.n_workers > 1 else ''}")
+             f"on one core), about {wall:.0f} s on {sched.n_workers} core{'s' if sched.n_workers > 1 else ''}"
+             + ("" if remote else f" {load_text(sched.n_workers)}"))
     return sched
 
 

@@ -81,6 +81,34 @@ def estimate_resources(problem: Problem, n_dfa_states: int = 4) -> dict:
             "available": _available_memory()}
 
 
+def load_text(cores_used: int) -> str:
+    """What the bound stage's time estimate assumes about the machine, for its pre-flight line.
+
+    The estimate is a short pilot's speed, measured under the load of the moment, times the work: it
+    holds while the load stays as it is. On a shared machine the load changes during a long stage (a
+    newcomer's runs found the estimate 40-70 % low as others' jobs started; at a steady load average of
+    9-11 on 2 cores it was 1.6 and 1.05 times the stage's time on examples/newcomer's robot2d_32 and
+    unicycle3d_16), so the line names the load it was measured at, and the progress lines re-estimate from
+    the rate measured since.
+
+    Parameters
+    ----------
+    cores_used : int
+        The cores the stage runs on (threads of this process, or local workers).
+    """
+    import os
+
+    cores = os.cpu_count() or 1
+    try:
+        load = float(os.getloadavg()[0])
+    except (OSError, AttributeError):  # pragma: no cover - no load average (Windows)
+        return "at the speed measured now (the time changes with the machine's load)"
+    # more runnable threads than cores (the average counts this process too): others' work shares the cores
+    busy = " (busy: others' work shares the cores)" if load > cores + 0.5 else ""
+    return (f"at the speed measured now, load average {load:.1f} on {cores} cores{busy}: it holds while the load "
+            "stays; the progress lines re-estimate from the measured rate")
+
+
 def _available_memory() -> int | None:
     try:
         with open("/proc/meminfo") as fh:

@@ -497,8 +497,15 @@ class Problem:
         n = lo.size
         if up.shape != (n,):
             raise DimensionError(f"upper must have {n} entries like lower; got {np.shape(upper)}")
+        if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(up)) and np.all(lo < up)):
+            raise InvalidInputError(f"lower and upper must be finite with lower < upper in every dimension; got "
+                                    f"lower={lo.tolist()}, upper={up.tolist()}")
         h = np.asarray(cell_size, dtype=float)
         h = np.full(n, float(h)) if h.ndim == 0 else h.reshape(-1)
+        if h.shape != (n,) or not np.all(np.isfinite(h)) or np.any(h <= 0):
+            raise InvalidInputError(f"cell_size must be a number > 0 or {n} numbers > 0 (one per dimension); got "
+                                    f"{np.asarray(cell_size).tolist()!r}")
+        _check_noise(noise, n)
         if not isinstance(modes, dict) or not modes:
             raise InvalidInputError(f"modes must be a dict name -> (A, b) or AffineMap, with at least one mode; "
                                     f"got {modes!r}")
@@ -523,6 +530,8 @@ class Problem:
                 raise InvalidInputError(f"regions[{name!r}] must be a box (lower, upper) or a list of boxes of "
                                         f"{n} numbers each; got {value!r}")
             boxes[str(name)] = [(a[0], a[1]) for a in arr]
+        _check_regions(boxes, lo, up, options.get("periodic"))
+        _check_formula(formula, boxes)
         unknown = sorted(set(options) - {f.name for f in fields(cls)})
         if unknown:
             raise InvalidInputError(f"Problem.from_arrays got unknown options {unknown}; the other arguments "
@@ -550,6 +559,59 @@ class Problem:
                 f"{'' if self.horizon is None else f', horizon {self.horizon}'}; regions {list(self.regions)}\n"
                 f"  modes {list(self.mode_names)}, {m} samples, {type(self.noise).__name__}, "
                 f"rkhs_bound {_setting_text(self.rkhs_bound)}, error_bound {self.error_bound!r})")
+
+
+def _check_noise(noise, n: int) -> None:
+    """``from_arrays``' noise: a noise model of ``models.noise`` acting on ``n`` dimensions."""
+    from robust_imdp.models.noise import NoiseModel
+
+    if not isinstance(noise, NoiseModel):
+        raise InvalidInputError(
+            f"noise must be a noise model: TruncatedGaussianNoise(sigma, bound), GaussianNoise(sigma) or "
+            f"UniformNoise(bound) (robust_imdp.models.noise, each with {n} values per argument); got "
+            f"{type(noise).__name__} {noise!r}")
+    if int(noise.dim) != n:
+        raise InvalidInputError(f"noise must act on {n} dimensions like lower; got {noise!r} ({noise.dim} dimensions)")
+
+
+def _check_regions(boxes: dict, lo: np.ndarray, up: np.ndarray, periodic) -> None:
+    """``from_arrays``' regions: every box has lower < upper and lies in X, except on a periodic dimension, where
+    it may cross the seam by at most one period (docs/periodic.md; ``geometry.wrap_region_boxes`` cuts it)."""
+    flags = np.zeros(lo.size, dtype=bool) if periodic is None else np.asarray(periodic, dtype=bool).reshape(-1)
+    if flags.shape != lo.shape:
+        return  # Problem's own check of ``periodic`` names the mismatch
+    for name, pairs in boxes.items():
+        for j, (a, b) in enumerate(pairs):
+            where = f"regions[{name!r}]" + (f" box {j}" if len(pairs) > 1 else "")
+            if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b)) and np.all(a < b)):
+                raise InvalidInputError(f"{where} needs finite lower < upper in every dimension; got lower={a.tolist()}, "
+                                        f"upper={b.tolist()}")
+            out = np.flatnonzero(((a < lo) | (b > up)) & ~flags)
+            if out.size:
+                k = int(out[0])
+                raise InvalidInputError(
+                    f"{where} = [{a.tolist()}, {b.tolist()}] lies outside X = [{lo.tolist()}, {up.tolist()}] in "
+                    f"dimension {k + 1}; a region box must lie inside X (only on a periodic dimension may it cross the "
+                    "seam)")
+            wide = np.flatnonzero(flags & (b - a > up - lo))
+            if wide.size:
+                k = int(wide[0])
+                raise InvalidInputError(f"{where} is {b[k] - a[k]:g} wide in dimension {k + 1}, which is periodic with "
+                                        f"period {up[k] - lo[k]:g}; a region box may be at most one period wide")
+
+
+def _check_formula(formula, boxes: dict) -> None:
+    """``from_arrays``' formula: LTLf text that parses (``FormulaSyntaxError`` shows where) and names only regions
+    (``UnknownAtomError``); checked at construction, not at synthesis."""
+    from robust_imdp.errors import UnknownAtomError
+    from robust_imdp.spec.ltlf import atoms_of
+
+    if not isinstance(formula, str) or not formula.strip():
+        raise InvalidInputError(f"formula must be a non-empty LTLf string over the region names; got {formula!r}")
+    unknown = sorted(atoms_of(formula) - set(boxes))
+    if unknown:
+        raise UnknownAtomError(f"formula {formula!r} names regions {unknown} that are not defined; known regions: "
+                               f"{sorted(boxes)}")
 
 
 def _is_affine(m) -> bool:

@@ -12,6 +12,54 @@ import numpy as np
 from robust_imdp.pipeline.problem import CLASS_NAMES, Problem
 
 
+class ClassCounts(dict):
+    """Cells per class, ``{"yes": .., "no": .., "maybe": ..}``: what ``result.counts`` gives.
+
+    ``counts`` is a property (read ``result.counts["yes"]``, like ``result.n_cells``). Earlier
+    versions had a method ``counts()``; calling the dict returns the dict itself, so that code keeps
+    working (``result.counts()["yes"]``).
+    """
+
+    def __call__(self) -> "ClassCounts":
+        return self
+
+    @classmethod
+    def of(cls, classes) -> "ClassCounts":
+        """The counts of a ``(n_cells,)`` array of ``"yes"`` / ``"no"`` / ``"maybe"``."""
+        classes = np.asarray(classes)
+        return cls({c: int(np.sum(classes == c)) for c in CLASS_NAMES})
+
+
+def summary_text(*, formula: str, threshold: float, horizon, classes, p_low, error, p_up_star, diagnostics: dict,
+                 advice: dict, timings: dict, source: str) -> str:
+    """The lines of a result's summary (``Result.summary``, ``io.result_file.ResultFile.summary``).
+
+    Class counts, Q_no split by whether any controller could meet the threshold (``p_up_star <
+    threshold``), mean p_low and error, where the abstraction came from (``source``), the bound
+    diagnostics, the advice and the stage times.
+    """
+    c = ClassCounts.of(classes)
+    n = int(np.size(classes))
+    no = np.asarray(classes) == "no"
+    cannot = int(np.count_nonzero(no & (np.asarray(p_up_star) < threshold)))
+    lines = [
+        f"formula {formula!r}, threshold {threshold:g}" + (f", horizon {horizon}" if horizon is not None else ""),
+        f"cells: {n}  Q_yes {c['yes']}  Q_no {c['no']}  Q_? {c['maybe']}",
+        f"Q_no: {cannot} where no controller can meet the threshold (p_up_star < {threshold:g}), "
+        f"{int(np.count_nonzero(no)) - cannot} under this controller only",
+        f"mean p_low {np.mean(p_low):.4f}  mean error {np.mean(error):.4f}  ({source})",
+    ]
+    why = diagnostics_line(diagnostics)
+    if why:
+        lines.append(why)
+    if advice:
+        from robust_imdp.synthesis.advice import advice_line
+
+        lines.append(advice_line(advice))
+    lines.append("stage times: " + ", ".join(f"{k} {v:.2f} s" for k, v in timings.items()))
+    return "\n".join(lines)
+
+
 @dataclass(frozen=True, eq=False)
 class Result:
     """Output of :func:`synthesize_from_data`.
@@ -138,7 +186,7 @@ class Result:
         return getattr(self.problem, "dim_names", None)
 
     def __repr__(self) -> str:  # a few lines: the dataclass default prints every array (tens of KB)
-        c = self.counts()
+        c = self.counts
         return (f"Result({len(self.class_names)} cells: Q_yes {c['yes']}, Q_no {c['no']}, Q_? {c['maybe']}; "
                 f"formula {self.formula!r}, threshold {self.threshold:g}\n"
                 f"  mean p_low {float(np.mean(self.synthesis.p_low)):.4f}, mean error "
@@ -146,9 +194,11 @@ class Result:
                 f"{'reused from cache' if self.from_cache else 'built'}\n"
                 f"  arrays: p_low, p_up, p_up_star, error, classes, strategy; summary() for the details)")
 
-    def counts(self) -> dict:
-        """Number of cells per class: ``{"yes": .., "no": .., "maybe": ..}``."""
-        return {c: int(np.sum(self.class_names == c)) for c in CLASS_NAMES}
+    @property
+    def counts(self) -> ClassCounts:
+        """Number of cells per class: ``{"yes": .., "no": .., "maybe": ..}`` (a :class:`ClassCounts`;
+        ``counts()``, the method form of earlier versions, still works)."""
+        return ClassCounts.of(self.class_names)
 
     def controller(self):
         """The refined switching controller (``controller.Controller``)."""
@@ -159,38 +209,14 @@ class Result:
         """(n_cells,) bool: ``p_up_star < threshold``: no controller at all meets the threshold."""
         return np.asarray(self.synthesis.p_up_star) < self.threshold
 
-    def _no_line(self) -> str:
-        """Q_no split into cells where no controller can meet the threshold (``p_up_star <
-        threshold``) and cells that are "no" under this controller only."""
-        no = self.class_names == "no"
-        cannot = int(np.count_nonzero(no & self.no_strategy_can))
-        return (f"Q_no: {cannot} where no controller can meet the threshold (p_up_star < "
-                f"{self.threshold:g}), {int(np.count_nonzero(no)) - cannot} under this controller only")
-
     def summary(self) -> str:
         """Class counts (Q_no split by whether any controller could do better), mean error and
         stage times as text."""
-        c = self.counts()
-        n = len(self.class_names)
-        times = ", ".join(f"{k} {v:.2f} s" for k, v in self.timings.items())
-        lines = [
-            f"formula {self.formula!r}, threshold {self.threshold:g}"
-            + (f", horizon {self.horizon}" if self.horizon is not None else ""),
-            f"cells: {n}  Q_yes {c['yes']}  Q_no {c['no']}  Q_? {c['maybe']}",
-            self._no_line(),
-            f"mean p_low {np.mean(self.synthesis.p_low):.4f}  mean error "
-            f"{np.mean(self.synthesis.error):.4f}  (abstraction "
-            f"{'reused from cache' if self.from_cache else 'built'})",
-        ]
-        why = diagnostics_line(self.diagnostics)
-        if why:
-            lines.append(why)
-        if self.advice:
-            from robust_imdp.synthesis.advice import advice_line
-
-            lines.append(advice_line(self.advice))
-        lines.append(f"stage times: {times}")
-        return "\n".join(lines)
+        return summary_text(formula=self.formula, threshold=self.threshold, horizon=self.horizon,
+                            classes=self.class_names, p_low=self.synthesis.p_low, error=self.synthesis.error,
+                            p_up_star=self.synthesis.p_up_star, diagnostics=self.diagnostics, advice=self.advice,
+                            timings=self.timings,
+                            source=f"abstraction {'reused from cache' if self.from_cache else 'built'}")
 
 
 def diagnostics_line(diag: dict) -> str:

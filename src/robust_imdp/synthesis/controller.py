@@ -16,6 +16,12 @@ names (``mode_names``: the pipeline's ``Result.controller()`` and saved controll
 do), else its index; :meth:`Controller.act_index` always returns the integer index into
 ``mode_names``, for deployment code that indexes arrays of modes.
 
+One state or many. :meth:`Controller.locate` returns an ``int`` for one state ``(d,)`` and an array
+for a batch ``(k, d)``. ``k`` runs at once: ``runs = ctrl.start_batch(x0)`` (``x0``: ``(k, d)``), then
+``runs.act(x)`` gives the ``k`` modes (``None`` where a run is over), each run following the rules of
+``act`` (:class:`ControllerRuns`). A saved result gives its controller without the partition:
+``load_result(dir).controller()`` or ``Controller.from_result(load_result(dir))``.
+
 Deployment. This module needs only numpy (and the exception classes of
 :mod:`robust_imdp.errors`). :meth:`Controller.save` writes two files, and a re-implementation
 in any language needs nothing else:
@@ -58,7 +64,7 @@ import numpy as np
 from robust_imdp.errors import (DimensionError, InvalidInputError, InvalidModelError, OutsideDomainError,
                                  UnknownAtomError)
 
-__all__ = ["Controller", "remap_letters", "RUNNING", "SATISFIED", "VIOLATED"]
+__all__ = ["Controller", "ControllerRuns", "remap_letters", "grid_of_cells", "RUNNING", "SATISFIED", "VIOLATED"]
 
 RUNNING, SATISFIED, VIOLATED = "running", "satisfied", "violated"
 FORMAT = "robust_imdp.controller"
@@ -97,6 +103,60 @@ def remap_letters(labels: Any, atoms: Sequence[str], dfa_atoms: Sequence[str]) -
     for j, a in enumerate(dfa_atoms):  # loop over atoms (a handful), vectorised over cells
         out |= ((lab >> index[a]) & 1) << j
     return out
+
+
+#: What :meth:`Controller.from_tables` reads of a saved result.
+_TABLES = ("cells_lower", "cells_upper", "label_letters", "dfa_atoms", "dfa_delta", "dfa_initial", "dfa_accepting",
+           "strategy", "space_lower", "space_upper", "modes")
+
+
+def grid_of_cells(cells_lower: Any, cells_upper: Any) -> tuple:
+    """The breakpoint grid of a set of box cells and the cell of each of its boxes.
+
+    Parameters
+    ----------
+    cells_lower, cells_upper : (n_cells, d) float arrays
+        Cells that tile a box (a ``Partition``'s or a refined ``BoxPartition``'s cells).
+
+    Returns
+    -------
+    breakpoints : list of d increasing 1-D float arrays
+        Per dimension, every cell face.
+    cell_map : int64 array of shape ``tuple(len(b) - 1 for b in breakpoints)``, or None
+        The cell of each box of the grid; None when the cells are the grid's boxes in C order
+        (``ravel_multi_index``, as ``Partition.locate``).
+
+    Raises
+    ------
+    InvalidInputError
+        If a box of the grid belongs to no cell (the cells do not tile it).
+    """
+    lo = np.asarray(cells_lower, dtype=np.float64)
+    up = np.asarray(cells_upper, dtype=np.float64)
+    if lo.ndim != 2 or lo.shape != up.shape or lo.shape[0] == 0:
+        raise DimensionError(f"cells_lower and cells_upper must be (n_cells, d) arrays of one shape; got "
+                             f"{lo.shape} and {up.shape}")
+    d = lo.shape[1]
+    bps = [np.unique(np.concatenate([lo[:, j], up[:, j]])) for j in range(d)]
+    shape = tuple(len(b) - 1 for b in bps)
+    lo_idx = np.stack([np.searchsorted(bps[j], lo[:, j]) for j in range(d)])
+    hi_idx = np.stack([np.searchsorted(bps[j], up[:, j]) for j in range(d)])
+    single = bool(np.all(hi_idx - lo_idx == 1))
+    if single and lo.shape[0] == int(np.prod(shape)):
+        flat = np.ravel_multi_index(tuple(lo_idx), shape)
+        if np.array_equal(flat, np.arange(lo.shape[0])):
+            return bps, None
+    cell_map = np.full(shape, -1, dtype=np.int64)
+    if single:
+        cell_map[tuple(lo_idx)] = np.arange(lo.shape[0])
+    else:
+        for q in range(lo.shape[0]):  # set-up only, once per result: cells of different sizes
+            cell_map[tuple(slice(lo_idx[j, q], hi_idx[j, q]) for j in range(d))] = q
+    if np.any(cell_map < 0):
+        box = np.argwhere(cell_map < 0)[0]
+        raise InvalidInputError(f"the cells must tile their bounding box; the grid box at "
+                                f"{[float(bps[j][box[j]]) for j in range(d)]} belongs to no cell")
+    return bps, cell_map
 
 
 def _sinks(delta: np.ndarray, accepting: np.ndarray) -> np.ndarray:
@@ -258,14 +318,38 @@ class Controller:
 
     # ------------------------------------------------------------------ construction
     @classmethod
-    def from_result(cls, result: Any, partition: Any, mode_names: Sequence[str] | None = None) -> "Controller":
-        """Controller of a :class:`~robust_imdp.synthesis.core.SynthesisResult` on ``partition``.
+    def from_result(cls, result: Any, partition: Any = None, mode_names: Sequence[str] | None = None) -> "Controller":
+        """The controller of a result.
+
+        Parameters
+        ----------
+        result : SynthesisResult, pipeline Result or saved result
+            A :class:`~robust_imdp.synthesis.core.SynthesisResult` with the ``partition`` it was solved on;
+            or, without ``partition``, a pipeline ``Result`` (its synthesis on its partition) or a saved
+            result (``robust_imdp.load_result(dir)``, an ``io.result_file.ResultFile``, or anything with
+            its tables: ``cells_lower``, ``cells_upper``, ``label_letters``, ``dfa_atoms``, ``dfa_delta``,
+            ``dfa_initial``, ``dfa_accepting``, ``strategy``, ``strategy_by_time``, ``space_lower``,
+            ``space_upper``, ``modes``; see :meth:`from_tables`).
+        partition : geometry.Partition or BoxPartition, optional
+        mode_names : sequence of str, optional
+            Names :meth:`act` returns (default: the result's mode names where it has them).
 
         Raises
         ------
         DimensionError, InvalidInputError
-            If the partition's cells or labels do not match the result.
+            If the partition's cells or labels do not match the result, or ``result`` is none of these.
         """
+        if partition is None:
+            if hasattr(result, "synthesis") and hasattr(result, "partition"):  # a pipeline Result
+                return cls.from_result(result.synthesis, result.partition,
+                                       result.mode_names if mode_names is None else mode_names)
+            missing = [a for a in _TABLES if not hasattr(result, a)]
+            if missing:
+                raise InvalidInputError(
+                    "Controller.from_result needs a pipeline Result, a saved result (load_result(dir)) or a "
+                    f"SynthesisResult with its partition; got {type(result).__name__} without a partition (it has no "
+                    f"{missing[:3]})")
+            return cls.from_tables(result, mode_names)
         if partition.n_cells != result.n_cells:
             raise DimensionError(
                 f"partition must have the result's {result.n_cells} cells; got {partition.n_cells}"
@@ -289,18 +373,47 @@ class Controller:
             p_up_star=result.p_up_star, metadata=meta, periodic=getattr(partition, "periodic", None),
         )
 
+    @classmethod
+    def from_tables(cls, res: Any, mode_names: Sequence[str] | None = None) -> "Controller":
+        """The controller of a saved result's tables (``result.json`` read back: ``ResultFile``).
+
+        The same controller as the live ``Result.controller()``: the grid is every cell face
+        (:func:`grid_of_cells`; the cells of a regular grid in C order need no cell map), the letters
+        are the cells' labels over the DFA's atoms, the strategy is the time-varying table of a
+        k-step result.
+        """
+        breakpoints, cell_map = grid_of_cells(res.cells_lower, res.cells_upper)
+        by_time = getattr(res, "strategy_by_time", None)
+        return cls(
+            res.strategy if by_time is None else by_time, res.dfa_delta, res.dfa_initial, res.dfa_accepting,
+            res.dfa_atoms, res.label_letters, breakpoints, res.space_lower, res.space_upper, cell_map=cell_map,
+            modes=tuple(res.modes) if mode_names is None else mode_names, threshold=getattr(res, "threshold", None),
+            p_low=getattr(res, "p_low", None), p_up=getattr(res, "p_up", None),
+            p_up_star=getattr(res, "p_up_star", None),
+            metadata={"formula": getattr(res, "formula", None), "horizon": getattr(res, "horizon", None)},
+            periodic=getattr(res, "periodic", None),
+            # the reading of the bounds, only where it is not the default (reach)
+            **({"semantics": res.semantics} if getattr(res, "semantics", "reach") != "reach" else {}),
+        )
+
     # ------------------------------------------------------------------ running
-    def locate(self, x: Any) -> np.ndarray:
-        """Cell of each point, ``-1`` outside X (same convention as ``Partition.locate``).
+    def locate(self, x: Any) -> "int | np.ndarray":
+        """The cell of a state, or of each state of a batch; ``-1`` outside X (``Partition.locate``'s convention).
 
         Parameters
         ----------
-        x : (k, d) or (d,) float array
+        x : (d,) float array (one state; a number when d = 1) or (k, d) float array (a batch)
 
         Returns
         -------
-        (k,) int64 array
+        int for one state; (k,) int64 array for a batch
         """
+        one = np.ndim(x) <= 1
+        cells = self._locate_batch(x)
+        return int(cells[0]) if one else cells
+
+    def _locate_batch(self, x: Any) -> np.ndarray:
+        """:meth:`locate` of ``(k, d)`` or ``(d,)`` points, always as a ``(k,)`` int64 array."""
         x = np.atleast_2d(np.asarray(x, dtype=np.float64))
         if x.ndim != 2 or x.shape[1] != self.dim:
             raise DimensionError(f"x must have shape (k, {self.dim}) or ({self.dim},); got {np.shape(x)}")
@@ -332,7 +445,7 @@ class Controller:
         x = np.asarray(x, dtype=np.float64)
         if x.shape != (self.dim,):
             raise DimensionError(f"x must have shape ({self.dim},); got {x.shape}")
-        return int(self.locate(x)[0])
+        return int(self._locate_batch(x)[0])
 
     def _update_status(self) -> None:
         if self.dfa_accepting[self.dfa_state]:
@@ -415,6 +528,21 @@ class Controller:
         self._pending = True
         return mode
 
+    def start_batch(self, x0: Any) -> "ControllerRuns":
+        """Start ``k`` runs side by side, one from each row of ``x0``: the batch form of :meth:`reset` /
+        :meth:`act` (:class:`ControllerRuns`; this controller's own run is not touched).
+
+        Parameters
+        ----------
+        x0 : (k, d) float array of states in X
+
+        Returns
+        -------
+        ControllerRuns
+            ``runs.act(x (k, d))`` gives the ``k`` modes (:meth:`ControllerRuns.act`).
+        """
+        return ControllerRuns(self, x0)
+
     # ------------------------------------------------------------------ files
     def save(self, path_prefix: str | Path) -> tuple[Path, Path]:
         """Write ``<prefix>.json`` and ``<prefix>.npz`` (format in the module docstring).
@@ -492,3 +620,103 @@ class Controller:
             f"Controller(n_cells={self.n_cells}, dfa_states={self.dfa_delta.shape[0]}, "
             f"modes={self.modes or self.n_modes}, horizon={self.horizon}, status={self.status!r})"
         )
+
+
+class ControllerRuns:
+    """``k`` runs of one :class:`Controller` side by side (:meth:`Controller.start_batch`): the batch form of
+    ``reset`` / ``act``, vectorised over the runs, with each run following :meth:`Controller.act`'s rules.
+
+    The first :meth:`act` must be given the start states; every later call is taken as the states reached by
+    applying the modes the previous call returned; a run is over once its status is "satisfied" or
+    "violated" (leaving X violates), and its entries are then ``None`` (names) or ``-1`` (indices)::
+
+        runs = ctrl.start_batch(x0)              # x0: (k, d)
+        while (u := runs.act_index(x)).max() >= 0:
+            x = step(x, u)                         # rows of finished runs are not read
+        runs.status                                # (k,) "satisfied" / "violated" / "running"
+
+    Attributes
+    ----------
+    controller : Controller
+    status : (k,) str array
+    cell, dfa_state, time : (k,) int64 arrays (cell -1 after leaving X)
+    """
+
+    def __init__(self, controller: Controller, x0: Any):
+        self.controller = c = controller
+        x0 = np.asarray(x0, dtype=np.float64)
+        if x0.ndim != 2:
+            raise DimensionError(f"x0 must be a (k, {c.dim}) array of start states; got shape {x0.shape}")
+        q = c._locate_batch(x0)
+        if np.any(q < 0):
+            i = int(np.flatnonzero(q < 0)[0])
+            raise OutsideDomainError(f"x0 must lie in X = [{c.space_lower.tolist()}, {c.space_upper.tolist()}]; row "
+                                     f"{i} = {x0[i].tolist()} does not")
+        self.cell = q
+        self.time = np.zeros(q.size, dtype=np.int64)
+        self.dfa_state = c.dfa_delta[c.dfa_initial, c.cell_letters[q]]  # the first label is read at the start
+        self.status = self._statuses()
+        self._pending = np.zeros(q.size, dtype=bool)
+
+    def __len__(self) -> int:
+        return int(self.cell.size)
+
+    def _statuses(self) -> np.ndarray:
+        """``Controller._update_status`` for every run at once."""
+        c = self.controller
+        s = self.dfa_state
+        over = np.zeros(s.size, dtype=bool) if c.horizon is None else self.time >= c.horizon
+        if getattr(c, "semantics", "reach") == "safety":  # accepting states decide nothing; the horizon satisfies
+            return np.where(c.dfa_sink[s], VIOLATED, np.where(over, SATISFIED, RUNNING))
+        return np.where(c.dfa_accepting[s], SATISFIED, np.where(c.dfa_sink[s] | over, VIOLATED, RUNNING))
+
+    def act_index(self, x: Any) -> np.ndarray:
+        """Observe the ``k`` current states; the mode index of each run, ``-1`` where the run is over.
+
+        Parameters
+        ----------
+        x : (k, d) float array (rows of finished runs are not read)
+
+        Returns
+        -------
+        (k,) int64 array of indices into ``controller.mode_names``
+        """
+        c = self.controller
+        x = np.asarray(x, dtype=np.float64)
+        if x.shape != (len(self), c.dim):
+            raise DimensionError(f"x must have shape ({len(self)}, {c.dim}) like x0; got {x.shape}")
+        live = self._pending | (self.status == RUNNING)
+        q = np.full(len(self), -1, dtype=np.int64)
+        q[live] = c._locate_batch(x[live])
+        first = ~self._pending & (self.status == RUNNING) & (q != self.cell)
+        if np.any(first):
+            i = int(np.flatnonzero(first)[0])
+            raise InvalidInputError(f"the first act(x) after start_batch must be given the start states; row {i} lies "
+                                    f"in cell {int(q[i])}, its start in cell {int(self.cell[i])}")
+        moved = self._pending
+        self.time[moved] += 1
+        left = moved & (q < 0)
+        self.cell[left] = -1
+        self.status[left] = VIOLATED  # the outside-X state is absorbing and never accepting
+        step = moved & (q >= 0)
+        self.cell[step] = q[step]
+        self.dfa_state[step] = c.dfa_delta[self.dfa_state[step], c.cell_letters[q[step]]]
+        self.status[step] = self._statuses()[step]
+        running = self.status == RUNNING
+        modes = np.full(len(self), -1, dtype=np.int64)
+        rows = np.flatnonzero(running)
+        if c.horizon is None:
+            modes[rows] = c.strategy[self.cell[rows], self.dfa_state[rows]]
+        else:
+            modes[rows] = c.strategy[self.time[rows], self.cell[rows], self.dfa_state[rows]]
+        self._pending = running
+        return modes
+
+    def act(self, x: Any) -> np.ndarray:
+        """As :meth:`act_index`, but the modes' names (an object array, ``None`` where the run is over) when the
+        controller knows them; else the indices (``-1`` where over)."""
+        idx = self.act_index(x)
+        if self.controller.modes is None:
+            return idx
+        names = np.array(list(self.controller.modes) + [None], dtype=object)
+        return names[idx]  # index -1 is the appended None
