@@ -292,3 +292,27 @@ def test_ctrl_c_is_held_back_during_the_swap_and_delivered_after_it():
             done.append("the block ran to its end")
     assert done == ["the block ran to its end"]
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is put back
+
+
+def test_a_real_ctrl_c_during_the_swap_lets_it_finish_and_says_so(work, capsys, monkeypatch):
+    # SIGINT itself (not a raised KeyboardInterrupt) at the first rename of the swap: the handler holds it,
+    # the swap completes, then the command stops with 130 and says the new result is there
+    import signal
+
+    class Kill(_ReplaceInterrupted):
+        def replace(self, src, dst):
+            if self.out in (Path(src).resolve().parent, Path(dst).resolve().parent) and not self.raised:
+                self.raised = True
+                os.kill(os.getpid(), signal.SIGINT)
+            return os.replace(src, dst)
+
+    monkeypatch.setattr(result_file, "os", Kill(work / "k", 1))
+    code = main(["run", str(work / "p.toml"), "--out", str(work / "k"), "--quiet", "--threshold", "0.5",
+                 "--advice", "off"])
+    err = capsys.readouterr().err
+    assert code == 130 and "interrupted after the new result was complete" in err, err
+    from robust_imdp.io.files import load_result
+
+    assert load_result(work / "k").threshold == 0.5  # the new result, whole
+    assert sorted(p.name for p in (work / "k").iterdir()) == ["bounds.png", "cache", "notes.txt", "result.json",
+                                                             "result.npz"]  # no staging or backup folder left

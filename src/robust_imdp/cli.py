@@ -337,13 +337,19 @@ def _run_into(args, out: Path, cache: Path) -> int:
     from robust_imdp.io.result_file import staged_outputs
 
     # the new result and figures are written beside the old ones and replace them only when all are complete
-    with staged_outputs(out, RESULT_OUTPUTS) as stage:
-        figures = []
-        if not args.no_figures:
-            from robust_imdp.plotting import save_figures
+    stage = None
+    try:
+        with staged_outputs(out, RESULT_OUTPUTS) as stage:
+            figures = []
+            if not args.no_figures:
+                from robust_imdp.plotting import save_figures
 
-            figures = save_figures(result, stage.path, **({"slice": args.slice} if args.slice else {}))
-        save_result(result, stage.path)
+                figures = save_figures(result, stage.path, **({"slice": args.slice} if args.slice else {}))
+            save_result(result, stage.path)
+    except KeyboardInterrupt:
+        if stage is not None and stage.committed:  # Ctrl-C during the swap: held back until it was over
+            args.interrupt_note = f"interrupted after the new result was complete: it is in {out}"
+        raise
     print(result.summary())
     print(f"wrote {out / 'result.json'}" + (f" and {len(figures)} figures in {out}" if figures else " (no figures)"))
     return Exit.OK

@@ -119,6 +119,9 @@ class OutputStage:
         The staging folder (``out_dir/.robust-imdp-new-*``, same file system, so the swap is renames).
     written : list of Path
         After :meth:`commit`: the final paths of the new files.
+    committed : bool
+        Whether the new files have replaced the previous ones (True even when a Ctrl-C held back during
+        the swap is raised from :meth:`commit` after it).
     """
 
     def __init__(self, out_dir, owned):
@@ -127,6 +130,7 @@ class OutputStage:
         self.out.mkdir(parents=True, exist_ok=True)
         self.path = Path(tempfile.mkdtemp(dir=self.out, prefix=STAGE_PREFIX))
         self.written: list = []
+        self.committed = False
 
     def discard(self) -> None:
         """Remove the staging folder and what was written into it; ``out_dir`` is left as it was."""
@@ -147,7 +151,7 @@ class OutputStage:
         replaced = [n for n in dict.fromkeys([*self.owned, *new]) if os.path.lexists(self.out / n)]
         backup = Path(tempfile.mkdtemp(dir=self.out, prefix=BACKUP_PREFIX))
         moved_old, moved_new = [], []
-        with _sigint_deferred():
+        with _sigint_deferred():  # a Ctrl-C during the swap arrives after it, the folders cleaned up
             try:
                 for name in sorted(replaced, key=lambda n: n != "result.json"):
                     os.replace(self.out / name, backup / name)
@@ -163,9 +167,10 @@ class OutputStage:
                     os.replace(backup / name, self.out / name)
                 shutil.rmtree(backup, ignore_errors=True)
                 raise
-        shutil.rmtree(backup, ignore_errors=True)
-        self.discard()
-        self.written = [self.out / name for name in new]
+            self.committed = True
+            shutil.rmtree(backup, ignore_errors=True)
+            self.discard()
+            self.written = [self.out / name for name in new]
         return self.written
 
 
