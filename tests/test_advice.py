@@ -1,4 +1,4 @@
-"""The error-radius diagnostic and the measured advice (finer grid / more data / smaller B).
+"""The error-radius diagnostic and the measured advice (finer grid / more data / sub-boxes / local pools).
 
 * The error radius is the excess of each learned image box over the range of the data-fitted
   function over the cell. It must move with a component when the state components are permuted
@@ -9,6 +9,8 @@
   wins; on a small robot problem like the newcomer's robot2d (noise bound 0.02, 4 modes), the
   finer grid wins and a real run on the finer grid confirms the gain.
 """
+
+import time
 
 import numpy as np
 import pytest
@@ -132,10 +134,10 @@ def test_advice_names_the_finer_grid_when_the_boxes_have_no_excess():
     flo, fhi = fits.grid_ranges(part.breakpoints)
     cb = CellBounds(flo, fhi, None)  # boxes exactly the function's range: nothing for data or B to remove
     adv = advise(part, cb, fits, noise, dfa, threshold=0.9, classes=_solve_classes(part, cb, noise, dfa),
-                 noise_floor=[0.02, 0.02], rkhs_bound=0.2)
+                 noise_floor=[0.02, 0.02])
     gains = {lv.name: lv.gain for lv in adv.levers}
     assert adv.winner == "finer grid" and gains["finer grid"] > 0.2
-    assert gains["more data"] == 0.0 and gains["smaller B"] == 0.0  # the same boxes, the same solve
+    assert gains["more data"] == 0.0  # the same boxes, the same solve
     assert "advice: finer grid (cell_size [0.125, 0.125]) decides most" in advice_line(adv.to_dict())
 
 
@@ -145,13 +147,10 @@ def test_advice_names_more_data_when_the_excess_is_far_above_the_noise_floor():
     flo, fhi = fits.grid_ranges(part.breakpoints)
     cb = CellBounds(flo - 0.2, fhi + 0.2, None)  # excess 0.2 per side, noise floor 0.02
     adv = advise(part, cb, fits, noise, dfa, threshold=0.9, classes=_solve_classes(part, cb, noise, dfa),
-                 noise_floor=[0.02, 0.02], rkhs_bound=0.2, min_norm=0.15)
+                 noise_floor=[0.02, 0.02])
     gains = {lv.name: lv.gain for lv in adv.levers}
-    # more data: excess 0.02; smaller B (0.15 of 0.2, the data's minimum): excess 0.15 (ratio B'/B
-    # without a pilot); finer grid: excess 0.2 kept on cells half as wide
-    assert adv.winner == "more data" and gains["more data"] > gains["smaller B"] >= 0
-    assert gains["more data"] > gains["finer grid"]
-    assert {lv.name: lv.setting for lv in adv.levers}["smaller B"] == "B = 0.15"
+    # more data: excess 0.02; finer grid: excess 0.2 kept on cells half as wide
+    assert adv.winner == "more data" and gains["more data"] > gains["finer grid"]
 
 
 def test_advice_pilots_cells_that_a_region_boundary_already_split():
@@ -164,15 +163,15 @@ def test_advice_pilots_cells_that_a_region_boundary_already_split():
     flo, fhi = fits.grid_ranges(part.breakpoints)
     seen = []
 
-    def bound_cells(lower, upper, rkhs_bound):  # a stand-in bound stage: the fitted range +- 0.05
+    def bound_cells(lower, upper, split_tol=None, local_points=None):  # a stand-in bound stage: fitted range +- 0.05
         seen.append(lower.shape[0])
         lo, hi = fits.cell_ranges(lower, upper)
         return lo - 0.05, hi + 0.05
 
     adv = advise(part, CellBounds(flo - 0.05, fhi + 0.05, None), fits, TruncatedGaussianNoise([0.01] * 2, [0.02] * 2),
                  ltlf_to_dfa("F goal"), threshold=0.9, classes=np.array(["maybe"] * 6), noise_floor=0.02,
-                 rkhs_bound=1.0, bound_cells=bound_cells)
-    assert seen == [4, 4]  # 4 pilot cells (at least 4), one sub-cell each, then the smaller-B pilot
+                 bound_cells=bound_cells)
+    assert seen == [4]  # 4 pilot cells (at least 4), one sub-cell each
     assert {lv.name: lv.excess_ratio for lv in adv.levers}["finer grid"] == pytest.approx(1.0)  # 0.05 / 0.05
 
 
@@ -181,7 +180,7 @@ def test_advice_checks_its_arguments():
     flo, fhi = fits.grid_ranges(part.breakpoints)
     with pytest.raises(DimensionError, match="classes must have shape"):
         advise(part, CellBounds(flo, fhi, None), fits, TruncatedGaussianNoise([0.01, 0.01], [0.02, 0.02]), dfa, threshold=0.9,
-               classes=np.array(["yes"]), noise_floor=0.02, rkhs_bound=0.2)
+               classes=np.array(["yes"]), noise_floor=0.02)
     with pytest.raises(DimensionError, match="one entry per mode"):
         fit_modes([], [], 1.0, 1e-2)
     assert isinstance(fits, FittedModes)
@@ -197,8 +196,9 @@ def tiny_runs(tmp_path_factory):
     from test_pipeline import tiny_problem
 
     cache = tmp_path_factory.mktemp("cache")
-    first = synthesize_from_data(tiny_problem(), progress=False, abstraction_cache=cache)
-    again = synthesize_from_data(tiny_problem(), progress=False, abstraction_cache=cache)  # from the cache
+    # advice=True: every lever, no time budget (the budget makes "auto" depend on the machine's speed)
+    first = synthesize_from_data(tiny_problem(), progress=False, abstraction_cache=cache, advice=True)
+    again = synthesize_from_data(tiny_problem(), progress=False, abstraction_cache=cache, advice=True)  # cached
     off = synthesize_from_data(tiny_problem(), progress=False, abstraction_cache=cache, advice=False)
     return first, again, off, tmp_path_factory.mktemp("out")
 
@@ -212,14 +212,14 @@ def test_the_run_prints_and_saves_the_advice(tiny_runs):
     first, again, off, out = tiny_runs
     adv = first.advice
     # all 40 points per mode are used, so there is no local-pools lever
-    assert [lv["name"] for lv in adv["levers"]] == ["finer grid", "more data", "smaller B", "sub-boxes"]
+    assert [lv["name"] for lv in adv["levers"]] == ["finer grid", "more data", "sub-boxes"]
     assert adv["baseline_share"] == pytest.approx(np.mean(first.class_names == "yes"))  # equal cells: share = count
     for lv in adv["levers"]:
         assert lv["gain"] is None or lv["gain"] == pytest.approx(lv["q_yes_share"] - adv["baseline_share"])
     assert "advice" in first.timings and first.summary().splitlines()[-2].startswith("advice: ")
-    # the cached abstraction keeps the data-level diagnostics; the advice is recomputed from the cached boxes
+    # the cached abstraction keeps the data-level diagnostics; the advice's estimates come from the cache too
     assert again.from_cache and again.diagnostics == first.diagnostics
-    assert again.advice == adv  # the same boxes, pilot cells and solves (no times in the advice itself)
+    assert again.advice == adv  # the same estimates (no times in the advice itself)
     assert off.advice == {} and "advice" not in off.timings and "advice:" not in off.summary()
     save_result(first, out)
     doc = json.loads((out / "result.json").read_text())
@@ -244,9 +244,9 @@ def split_runs():
     from test_pipeline import tiny_problem
 
     p = tiny_problem()  # l = 2 on cells of 0.5: r / l = 0.125, B = 6, a Taylor term far above SPLIT_TOL
-    plain = synthesize_from_data(p, progress=False)
+    plain = synthesize_from_data(p, progress=False, advice=True)
     lever = {v["name"]: v for v in plain.advice["levers"]}["sub-boxes"]
-    split = synthesize_from_data(p.replace(split_tol=_lever_split_tol(lever)), progress=False)
+    split = synthesize_from_data(p.replace(split_tol=_lever_split_tol(lever)), progress=False, advice=True)
     return plain, lever, split
 
 
@@ -276,14 +276,14 @@ def test_sub_box_lever_says_when_sub_boxes_change_nothing():
     flo, fhi = fits.grid_ranges(part.breakpoints)
     cb = CellBounds(flo - 0.05, fhi + 0.05, None)
 
-    def no_pilot(lower, upper, rkhs_bound, split_tol=None):
+    def no_pilot(lower, upper, split_tol=None, local_points=None):
         assert split_tol is None, "no pilot is bounded on sub-boxes"
         lo, hi = fits.cell_ranges(lower, upper)
         return lo - 0.05, hi + 0.05
 
     adv = advise(part, cb, fits, noise, dfa, threshold=0.9, classes=_solve_classes(part, cb, noise, dfa),
-                 noise_floor=[0.02, 0.02], rkhs_bound=0.2, bound_cells=no_pilot,
-                 sub_box_t=lambda lo, up: np.full(lo.shape[0], 1e-6))  # B rho(1e-6) far below SPLIT_TOL
+                 noise_floor=[0.02, 0.02], bound_cells=no_pilot,
+                 sub_box_terms=lambda lo, up: np.full(lo.shape[0], 1e-7))  # a Taylor term far below SPLIT_TOL
     lv = {v.name: v for v in adv.levers}["sub-boxes"]
     assert lv.gain is None and "change nothing" in lv.note and lv.setting.endswith("1 sub-boxes per cell")
     assert "sub-boxes: the Taylor term is below split_tol" in advice_line(adv.to_dict())
@@ -297,10 +297,10 @@ def test_local_pool_lever_estimates_a_real_run_with_all_points():
     sys.path.insert(0, str(Path(__file__).parent))
     from test_pipeline import tiny_problem
 
-    pooled = synthesize_from_data(tiny_problem(local_points=5), progress=False)  # 40 points per mode, pools of 5
+    pooled = synthesize_from_data(tiny_problem(local_points=5), progress=False, advice=True)  # pools of 5 of 40
     lv = {v["name"]: v for v in pooled.advice["levers"]}["larger local pools"]
     assert lv["setting"] == "local_points = 40 (all points), now 5"  # at most POOL_ALL_MAX points: all of them
-    full = synthesize_from_data(tiny_problem(), progress=False)  # all 40 points (the default below LOCAL_AUTO)
+    full = synthesize_from_data(tiny_problem(), progress=False, advice=True)  # all 40 points (below LOCAL_AUTO)
     base = pooled.advice["baseline_share"]
     real = float(np.mean(full.class_names == "yes"))
     assert real > base + 0.05  # the pools cost Q_yes here (0.156 -> 0.25 when written)
@@ -317,7 +317,8 @@ def test_local_pool_rule_of_the_run_and_the_proposal():
     from pathlib import Path
 
     from robust_imdp.pipeline.problem import LOCAL_AUTO, LOCAL_DEFAULT
-    from robust_imdp.pipeline.run import _local_pools, _residual_data
+    from robust_imdp.pipeline.advice_stage import _local_pools
+    from robust_imdp.pipeline.run import _residual_data
     from robust_imdp.synthesis.advice import POOL_ALL_MAX, POOL_FACTOR, pool_proposal
 
     sys.path.insert(0, str(Path(__file__).parent))
@@ -346,3 +347,227 @@ def test_advice_line_names_the_tight_preset_only_when_its_levers_win():
         assert "`run --tight` (Problem.tightened())" in advice_line(adv(w))
     assert "--tight" not in advice_line(adv("finer grid"))
     assert "--tight" not in advice_line({**adv(None), "winner": None})
+
+
+# =========================================================================== B is an assumption, not a lever
+def test_b_is_never_a_lever_and_the_advice_says_what_the_guarantee_needs(tiny_runs):
+    import re
+
+    first = tiny_runs[0]
+    adv = first.advice
+    B = float(first.problem.rkhs_bound)  # 6; the data need 3.205, which the smaller-B lever once proposed
+    line = first.summary().splitlines()[-2]
+    assert all(lv["name"] != "smaller B" for lv in adv["levers"])
+    # every B the advice prints is the problem's own: no value below it is offered, let alone one the check refuses
+    printed = [float(v) for v in re.findall(r"\bB = ([0-9.eE+-]+)", line + " ".join(lv["setting"] for lv in adv["levers"]))]
+    assert printed and all(v == B for v in printed), printed
+    need = max(c["minimum"] for c in first.diagnostics["assumption"]["min_norm"])
+    assert f"the data need ||g|| >= {need:.3g}" in adv["premise"] and "robust-imdp calibrate" in adv["premise"]
+    assert "an assumption, not a lever" in line
+
+
+def test_advice_line_states_the_budget_rule_and_the_premise():
+    adv = {"baseline_share": 0.1, "winner": None, "premise": "the guarantee needs ||g|| <= B = 2",
+           "budget_s": 12.0, "levers": [{"name": "finer grid", "setting": "s", "gain": None, "q_yes_share": None,
+                                         "note": "about 40 s, more than the 12 s left"}]}
+    line = advice_line(adv)
+    assert "budget 12 s = 25 % of the run's time before the advice" in line
+    assert "B: the guarantee needs ||g|| <= B = 2" in line and "finer grid: about 40 s" in line
+    assert "no budget (advice on)" in advice_line({**adv, "budget_s": None})
+
+
+# =========================================================================== the budget
+def _excess_setup():
+    part, fits, dfa = _robot_setup(0.25)
+    noise = TruncatedGaussianNoise([0.01, 0.01], [0.02, 0.02])
+    flo, fhi = fits.grid_ranges(part.breakpoints)
+    cb = CellBounds(flo - 0.1, fhi + 0.1, None)  # excess 0.1 per side: "more data" changes every box
+    return part, fits, dfa, noise, cb, _solve_classes(part, cb, noise, dfa)
+
+
+def _instant(shares):
+    """A stand-in solver: every job's share at once, the jobs it was given recorded."""
+    seen = []
+
+    def solve(jobs, deadline):
+        for i, job in enumerate(jobs):
+            seen.append(job.name)
+            yield i, shares[job.name]
+
+    return solve, seen
+
+
+def test_a_lever_whose_predicted_cost_exceeds_the_budget_is_not_estimated_and_says_why():
+    part, fits, dfa, noise, cb, classes = _excess_setup()
+    solve, seen = _instant({"more data": 0.5, "finer grid": 0.6})
+    # 1 s per listed transition: every re-solve is predicted to take hours, so none fits a 30 s budget
+    adv = advise(part, cb, fits, noise, dfa, threshold=0.9, classes=classes, noise_floor=0.02, budget_s=30.0,
+                 per_transition=1.0, transitions=1000.0, solver=solve)
+    assert seen == [] and all(lv.gain is None for lv in adv.levers) and adv.winner is None
+    for lv in adv.levers:
+        assert "left of the advice's budget 30 s = 25 % of the run's time" in lv.note and "--advice on" in lv.note
+        assert float(lv.note.split("about ")[1].split(" s")[0]) > 30  # what it would cost, in seconds
+    assert adv.budget_s == 30.0 and "budget 30 s" in advice_line(adv.to_dict())
+    # without a budget (advice=True) every lever is estimated, whatever it costs
+    solve, seen = _instant({"more data": 0.5, "finer grid": 0.6})
+    adv = advise(part, cb, fits, noise, dfa, threshold=0.9, classes=classes, noise_floor=0.02, budget_s=None,
+                 per_transition=1.0, transitions=1000.0, solver=solve)
+    assert seen == ["more data", "finer grid"] and adv.winner == "finer grid"
+
+
+def test_the_finer_grid_is_planned_with_the_cost_measured_on_the_grid_s_own_levers():
+    part, fits, dfa, noise, cb, classes = _excess_setup()
+    # the run's cost model says 1 ms per transition: the grid's re-solve (1,000 transitions) 1 s, the finer
+    # grid's (its sampled transitions, > 30,000) over 30 s, more than the 20 s budget; the re-solve of "more
+    # data" then takes no time at all (a stand-in solver), and so is the finer grid predicted to
+    solve, seen = _instant({"more data": 0.5, "finer grid": 0.6})
+    adv = advise(part, cb, fits, noise, dfa, threshold=0.9, classes=classes, noise_floor=0.02, budget_s=20.0,
+                 per_transition=1e-3, transitions=1000.0, solver=solve)
+    assert seen == ["more data", "finer grid"] and adv.winner == "finer grid"
+
+
+def test_a_re_solve_past_the_deadline_is_abandoned():
+    from robust_imdp.synthesis.advice import SolveJob, serial_solver
+
+    part, fits, dfa, noise, cb, classes = _excess_setup()
+    solve = serial_solver(noise, dfa, threshold=0.9)
+    job = SolveJob("more data", part, cb.image_lower, cb.image_upper, 1.0)
+    assert list(solve([job, job], time.perf_counter() - 1.0)) == [(0, None), (1, None)]
+    (i, share), = list(solve([job], None))
+    assert i == 0 and share == pytest.approx(np.mean(classes == "yes"))  # the same boxes: the run's Q_yes
+    # abandoned re-solves give levers that say so
+    adv = advise(part, cb, fits, noise, dfa, threshold=0.9, classes=classes, noise_floor=0.02, budget_s=1e6,
+                 solver=lambda jobs, deadline: ((i, None) for i in range(len(jobs))))
+    assert all(lv.gain is None and "stopped at the end of the advice's budget" in lv.note for lv in adv.levers)
+
+
+def test_the_finer_grid_s_transitions_are_predicted_from_a_sample():
+    # Wide boxes and noise (a row spans many cells): the cost of the finer grid is its listed transitions,
+    # 2^d times the cells with up to 2^d times the successors per row; 64 sampled sub-cells predict them
+    from robust_imdp.abstraction.rows import abstract
+    from robust_imdp.synthesis.advice import _sampled_transitions
+
+    part, fits, dfa = _robot_setup(0.25)
+    fine = Partition(part.space, 0.125, part.regions)
+    flo, fhi = fits.grid_ranges(fine.breakpoints)
+    noise = TruncatedGaussianNoise([0.05, 0.05], [0.15, 0.15])
+    cb = CellBounds(flo - 0.1, fhi + 0.1, None)
+    predicted, per = _sampled_transitions(fine, cb.image_lower, cb.image_upper, noise, {})
+    real = float(np.sum(abstract(fine, cb, noise).nnz_per_row))
+    assert per > 0 and abs(predicted / real - 1) < 0.15  # 64 of 1,024 cells, evenly spaced: within 15 %
+
+
+# =========================================================================== cache, interrupt, resume
+def _counting_job_share(monkeypatch, fail_at=None):
+    import robust_imdp.synthesis.advice as advice_module
+
+    real = advice_module.job_share
+    calls = []
+
+    def counted(job, *args, **kwargs):
+        calls.append(job.name)
+        if fail_at is not None and len(calls) == fail_at:
+            raise KeyboardInterrupt
+        return real(job, *args, **kwargs)
+
+    monkeypatch.setattr(advice_module, "job_share", counted)
+    return calls
+
+
+def test_an_advice_interrupted_by_ctrl_c_resumes_from_the_estimates_it_saved(tmp_path, monkeypatch, capsys, tiny_runs):
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_pipeline import tiny_problem
+
+    whole = tiny_runs[0].advice  # the same problem, uninterrupted
+    cache = tmp_path / "cache"
+    calls = _counting_job_share(monkeypatch, fail_at=2)  # Ctrl-C in the second re-solve
+    with pytest.raises(KeyboardInterrupt):
+        synthesize_from_data(tiny_problem(), progress=True, abstraction_cache=cache, advice=True)
+    err = capsys.readouterr().err
+    assert f"advice interrupted after the solve: 1 estimate kept in {cache}: the same command reuses it" in err
+    (entry,) = cache.glob("advice-*.json")
+    calls = _counting_job_share(monkeypatch)
+    again = synthesize_from_data(tiny_problem(), progress=True, abstraction_cache=cache, advice=True)
+    assert len(calls) == 2  # the two estimates not saved; the first is reused
+    assert "advice: 1 estimate reused from " + entry.name in capsys.readouterr().err
+    assert again.advice == whole
+    calls = _counting_job_share(monkeypatch)
+    third = synthesize_from_data(tiny_problem(), progress=False, abstraction_cache=cache, advice=True)
+    assert calls == [] and third.advice == whole  # a re-run re-solves nothing
+
+
+def test_the_command_interrupted_in_the_advice_resumes_it(tmp_path, monkeypatch, capsys):
+    from problem_texts import write_one_d
+
+    from robust_imdp.cli import main
+
+    path = write_one_d(tmp_path)
+    out = tmp_path / "out"
+    _counting_job_share(monkeypatch, fail_at=1)
+    assert main(["run", str(path), "--out", str(out), "--no-figures", "--advice", "on"]) == 130
+    err = capsys.readouterr().err
+    assert "advice interrupted after the solve: 0 estimates kept" in err
+    assert err.strip().splitlines()[-1].startswith(f"robust-imdp: interrupted; the finished chunks are saved in "
+                                                   f"{out / 'cache'}: run the same command again to resume")
+    calls = _counting_job_share(monkeypatch)
+    assert main(["run", str(path), "--out", str(out), "--no-figures", "--advice", "on"]) == 0
+    err = capsys.readouterr().err
+    assert "reused abstraction" in err and calls  # the run resumes at the advice
+    calls.clear()
+    assert main(["run", str(path), "--out", str(out), "--no-figures", "--advice", "on"]) == 0
+    assert calls == [] and "reused from" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_the_re_solves_on_a_two_process_cluster_give_the_same_estimates(tiny_runs):
+    import sys
+    from pathlib import Path
+
+    distributed = pytest.importorskip("distributed")
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_pipeline import tiny_problem
+
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                                  silence_logs=50) as cluster, distributed.Client(cluster) as client:
+        res = synthesize_from_data(tiny_problem(), progress=False, client=client, advice=True)
+    assert res.advice == tiny_runs[0].advice  # the same rows, in any order of completion: the same estimates
+
+
+# =========================================================================== assumptions per component
+def test_advice_with_a_known_component_and_a_periodic_axis():
+    # The cylinder of test_periodic_pipeline: rkhs_bound [0.3, 0] (the heading is known) and a periodic
+    # heading. Such problems got no advice at all, without a word.
+    from test_periodic_pipeline import PI, Cylinder
+
+    system = Cylinder()
+    rng = np.random.default_rng(0)
+    n = 150
+    x = np.column_stack([rng.uniform(0, 2, 2 * n), rng.uniform(-PI, PI, 2 * n)])
+    modes = np.repeat([0, 1], n)
+    x_next = system.step(x, modes, rng)
+    x_next[:, 1] = (x_next[:, 1] + PI) % (2 * PI) - PI
+
+    def problem(cell):
+        return Problem.from_arrays(
+            x, np.array(system.mode_names)[modes], x_next, lower=[0, -PI], upper=[2, PI], cell_size=cell,
+            regions={"goal": ([0, -PI], [2, -2.4]), "obs": ([0, -0.6], [2, 0.6])}, formula="G !obs & F goal",
+            threshold=0.5, modes={"plus": (np.eye(2), [0, 0.6]), "minus": (np.eye(2), [0, -0.6])},
+            noise=TruncatedGaussianNoise([0.01, 0.01], [0.02, 0.02]), rkhs_bound=[0.3, 0.0], lengthscale=1.5,
+            periodic=(False, True))
+
+    coarse = synthesize_from_data(problem([0.5, 2 * PI / 8]), progress=False, advice=True)
+    adv = coarse.advice
+    levers = {lv["name"]: lv for lv in adv["levers"]}
+    assert set(levers) >= {"finer grid", "more data"}
+    assert levers["finer grid"]["gain"] is not None and levers["more data"]["gain"] is not None
+    assert "rkhs_bound of each mode and component (largest 0.3; 2 known components" in adv["premise"]
+    # the estimate of the finer grid, checked by a real run on it (0.5 -> 0.25 and 8 -> 16 headings)
+    fine = synthesize_from_data(problem([0.25, 2 * PI / 16]), progress=False, advice=False)
+    part = fine.partition
+    vol = np.prod(part.cells_upper - part.cells_lower, axis=1)  # the regions cut some cells: shares of volume
+    real = float(vol[fine.class_names == "yes"].sum() / vol.sum())
+    # 0.123 -> about 0.436 estimated, 0.432 real when written
+    assert real > adv["baseline_share"] + 0.2 and abs(levers["finer grid"]["q_yes_share"] - real) <= 0.05

@@ -130,10 +130,10 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--threshold", type=_probability, default=None, help="override [spec].threshold")
     run.add_argument("--no-figures", action="store_true", help="do not write PNG figures")
     run.add_argument("--advice", choices=("auto", "on", "off"), default="auto",
-                     help="estimate which lever (2x finer grid, more data, smaller B, sub-boxes, larger local "
-                          "pools) would move most of X into Q_yes, by re-solving with modified image boxes; "
-                          "auto: when the finer grid has at most 65,536 cells and ~3e6 listed transitions "
-                          "(cells x modes x 3^d)")
+                     help="estimate which lever (2x finer grid, more data, sub-boxes, larger local pools) would "
+                          "move most of X into Q_yes, by re-solving with modified image boxes; auto: cheapest "
+                          "first within 25 %% of the run's time before it (re-solves of at most 65,536 cells); "
+                          "on: every lever, no budget")
     _add_tight(run)
     run.add_argument("--quiet", action="store_true", help="no progress lines")
     run.add_argument("--workers", type=_at_least(1), default=None,

@@ -198,6 +198,6 @@ def excess_radius(lower, upper, fit_lower, fit_upper) -> np.ndarray:
 
     0 means the box is as narrow as the fitted function's own spread over the cell (only a
     finer grid narrows it); a value near the cell's half-width means the uncertainty about ``g``
-    alone spreads the image over neighbouring cells (more data or a smaller B narrow it).
+    alone spreads the image over neighbouring cells (more data narrows it).
     """
     return np.maximum(0.5 * ((upper - lower) - (fit_upper - fit_lower)), 0.0)

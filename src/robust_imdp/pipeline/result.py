@@ -82,8 +82,8 @@ class Result:
     from_cache : bool
         Whether the abstraction was reused.
     advice : dict
-        Which lever (finer grid, more data, smaller B, sub-boxes, larger local pools) would move most of X
-        into Q_yes, estimated after the solve (``advice.Advice.to_dict()``; empty when not estimated, and after
+        Which lever (finer grid, more data, sub-boxes, larger local pools) would move most of X into Q_yes,
+        estimated after the solve (``advice.Advice.to_dict()``; empty with ``advice=False`` and after
         :func:`resynthesize`).
     diagnostics : dict
         Why cells are undecided (JSON-able): the stated confidence, the error radius ``eps``

@@ -59,7 +59,7 @@ from robust_imdp.pipeline.bound_stage import (
     _learn_and_bound,
     _residual_data,
 )
-from robust_imdp.pipeline.bound_rkhs import _pilot_task
+from robust_imdp.pipeline.advice_stage import run_advice
 
 
 __all__ = ["Problem", "Result", "synthesize_from_data", "resynthesize", "abstraction_key",
@@ -236,13 +236,12 @@ def synthesize_from_data(problem: Problem, *, progress: bool = True, abstraction
     check_resources : bool
         Refuse (``ResourceError``) when the pre-flight memory estimate exceeds the memory free.
     advice : {"auto", True, False}
-        After the solve, estimate which lever (a 2x finer grid, more data, a smaller B, sub-boxes) would move
-        most of X into Q_yes (:func:`robust_imdp.synthesis.advice.advise`; ``result.advice``, the summary's
-        ``advice:`` line and ``result.json``'s ``diagnostics.advice``). ``"auto"``: when the
-        finer grid has at most ``advice.MAX_CELLS`` cells and about
-        ``advice.MAX_AUTO_TRANSITIONS`` listed transitions (cells x modes x 3^d); it then costs
-        three abstract + solve passes (one on the finer grid) and at most 16 pilot cells per mode
-        of the bound stage, twice; True: always; False: never.
+        After the solve, estimate which lever (a 2x finer grid, more data, sub-boxes, larger local pools) would
+        move most of X into Q_yes (``pipeline/advice_stage.py``, :func:`robust_imdp.synthesis.advice.advise`;
+        ``result.advice``, the summary's ``advice:`` line and ``result.json``'s ``diagnostics.advice``).
+        ``"auto"``: within a budget of ``advice.ADVICE_SHARE`` (25 %) of the run's time before it, cheapest
+        lever first, each re-solve of at most ``advice.MAX_CELLS`` cells; True: every lever, no budget; False:
+        none. Its estimates are saved in ``abstraction_cache`` as they complete and reused by a later run.
 
     Returns
     -------
@@ -296,7 +295,8 @@ def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cac
     if why:
         log.info(why)
     syn, classes = _synthesize(problem, partition, abstraction, dfa, log)
-    advice = _advice(problem, partition, cell_bounds, dfa, classes, log, run, abstraction_cache, diagnostics)
+    advice = run_advice(problem, partition, abstraction, cell_bounds, dfa, classes, log, run, abstraction_cache,
+                        diagnostics)
     parameters = _parameters(problem, abstraction)
     if problem.refine is not None:  # adaptive refinement of the undecided cells (see docs/refinement.md)
         partition, abstraction, syn, classes, diagnostics, parameters["abstraction_key"] = _refine(
@@ -307,88 +307,6 @@ def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cac
                     parameters=parameters, from_cache=from_cache,
                     diagnostics=diagnostics, advice=advice)
     return result
-
-
-def _advice(problem: Problem, partition, cell_bounds, dfa, classes, log: _Log, run: _Run, cache_dir,
-            diagnostics: dict) -> dict:
-    """:func:`robust_imdp.synthesis.advice.advise` as a JSON-able dict when the run asks for it, else ``{}``."""
-    from robust_imdp.synthesis.advice import MAX_AUTO_TRANSITIONS, MAX_CELLS, advice_line, advise
-
-    want = getattr(run, "advice", "auto")
-    if not _settings(problem).uniform:
-        return {}  # the smaller-B lever halves one B; per-mode and per-component assumptions have many
-    n_fine = partition.n_cells * 2 ** partition.dim
-    work = n_fine * len(problem.mode_names) * 3 ** partition.dim  # ~ listed transitions of the finer grid
-    if (want is False or (want == "auto" and (n_fine > MAX_CELLS or work > MAX_AUTO_TRANSITIONS))
-            or not problem.method.advice_pilot):
-        return {}  # no pilot bound stage for the method (the GP route's boxes come from bounds.bound_image)
-    if cell_bounds is None and cache_dir is not None:  # the abstraction came from the cache: its boxes too
-        bounds_file = Path(cache_dir) / f"bounds-{bounds_key(problem)}.npz"
-        loaded = read_cache_entry(bounds_file, _load_bounds)  # None when absent or damaged
-        if loaded is not None:
-            cell_bounds = loaded[0]
-    if cell_bounds is None:
-        return {}
-    from robust_imdp.bounds.rkhs import noise_bound_at_confidence
-
-    data = _residual_data(problem)
-    data_fail, _ = _failure_budget(problem)
-    noise_bound, _ = noise_bound_at_confidence(problem.noise, sum(x.shape[0] for x, _, _ in data),
-                                               data_fail if data_fail > 0 else 0.5)
-    tau = float(problem.misspecification)
-    # dense data pin g down to within the data-noise bound (a constant offset of the noise looks
-    # like g); with iid noise the sub-Gaussian bound shrinks further, to tau
-    floor = np.full(len(noise_bound), tau) if problem.iid_noise else np.asarray(noise_bound, float) + tau
-    mins = [c["minimum"] for c in diagnostics.get("assumption", {}).get("min_norm", [])]
-    bounders: dict = {}
-
-    def bound_cells(lower, upper, rkhs_bound, split_tol=None, local_points=None):
-        key = (rkhs_bound, split_tol, local_points)
-        if key not in bounders:
-            p = problem.replace(rkhs_bound=rkhs_bound, split_tol=problem.split_tol if split_tol is None else split_tol,
-                                local_points=problem.local_points if local_points is None else local_points)
-            bounders[key] = _cell_bounder(p, partition, _Log(False), run, task=_pilot_task)
-        return bounders[key](lower, upper)
-
-    with log.stage("advice"):
-        adv = advise(partition, cell_bounds, _fitted(problem, data), problem.noise, dfa, threshold=problem.threshold,
-                     horizon=problem.horizon, classes=classes, noise_floor=floor, rkhs_bound=problem.rkhs_bound,
-                     min_norm=max(mins, default=0.0),
-                     abstraction_options={"eta": problem.eta, "eps_rule": problem.eps_rule,
-                                          "combine": problem.combine},
-                     bound_cells=bound_cells, max_cells=MAX_CELLS if want == "auto" else 2 ** 62,
-                     sub_box_t=_sub_box_t(problem), local_pools=_local_pools(problem, data))
-    from robust_imdp.jsonable import jsonable as _jsonable
-
-    out = _jsonable(adv.to_dict())
-    log.info(advice_line(out))
-    return out
-
-
-def _local_pools(problem: Problem, data):
-    """``(k, m)`` when some mode's cells are certified with weights on its ``k`` nearest points (the bound
-    stage's rule: ``local_points``, or ``LOCAL_DEFAULT`` above ``LOCAL_AUTO`` points per mode) and the largest
-    mode has ``m`` points; None when every mode uses all its points or the method has no local weights."""
-    from robust_imdp.pipeline.problem import pool_size
-
-    if not problem.method.local_points:  # the method has no local weights (the GP route)
-        return None
-    sizes = [x.shape[0] for x, _, _ in data]
-    pooled = [k for k in (pool_size(problem.local_points, m) for m in sizes) if k is not None]
-    return (min(pooled), int(max(sizes))) if pooled else None
-
-
-def _sub_box_t(problem: Problem):
-    """``t(lower, upper)``: every cell's ``t_max = sum r^2 / l^2`` on the problem's one lengthscale (what
-    ``rkhs.split_counts`` weighs, as the bound stage computes it), or None where the run cannot split or
-    already does (no sub-box lever)."""
-    if problem.split_tol is not None or not problem.method.split:
-        return None
-    from robust_imdp._kernels import inv_l2_up
-    from robust_imdp.bounds.rkhs_model import cell_centres, t_max_up
-
-    inv_l2 = inv_l2_up(problem.gp_options.get("lengthscale", 1.0), int(np.size(problem.space_lower)))
-    return lambda lower, upper: t_max_up(cell_centres(lower, upper)[1], inv_l2)
 
 
 def _refine(problem: Problem, partition, abstraction, syn, cell_bounds, dfa, log: _Log, run: _Run, cache_dir,

@@ -6,7 +6,7 @@ A learned image box must contain ``{f_u(x) + g_u(x) : x in cell}``. Two things m
   range of a data-fitted function ``f_u + g_hat_u`` (:class:`FittedModes`; ``g_hat`` is the
   kernel-ridge fit of the residuals with the problem's SE kernel);
 * the **excess**: what the box adds on top of that spread because ``g`` is only known through
-  noisy data and ``||g|| <= B`` (it shrinks with more data down to the noise floor, and with B).
+  noisy data and ``||g|| <= B`` (it shrinks with more data down to the noise floor).
 
 :func:`excess_radius` is half the difference of the two widths, computed the same way for every
 mode and component from the boxes and the fit alone, so it moves with a component when the
@@ -20,8 +20,6 @@ components are permuted (the boxes and the fit do; tested).
 * **more data**: the excess shrunk to its noise floor (``noise_floor``: the data noise bound plus
   tau, the limit of the deterministic bound when data are dense: a constant offset of the noise
   cannot be told apart from ``g``);
-* **smaller B** (``max(B/2, the data-implied minimum norm)``): the excess scaled by the ratio
-  measured on pilot cells bounded with that B;
 * **sub-boxes** (only where the run did not split): ``split_tol`` set so the cells with the largest
   Taylor term are halved once per axis; the excess scaled by the ratio measured on pilot cells
   certified on those sub-boxes; the setting names the grid's mean number of sub-boxes per cell (the
@@ -31,38 +29,59 @@ components are permuted (the boxes and the fit do; tested).
   else ``POOL_FACTOR k``; the excess scaled by the ratio measured on the pilot cells bounded with those
   pools.
 
-Each estimate re-abstracts (Thm 1, ``abstraction.abstract``) and re-solves
-(``synthesis.synthesize``) with the modified boxes; the bound stage, the expensive one, runs only
-on the pilot cells. The estimates are estimates: they say which lever to try, not what a run
-will certify (the printed bounds of a run come only from its own bound stage).
+``rkhs_bound`` (B) is not a lever: it is an assumption about the true system, and a smaller B gives more
+Q_yes only by claiming more about ``g``. The advice states what the guarantee needs instead (``premise``,
+written by the caller: ``||g|| <= B`` against the data's certified minimum norm); evidence on B comes from
+``robust-imdp calibrate``.
+
+Each estimate re-abstracts (Thm 1, ``abstraction.abstract_rows``) and re-solves (``synthesis.synthesize``)
+with the modified boxes; the bound stage runs only on the pilot cells. The estimates are estimates: they
+say which lever to try, not what a run will certify (the printed bounds of a run come only from its own
+bound stage).
+
+**Cost and budget.** A re-solve costs about the listed transitions of its IMDP times the run's own seconds
+per transition. The finer grid has ``2^d`` times the cells and, where the noise or the boxes span many
+cells, up to ``2^d`` times the successors per row: 16x the transitions of the run in 2-D, and more seconds
+per transition at that size (robot2d_dense of ``benchmarks/advice_cost.py``: 140 million transitions,
+136 s, against 4.4 s for the run's 9.6 million). Its transitions are predicted from
+:data:`SAMPLE_CELLS` sub-cells abstracted for real. With ``budget_s`` the levers are estimated cheapest
+first while their predicted cost fits what is left of the budget; a re-solve still running at its end is
+abandoned between chunks of rows; a lever not estimated says why and what it would cost.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
 from robust_imdp.bounds.fit import FIT_POINTS, FittedModes, _excess_sides, excess_radius, fit_modes  # noqa: F401
 from robust_imdp.errors import DimensionError
 
-__all__ = ["FittedModes", "fit_modes", "excess_radius", "Lever", "Advice", "advise", "advice_line", "LEVERS",
-           "MAX_CELLS", "MAX_AUTO_TRANSITIONS", "FIT_POINTS", "PILOT_CELLS", "MIN_GAIN"]
+__all__ = ["FittedModes", "fit_modes", "excess_radius", "Lever", "Advice", "SolveJob", "advise", "advice_line",
+           "serial_solver", "job_rows", "job_share", "LEVERS", "MAX_CELLS", "FIT_POINTS", "PILOT_CELLS", "MIN_GAIN",
+           "ADVICE_SHARE", "ROW_CHUNK", "SAMPLE_CELLS"]
 
-#: Undecided cells (at most) bounded for real to calibrate the finer-grid and smaller-B estimates:
-#: each once with the smaller B and one of its sub-cells.
+#: Undecided cells (at most) bounded for real to calibrate an estimate (per lever that needs a pilot).
 PILOT_CELLS = 16
 #: The pilot takes at most 1/_PILOT_FRACTION of the grid's cells (so it costs at most about
-#: 2/_PILOT_FRACTION of the bound stage), but at least _PILOT_MIN of them.
+#: 1/_PILOT_FRACTION of the bound stage per lever, times the lever's factor), but at least _PILOT_MIN of them.
 _PILOT_FRACTION = 16
 _PILOT_MIN = 4
-#: Largest number of cells an estimate abstracts and solves (the finer grid has 2^d times the cells).
+#: Largest number of cells an estimate abstracts and solves with ``advice="auto"`` (the finer grid has 2^d
+#: times the cells).
 MAX_CELLS = 65536
-#: ``advice="auto"`` runs when the finer grid's IMDP has at most about this many listed transitions
-#: (cells x modes x 3^d): a few seconds of abstraction and solving at the case studies' speed.
-MAX_AUTO_TRANSITIONS = 3_000_000
-LEVERS = ("finer grid", "more data", "smaller B", "sub-boxes", "larger local pools")
+#: ``advice="auto"`` spends at most this share of the run's time before the advice on it (the budget); the
+#: advice is then at most 1/5 of the whole run.
+ADVICE_SHARE = 0.25
+#: The levers, in the order the advice lists them.
+LEVERS = ("finer grid", "more data", "sub-boxes", "larger local pools")
+#: The order in which they are estimated, in two rounds: the grid's own levers, then the finer grid (2^d times
+#: the cells), planned with the seconds per transition measured on the first round.
+_GROUPS = (("more data", "sub-boxes", "larger local pools"), ("finer grid",))
 #: The levers the ``tight`` preset (``pipeline.problem.tight_settings``) pulls: the advice line names it when
 #: one of them wins.
 TIGHT_LEVERS = ("sub-boxes", "larger local pools")
@@ -74,6 +93,18 @@ MIN_GAIN = 0.005
 #: above it, POOL_FACTOR times today's pool.
 POOL_ALL_MAX = 2048
 POOL_FACTOR = 4
+#: Cells per chunk of rows of a re-solve (the budget is checked between chunks).
+ROW_CHUNK = 4096
+#: Sub-cells of the finer grid abstracted for real to predict its listed transitions.
+SAMPLE_CELLS = 64
+#: Seconds per listed transition of a re-solve of at least _LARGE_TRANSITIONS transitions (half a gigabyte of
+#: rows), over those measured on smaller ones: memory traffic (robot2d_dense of benchmarks/advice_cost.py, the
+#: finer grid's 140 million transitions: 0.97 us each, against 0.46 us for the grid's 9.6 million).
+_LARGE_FACTOR = 2.0
+_LARGE_TRANSITIONS = 20_000_000
+#: Without the run's own seconds per transition (its abstraction came from the cache), a re-solve is taken to
+#: cost this many times the rows of the sampled cells (rows are about half of a re-solve at large sizes).
+_ROWS_SHARE = 2.0
 
 
 # ============================================================================ the advice
@@ -98,26 +129,44 @@ class Lever:
 
 @dataclass(frozen=True)
 class Advice:
-    """The measured advice: baseline Q_yes share, one :class:`Lever` per lever, the winner."""
+    """The measured advice: baseline Q_yes share, one :class:`Lever` per lever, the winner.
+
+    ``premise``: what the guarantee needs of the assumption (B is not a lever); ``budget_s``: the seconds the
+    advice could spend (None: no budget); ``reused``: estimates taken from an earlier run (the cache)."""
 
     baseline_share: float
     levers: tuple = field(default_factory=tuple)
     winner: str | None = None
     seconds: float = 0.0
     note: str = ""
+    premise: str = ""
+    budget_s: float | None = None
+    reused: int = 0
 
     def to_dict(self) -> dict:
-        """JSON-able, without ``seconds`` (the run's ``timings["advice"]`` has the time)."""
+        """JSON-able, without ``seconds`` and ``reused`` (the run's ``timings["advice"]`` has the time)."""
         return {"baseline_share": self.baseline_share, "levers": [lv.to_dict() for lv in self.levers],
-                "winner": self.winner, "note": self.note}
+                "winner": self.winner, "note": self.note, "premise": self.premise, "budget_s": self.budget_s}
+
+
+def budget_text(budget_s) -> str:
+    """The budget rule in words (the advice line and the progress lines)."""
+    if budget_s is None:
+        return "no budget (advice on)"
+    return f"budget {_secs(budget_s)} = {100 * ADVICE_SHARE:.0f} % of the run's time before the advice"
+
+
+def _secs(x: float) -> str:
+    return f"{x:.1f} s" if x < 10 else f"{x:.0f} s"
 
 
 def advice_line(adv: dict) -> str:
     """One line naming the lever that decides most (from :meth:`Advice.to_dict`)."""
     if not adv:
         return ""
+    premise = f"; B: {adv['premise']}" if adv.get("premise") else ""
     if adv.get("winner") is None and not adv.get("levers"):
-        return f"advice: {adv.get('note', '')}".rstrip()
+        return f"advice: {adv.get('note', '')}".rstrip() + premise
 
     def pct(v):
         return f"{100 * v:.1f} %"
@@ -137,7 +186,8 @@ def advice_line(adv: dict) -> str:
             text += "; `run --tight` (Problem.tightened()) sets sub-boxes and larger local pools together"
     if skipped:
         text += f"; not estimated: {skipped}"
-    return text + " (estimated by re-solving with modified image boxes)"
+    budget = f"; {budget_text(adv['budget_s'])}" if "budget_s" in adv else ""
+    return text + premise + f" (estimated by re-solving with modified image boxes{budget})"
 
 
 def _share(partition, yes) -> float:
@@ -145,15 +195,72 @@ def _share(partition, yes) -> float:
     return float(np.sum(vol[yes]) / np.sum(vol))
 
 
-def _q_yes(partition, lower, upper, noise, dfa, threshold, horizon, options) -> float:
-    """Q_yes share (volume) of the abstraction of these boxes (Thm 1) after the robust solve."""
-    from robust_imdp.abstraction.rows import CellBounds, abstract
+# ============================================================================ re-solves
+@dataclass(frozen=True, eq=False)
+class SolveJob:
+    """One re-solve of the advice: the Q_yes share of X of the abstraction of these image boxes.
+
+    Attributes
+    ----------
+    name : str
+        The lever.
+    partition : geometry.Partition
+    lower, upper : (n_modes, n_cells, n) float arrays
+        The modified image boxes.
+    transitions : float
+        Its predicted listed transitions (the cost model's unit).
+    """
+
+    name: str
+    partition: object
+    lower: np.ndarray
+    upper: np.ndarray
+    transitions: float
+
+
+def job_rows(partition, lower, upper, noise, options: dict):
+    """The IMDP rows (Thm 1, ``abstraction.abstract_rows``) of the cells whose boxes ``[lower, upper]``
+    ``(n_modes, k, n)`` are given: one chunk of a :class:`SolveJob`."""
+    from robust_imdp.abstraction.rows import CellBounds, abstract_rows
+
+    return abstract_rows(partition, CellBounds(lower, upper, None), noise, None, **options)
+
+
+def job_share(job: SolveJob, pieces, dfa, *, threshold: float, horizon=None, semantics: str = "auto") -> float:
+    """Q_yes share (volume) of ``job`` from its rows' chunks in cell order, after the robust solve."""
+    from robust_imdp.abstraction.rows import assemble_abstraction
     from robust_imdp.synthesis.core import synthesize
 
-    ab = abstract(partition, CellBounds(lower, upper, None), noise, None, **options)
-    syn = synthesize(ab.imdp, partition.labels, partition.atoms, dfa, threshold=threshold, horizon=horizon,
-                     outside_state=partition.outside_state)
-    return _share(partition, np.asarray(syn.p_low) >= threshold)  # Q_yes: p_low >= threshold (Sec. 5)
+    part = job.partition
+    ab = assemble_abstraction(part, list(pieces))
+    kw = {} if semantics == "auto" else {"semantics": semantics}
+    syn = synthesize(ab.imdp, part.labels, part.atoms, dfa, threshold=threshold, horizon=horizon,
+                     outside_state=part.outside_state, **kw)
+    return _share(part, np.asarray(syn.p_low) >= threshold)  # Q_yes: p_low >= threshold (Sec. 5)
+
+
+def serial_solver(noise, dfa, *, threshold: float, horizon=None, options=None, semantics: str = "auto"):
+    """``solve(jobs, deadline)``: the re-solves one after the other in this process.
+
+    Yields ``(index, share)`` per job, ``share`` None for a job abandoned because ``time.perf_counter()``
+    passed ``deadline`` (None: no deadline) between two chunks of its rows.
+    """
+    opts = dict(options or {})
+
+    def solve(jobs, deadline):
+        for i, job in enumerate(jobs):
+            pieces = []
+            for s0 in range(0, job.partition.n_cells, ROW_CHUNK):
+                if deadline is not None and time.perf_counter() > deadline:
+                    break
+                sl = slice(s0, s0 + ROW_CHUNK)
+                pieces.append(job_rows(job.partition, job.lower[:, sl], job.upper[:, sl], noise, opts))
+            else:
+                yield i, job_share(job, pieces, dfa, threshold=threshold, horizon=horizon, semantics=semantics)
+                continue
+            yield i, None
+
+    return solve
 
 
 def _shrunk(lower, upper, fit_lower, fit_upper, e_lo, e_hi):
@@ -177,12 +284,26 @@ def _ratio(num, den) -> np.ndarray:
     return np.clip(np.where(b > 0, a / np.where(b > 0, b, 1.0), 1.0), 0.0, 1.0)
 
 
+def _sampled_transitions(partition, lower, upper, noise, options, k: int = SAMPLE_CELLS):
+    """(predicted listed transitions of the whole partition, seconds per transition of the sampled rows): the
+    rows of ``k`` evenly spaced cells abstracted for real, scaled to all cells."""
+    n = partition.n_cells
+    idx = np.unique(np.linspace(0, n - 1, min(int(k), n)).round().astype(np.int64))
+    t0 = time.perf_counter()
+    rows = job_rows(partition, lower[:, idx], upper[:, idx], noise, options)
+    dt = time.perf_counter() - t0
+    nnz = max(int(np.asarray(rows.col).size), 1)
+    return nnz * n / idx.size, dt / nnz
+
+
+# ============================================================================ the estimate
 def advise(partition, cell_bounds, fits: FittedModes, noise, dfa, *, threshold: float, horizon=None,
-           classes, noise_floor, rkhs_bound: float, min_norm: float = 0.0, abstraction_options=None,
-           bound_cells=None, max_cells: int = MAX_CELLS, pilot_cells: int = PILOT_CELLS,
-           progress=None, sub_box_t=None, local_pools=None) -> Advice:
-    """Estimate the Q_yes share of X that a finer grid, more data, a smaller B, sub-boxes or larger local
-    pools would give.
+           classes, noise_floor, abstraction_options=None, bound_cells=None, max_cells: int = MAX_CELLS,
+           pilot_cells: int = PILOT_CELLS, progress=None, sub_box_terms=None, local_pools=None,
+           semantics: str = "auto", budget_s: float | None = None, per_transition: float | None = None,
+           per_bound: float | None = None, transitions: float | None = None, solver=None, done=None,
+           on_lever=None, premise: str = "") -> Advice:
+    """Estimate the Q_yes share of X that a finer grid, more data, sub-boxes or larger local pools would give.
 
     Parameters
     ----------
@@ -191,27 +312,25 @@ def advise(partition, cell_bounds, fits: FittedModes, noise, dfa, *, threshold: 
     cell_bounds : abstraction.CellBounds
         Its image boxes ``(n_modes, n_cells, n)`` (as abstracted).
     fits : FittedModes
+        Or any object with its ``grid_ranges`` / ``cell_ranges`` (``assumptions.ComponentFits``).
     noise : noise model of the abstraction
     dfa : dfa.DFA
-    threshold, horizon
-        As solved.
+    threshold, horizon, semantics
+        As solved (``semantics``: the reading of the formula, ``synthesis.synthesize``).
     classes : (n_cells,) str array
         The solved classes (``"yes"`` / ``"no"`` / ``"maybe"``); the pilot cells are undecided ones.
-    noise_floor : (n,) float array
-        Excess per side left with dense data: the data-noise bound plus tau.
-    rkhs_bound : float
-        B; the smaller-B lever uses ``max(B / 2, min_norm)``.
-    min_norm : float
-        The data-implied minimum RKHS norm (largest over modes and components).
+    noise_floor : (n,) or (n_modes, n) float array
+        Excess per side left with dense data: the data-noise bound plus tau (per mode and component where
+        tau differs).
     abstraction_options : dict
         ``eta``, ``eps_rule``, ``combine`` of the run.
-    bound_cells : callable ``(lower (k, d), upper (k, d), rkhs_bound[, split_tol[, local_points]]) -> (lower,
-        upper)`` of shape ``(n_modes, k, n)``, optional
-        The run's bound stage for a few pilot cells; without it the excess ratios are 1 (finer
-        grid) and ``B' / B`` (smaller B), and sub-boxes are not estimated.
-    sub_box_t : callable ``(lower (k, d), upper (k, d)) -> (k,)``, optional
-        Every cell's ``t_max = sum r^2 / l^2`` (``rkhs_model.t_max_up``), from which ``rkhs.split_counts``
-        picks the sub-boxes; None: the run cannot split or already does (no sub-box estimate).
+    bound_cells : callable ``(lower (k, d), upper (k, d), split_tol=None, local_points=None) -> (lower, upper)``
+        of shape ``(n_modes, k, n)``, optional
+        The run's bound stage for a few pilot cells (None: the run's own setting); without it the excess ratio
+        of the finer grid is 1, and sub-boxes and pools are not estimated.
+    sub_box_terms : callable ``(lower (k, d), upper (k, d)) -> (k,)``, optional
+        Every cell's largest Taylor term ``B rho(t_max)`` over the modes and unknown components (what
+        ``rkhs.split_counts`` weighs against ``split_tol``); None: the run cannot split or already does.
     local_pools : (int, int), optional
         ``(k, m)``: the run certifies some mode's cells with weights on ``k`` nearest points, and the
         largest mode has ``m`` points; None: every mode uses all its points (no pool estimate).
@@ -220,6 +339,23 @@ def advise(partition, cell_bounds, fits: FittedModes, noise, dfa, *, threshold: 
     pilot_cells : int
         Parent cells bounded for real per estimate.
     progress : callable str -> None, optional
+    budget_s : float, optional
+        Seconds the advice may spend (None: every lever is estimated). Levers are planned cheapest first while
+        their predicted cost fits; a re-solve still running at the end is abandoned.
+    per_transition : float, optional
+        The run's seconds of abstraction + solve per listed transition (None: from the sampled rows).
+    per_bound : float, optional
+        The run's bound-stage seconds per cell and mode (None: pilots are not predicted).
+    transitions : float, optional
+        Listed transitions of the run's IMDP (None: sampled).
+    solver : callable ``(jobs, deadline) -> iterator of (index, share or None)``, optional
+        Runs the re-solves (:func:`serial_solver` by default; the pipeline's runs them on its scheduler).
+    done : dict name -> Lever, optional
+        Estimates of an earlier run of the same inputs (the cache): reused where the setting is the same.
+    on_lever : callable Lever -> None, optional
+        Called with every estimate as it completes (the pipeline saves it).
+    premise : str
+        What the guarantee needs of the assumption (shown with the advice; B is not a lever).
 
     Returns
     -------
@@ -231,32 +367,164 @@ def advise(partition, cell_bounds, fits: FittedModes, noise, dfa, *, threshold: 
     if classes.shape != (partition.n_cells,):
         raise DimensionError(f"classes must have shape ({partition.n_cells},); got {classes.shape}")
     base = _share(partition, classes == "yes")
+    budget = None if budget_s is None else max(float(budget_s), 0.0)
     open_cells = np.flatnonzero(classes == "maybe")
     if open_cells.size == 0:
         open_cells = np.flatnonzero(classes != "yes")
     if open_cells.size == 0:
-        return Advice(base, (), None, time.perf_counter() - t_all, "every cell is in Q_yes")
+        return Advice(base, (), None, time.perf_counter() - t_all, "every cell is in Q_yes", premise, budget)
+    opts = dict(abstraction_options or {})
     flo, fhi = fits.grid_ranges(partition.breakpoints)
     e_lo, e_hi = _excess_sides(lo, hi, flo, fhi)
     # a few undecided cells (a small share of the grid, so the pilot costs a small share of the bound stage)
     pilot = _pilot(open_cells, min(int(pilot_cells), max(_PILOT_MIN, partition.n_cells // _PILOT_FRACTION)))
-    ctx = _Context(partition, lo, hi, flo, fhi, e_lo, e_hi, pilot, base, noise, dfa, threshold, horizon,
-                   dict(abstraction_options or {}), bound_cells, max_cells)
+    ctx = _Context(partition, lo, hi, flo, fhi, e_lo, e_hi, pilot, base, noise, opts, bound_cells, max_cells)
 
     def say(text):
         if progress is not None:
             progress(text)
 
-    floor = np.broadcast_to(np.asarray(noise_floor, float), (lo.shape[2],))
-    levers = [_finer_grid(ctx, fits, rkhs_bound, say), _more_data(ctx, floor, say),
-              _smaller_b(ctx, rkhs_bound, min_norm, say)]
-    if sub_box_t is not None:
-        levers.append(_sub_boxes(ctx, rkhs_bound, sub_box_t, say))
+    M, n = lo.shape[0], lo.shape[2]
+    floor = np.broadcast_to(np.asarray(noise_floor, float), (M, n))
+    plans = {"finer grid": _finer_grid(ctx, fits), "more data": _more_data(ctx, floor)}
+    if sub_box_terms is not None:
+        plans["sub-boxes"] = _sub_boxes(ctx, sub_box_terms)
     if local_pools is not None:
-        levers.append(_larger_pools(ctx, rkhs_bound, *local_pools, say))
-    est = [lv for lv in levers if lv.gain is not None and lv.gain >= MIN_GAIN]
+        plans["larger local pools"] = _larger_pools(ctx, *local_pools)
+
+    # the cost model: seconds per listed transition of a re-solve, and the run's transitions
+    if transitions is None or per_transition is None:
+        t_base, rows_s = _sampled_transitions(partition, lo, hi, noise, opts)
+        transitions = t_base if transitions is None else transitions
+        per_transition = _ROWS_SHARE * rows_s if per_transition is None else per_transition
+    cost = _Cost(float(per_transition), per_bound, float(transitions), M, pilot.size)
+    deadline = None if budget is None else t_all + budget
+    solve = solver or serial_solver(noise, dfa, threshold=threshold, horizon=horizon, options=opts,
+                                    semantics=semantics)
+    levers: dict = {}
+    reused = 0
+    for group in _GROUPS:  # the grid's own levers first; the finer grid then, with the cost measured on them
+        todo = []
+        for name in [m for m in group if m in plans]:
+            plan, prev = plans[name], (done or {}).get(name)
+            if plan.skip:
+                levers[name] = Lever(name, plan.setting, None, None, plan.n_cells, note=plan.skip)
+            elif prev is not None and prev.setting == plan.setting and prev.gain is not None:
+                levers[name] = prev
+                reused += 1
+                say(f"advice: {name} reused from the cache (Q_yes {100 * prev.q_yes_share:.1f} % of X)")
+            else:
+                todo.append(plan)
+        accepted = _within_budget(todo, cost, deadline, budget, levers, say)
+        jobs, meta = [], []
+        for plan in accepted:
+            t0 = time.perf_counter()
+            if deadline is not None and t0 > deadline:
+                levers[plan.name] = Lever(plan.name, plan.setting, None, None, plan.n_cells,
+                                          note=f"not estimated: the advice's {budget_text(budget)} was spent")
+                continue
+            part, blo, bhi, ratio, note = plan.build()
+            cost.pilot_done(plan, time.perf_counter() - t0)
+            if part is partition and np.array_equal(blo, lo) and np.array_equal(bhi, hi):
+                # the lever leaves every box as solved: the same abstraction, the same Q_yes, no re-solve
+                lv = Lever(plan.name, plan.setting, base, 0.0, plan.n_cells, ratio, time.perf_counter() - t0,
+                           note or "the boxes do not change")
+                levers[plan.name] = lv
+                _announce(lv, say, on_lever)
+                continue
+            jobs.append(SolveJob(plan.name, part, blo, bhi, cost.rows(plan)))
+            meta.append((plan, ratio, note, time.perf_counter() - t0))
+        if not jobs:
+            continue
+        t_jobs = t_prev = time.perf_counter()
+        solved = 0.0
+        for i, share in solve(jobs, deadline):
+            plan, ratio, note, pilot_s = meta[i]
+            spent, t_prev = time.perf_counter() - t_prev, time.perf_counter()
+            if share is None:
+                levers[plan.name] = Lever(plan.name, plan.setting, None, None, plan.n_cells, ratio, spent, (
+                    f"stopped at the end of the advice's {budget_text(budget)}"))
+                say(f"advice: {plan.name} {levers[plan.name].note}")
+                continue
+            solved += jobs[i].transitions
+            lv = Lever(plan.name, plan.setting, share, share - base, plan.n_cells, ratio, pilot_s + spent, note)
+            levers[plan.name] = lv
+            _announce(lv, say, on_lever)
+        if solved > 0:  # seconds per transition as this machine runs the re-solves now (load, workers)
+            cost.per_transition = (time.perf_counter() - t_jobs) / solved
+    ordered = tuple(levers[m] for m in LEVERS if m in levers)
+    est = [lv for lv in ordered if lv.gain is not None and lv.gain >= MIN_GAIN]
     winner = max(est, key=lambda lv: lv.gain).name if est else None
-    return Advice(base, tuple(levers), winner, time.perf_counter() - t_all)
+    return Advice(base, ordered, winner, time.perf_counter() - t_all, premise=premise, budget_s=budget,
+                  reused=reused)
+
+
+def _within_budget(todo, cost, deadline, budget, levers, say) -> list:
+    """The plans of ``todo`` (cheapest first) whose predicted seconds fit what is left before ``deadline``; the
+    others get a lever saying what they would cost."""
+    left = math.inf if deadline is None else deadline - time.perf_counter()
+    accepted = []
+    for plan in todo:
+        need = cost.of(plan)
+        if need > left:
+            levers[plan.name] = Lever(plan.name, plan.setting, None, None, plan.n_cells, note=(
+                f"about {_secs(need)}, more than the {_secs(max(left, 0.0))} left of the advice's "
+                f"{budget_text(budget)}; `--advice on` (advice=True) estimates it anyway"))
+            say(f"advice: {plan.name} not estimated: {levers[plan.name].note}")
+        else:
+            left -= need
+            accepted.append(plan)
+    if accepted:
+        say(f"advice: estimating {', '.join(p.name for p in accepted)} (about "
+            f"{_secs(sum(cost.of(p) for p in accepted))}; {budget_text(budget)})")
+    return accepted
+
+
+def _announce(lv: Lever, say, on_lever) -> None:
+    say(f"advice: {lv.name} ({lv.setting}) -> Q_yes {100 * lv.q_yes_share:.1f} % of X ({lv.seconds:.1f} s)")
+    if on_lever is not None:
+        on_lever(lv)
+
+
+class _Cost:
+    """Predicted seconds of a lever: its pilot cells through the bound stage and its re-solve. The seconds per
+    transition and per bound-stage cell start as the run's own and become those the advice measures."""
+
+    def __init__(self, per_transition: float, per_bound, transitions: float, n_modes: int, n_pilot: int):
+        self.per_transition, self.per_bound = float(per_transition), per_bound
+        self.transitions, self.n_modes, self.n_pilot = float(transitions), int(n_modes), int(n_pilot)
+
+    def rows(self, plan) -> float:
+        """The plan's predicted listed transitions (None: those of the run's grid)."""
+        return self.transitions if plan.transitions is None else plan.transitions
+
+    def pilot_cells(self, plan) -> float:
+        return self.n_pilot * self.n_modes * plan.pilot_factor
+
+    def of(self, plan) -> float:
+        pilot = 0.0 if self.per_bound is None else self.per_bound * self.pilot_cells(plan)
+        large = _LARGE_FACTOR if self.rows(plan) >= _LARGE_TRANSITIONS else 1.0
+        return pilot + self.rows(plan) * self.per_transition * large
+
+    def pilot_done(self, plan, seconds: float) -> None:
+        if self.pilot_cells(plan) > 0:
+            self.per_bound = seconds / self.pilot_cells(plan)
+
+
+@dataclass(frozen=True, eq=False)
+class _Plan:
+    """One lever before it is estimated: its setting, why it is not estimated (``skip``), its pilot cost in
+    bound-stage cells per pilot cell and mode (``pilot_factor``, 0: no pilot), its predicted transitions (None:
+    those of the run's grid), and
+    ``build() -> (partition, lower, upper, excess ratio or None, note)`` (the pilot and the modified boxes)."""
+
+    name: str
+    setting: str
+    n_cells: int
+    skip: str = ""
+    pilot_factor: float = 0.0
+    transitions: float | None = None
+    build: Callable | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -275,15 +543,9 @@ class _Context:
     pilot: np.ndarray
     base: float
     noise: object
-    dfa: object
-    threshold: float
-    horizon: object
     opts: dict
     bound_cells: object
     max_cells: int
-
-    def q_yes(self, partition, lower, upper) -> float:
-        return _q_yes(partition, lower, upper, self.noise, self.dfa, self.threshold, self.horizon, self.opts)
 
     def pilot_ratio(self, plo, phi) -> np.ndarray:
         """Per (mode, component): the excess ratio of the pilot cells' boxes ``[plo, phi]`` (bounded with a
@@ -292,6 +554,14 @@ class _Context:
         return _ratio(np.concatenate([s_lo, s_hi], axis=1),
                       np.concatenate([self.e_lo[:, self.pilot], self.e_hi[:, self.pilot]], axis=1))
 
+    def scaled(self, r, where=None):
+        """The solved boxes with their excess scaled by ``r`` (n_modes, n) (only in the cells ``where``)."""
+        elo, ehi = r[:, None] * self.e_lo, r[:, None] * self.e_hi
+        if where is not None:
+            w = np.asarray(where)[None, :, None]
+            elo, ehi = np.where(w, elo, self.e_lo), np.where(w, ehi, self.e_hi)
+        return _shrunk(self.lo, self.hi, self.flo, self.fhi, elo, ehi)
+
     def no_pilot(self) -> str:
         """Why the pilot cells cannot be bounded (no bound stage, or too many cells to re-solve), or ``""``."""
         if self.bound_cells is None:
@@ -299,113 +569,104 @@ class _Context:
         n = self.partition.n_cells
         return f"{n:,} cells > {self.max_cells:,}" if n > self.max_cells else ""
 
+    def too_many(self) -> str:
+        n = self.partition.n_cells
+        return f"{n:,} cells > {self.max_cells:,}" if n > self.max_cells else ""
 
-def _finer_grid(ctx: _Context, fits: FittedModes, rkhs_bound: float, say) -> Lever:
-    """Lever (a), a finer grid: every cell split in 2^d; the excess scaled by the pilot sub-cells' ratio."""
+
+def _finer_grid(ctx: _Context, fits) -> _Plan:
+    """Lever (a), a finer grid: every cell split in 2^d; the excess scaled by the pilot sub-cells' ratio. Its
+    transitions are predicted from :data:`SAMPLE_CELLS` sub-cells abstracted for real."""
     from robust_imdp.models.geometry import Partition
 
-    partition, lo, hi, e_lo, e_hi = ctx.partition, ctx.lo, ctx.hi, ctx.e_lo, ctx.e_hi
-    t0 = time.perf_counter()
+    partition = ctx.partition
     h2 = np.asarray(partition.cell_size, float) / 2
     n_fine = partition.n_cells * 2 ** partition.dim
     setting = f"cell_size {np.round(h2, 6).tolist()}"
     if n_fine > ctx.max_cells:
-        return Lever("finer grid", setting, None, None, n_fine,
-                     note=f"{n_fine:,} cells > {ctx.max_cells:,}: run it on a sub-box of X")
+        return _Plan("finer grid", setting, n_fine, f"{n_fine:,} cells > {ctx.max_cells:,}: run it on a sub-box of X")
     fine = Partition(partition.space, h2, partition.regions, periodic=getattr(partition, "periodic", None))
     parent = np.asarray(partition.locate(0.5 * (fine.cells_lower + fine.cells_upper)))
     glo, ghi = fits.grid_ranges(fine.breakpoints)
-    ratio = None
-    if ctx.bound_cells is not None:
+
+    def boxes(r):
+        return _shrunk(ctx.lo[:, parent], ctx.hi[:, parent], glo, ghi, r[:, None] * ctx.e_lo[:, parent],
+                       r[:, None] * ctx.e_hi[:, parent])
+
+    ones = np.ones((ctx.lo.shape[0], ctx.lo.shape[2]))
+    transitions, _ = _sampled_transitions(fine, *boxes(ones), ctx.noise, ctx.opts)
+
+    def build():
+        if ctx.bound_cells is None:
+            return (fine, *boxes(ones), None, "excess ratio 1 (no pilot)")
         # one sub-cell per pilot cell, its position cycling through the children (2^d, or fewer
         # where a region's boundary already split the cell)
         kids = [np.flatnonzero(parent == q) for q in ctx.pilot]
         sub = np.array([c[k % c.size] for k, c in enumerate(kids)])
-        blo, bhi = ctx.bound_cells(fine.cells_lower[sub], fine.cells_upper[sub], rkhs_bound)
+        blo, bhi = ctx.bound_cells(fine.cells_lower[sub], fine.cells_upper[sub])
         s_lo, s_hi = _excess_sides(blo, bhi, glo[:, sub], ghi[:, sub])
-        ratio = _ratio(np.concatenate([s_lo, s_hi], axis=1),
-                       np.concatenate([e_lo[:, parent[sub]], e_hi[:, parent[sub]]], axis=1))
-    r = np.ones((lo.shape[0], lo.shape[2])) if ratio is None else ratio
-    flo_, fhi_ = _shrunk(lo[:, parent], hi[:, parent], glo, ghi, r[:, None] * e_lo[:, parent],
-                         r[:, None] * e_hi[:, parent])
-    share = ctx.q_yes(fine, flo_, fhi_)
-    say(f"advice: finer grid ({fine.n_cells} cells) -> Q_yes {100 * share:.0f} % of X")
-    return Lever("finer grid", setting, share, share - ctx.base, fine.n_cells,
-                 None if ratio is None else float(np.median(ratio)), time.perf_counter() - t0,
-                 "" if ratio is not None else "excess ratio 1 (no pilot)")
+        r = _ratio(np.concatenate([s_lo, s_hi], axis=1),
+                   np.concatenate([ctx.e_lo[:, parent[sub]], ctx.e_hi[:, parent[sub]]], axis=1))
+        return (fine, *boxes(r), float(np.median(r)), "")
+
+    return _Plan("finer grid", setting, fine.n_cells, pilot_factor=0.0 if ctx.bound_cells is None else 1.0,
+                 transitions=transitions, build=build)
 
 
-def _more_data(ctx: _Context, floor, say) -> Lever:
-    """Lever (b), more data: the excess down to its noise floor."""
+def _more_data(ctx: _Context, floor) -> _Plan:
+    """Lever (b), more data: the excess down to its noise floor ``(n_modes, n)``."""
     partition = ctx.partition
-    t0 = time.perf_counter()
-    if partition.n_cells > ctx.max_cells:
-        return Lever("more data", "excess at the noise floor", None, None, partition.n_cells,
-                     note=f"{partition.n_cells:,} cells > {ctx.max_cells:,}")
-    f = floor[None, None, :]
-    blo, bhi = _shrunk(ctx.lo, ctx.hi, ctx.flo, ctx.fhi, np.minimum(ctx.e_lo, f), np.minimum(ctx.e_hi, f))
-    share = ctx.q_yes(partition, blo, bhi)
-    say(f"advice: more data -> Q_yes {100 * share:.0f} % of X")
-    return Lever("more data", f"excess at the noise floor {np.round(floor, 6).tolist()}", share,
-                 share - ctx.base, partition.n_cells, None, time.perf_counter() - t0)
+    setting = f"excess at the noise floor {np.round(floor.max(axis=0), 6).tolist()}"
+    if ctx.too_many():
+        return _Plan("more data", setting, partition.n_cells, ctx.too_many())
+    f = floor[:, None, :]
+
+    def build():
+        return (partition, *_shrunk(ctx.lo, ctx.hi, ctx.flo, ctx.fhi, np.minimum(ctx.e_lo, f),
+                                    np.minimum(ctx.e_hi, f)), None, "")
+
+    return _Plan("more data", setting, partition.n_cells, build=build)
 
 
-def _smaller_b(ctx: _Context, rkhs_bound: float, min_norm: float, say) -> Lever:
-    """Lever (c), a smaller B, as small as the data allow: ``max(B / 2, min_norm)``."""
-    partition, lo, pilot = ctx.partition, ctx.lo, ctx.pilot
-    t0 = time.perf_counter()
-    B = float(rkhs_bound)
-    Bs = max(0.5 * B, float(min_norm))
-    if Bs >= B * (1 - 1e-9):
-        return Lever("smaller B", f"B = {B:g}", None, None, partition.n_cells,
-                     note=f"the data need ||g|| >= {min_norm:.3g}, so B = {B:g} cannot be smaller")
-    if partition.n_cells > ctx.max_cells:
-        return Lever("smaller B", f"B = {Bs:.3g}", None, None, partition.n_cells,
-                     note=f"{partition.n_cells:,} cells > {ctx.max_cells:,}")
-    if ctx.bound_cells is not None:
-        r = ctx.pilot_ratio(*ctx.bound_cells(partition.cells_lower[pilot], partition.cells_upper[pilot], Bs))
-        note = ""
-    else:
-        r = np.full((lo.shape[0], lo.shape[2]), Bs / B)
-        note = "excess ratio B'/B (no pilot)"
-    blo, bhi = _shrunk(lo, ctx.hi, ctx.flo, ctx.fhi, r[:, None] * ctx.e_lo, r[:, None] * ctx.e_hi)
-    share = ctx.q_yes(partition, blo, bhi)
-    say(f"advice: B = {Bs:.3g} -> Q_yes {100 * share:.0f} % of X")
-    return Lever("smaller B", f"B = {Bs:.3g}", share, share - ctx.base, partition.n_cells,
-                 float(np.median(r)), time.perf_counter() - t0, note)
+def _pieces(terms, tol: float, d: int) -> np.ndarray:
+    """Pieces per axis of the sub-boxes ``rkhs.split_counts`` chooses for Taylor terms ``terms``."""
+    from robust_imdp.bounds.rkhs_model import MAX_SUB
+
+    s = np.ceil(np.sqrt(np.asarray(terms, float) / float(tol)))
+    s_max = max(1, int(math.floor(MAX_SUB ** (1.0 / d) + 1e-9)))
+    return np.clip(np.nan_to_num(s, nan=1.0, posinf=s_max), 1, s_max).astype(np.int64)
 
 
-def _sub_boxes(ctx: _Context, rkhs_bound: float, cell_t, say) -> Lever:
-    """Lever (d), sub-box certification: one halving per axis where the Taylor term of eq. C is largest
+def _sub_boxes(ctx: _Context, cell_terms) -> _Plan:
+    """Lever (c), sub-box certification: one halving per axis where the Taylor term of eq. C is largest
     (``split_tol`` = the grid's largest term / 2.25, so ``s = ceil(sqrt(term / split_tol)) = 2`` there,
     but at least ``rkhs.SPLIT_TOL``); the excess scaled by the ratio measured on the pilot cells certified
     on those sub-boxes. The grid, and so the abstraction's size, stay as they are.
 
-    Why one halving: it divides the term by about 4, and that took most of the gain where measured (the
-    issue-20 newcomer system, B = 6, r/l 0.125: Q_yes 141 unsplit, 171 with s = 2 at about 3x the bound time,
+    Why one halving: it divides the term by about 4, and that took most of the gain where measured (a
+    newcomer system, B = 6, r/l 0.125: Q_yes 141 unsplit, 171 with s = 2 at about 3x the bound time,
     174 with the s = 10 of ``SPLIT_TOL`` at about 30x; ``benchmarks/results/advice_sub_boxes.md``)."""
-    from robust_imdp.bounds.rkhs_model import SPLIT_TOL, split_counts, split_term
+    from robust_imdp.bounds.rkhs_model import SPLIT_TOL
 
     partition, pilot = ctx.partition, ctx.pilot
-    t0 = time.perf_counter()
-    t = cell_t(partition.cells_lower, partition.cells_upper)
-    tol = max(SPLIT_TOL, float(np.max(split_term(t, rkhs_bound))) / 2.25 * (1 + 1e-9))
-    n_sub = split_counts(t, rkhs_bound, partition.dim, tol) ** partition.dim
+    terms = np.asarray(cell_terms(partition.cells_lower, partition.cells_upper), float)
+    tol = max(SPLIT_TOL, float(np.max(terms, initial=0.0)) / 2.25 * (1 + 1e-9))
+    n_sub = _pieces(terms, tol, partition.dim) ** partition.dim
     setting = f"split_tol = {tol:.3g}, {float(np.mean(n_sub)):.3g} sub-boxes per cell"
     if np.all(n_sub[pilot] <= 1):
-        return Lever("sub-boxes", setting, None, None, partition.n_cells,
-                     note="the Taylor term is below split_tol in the undecided cells: sub-boxes change nothing")
+        return _Plan("sub-boxes", setting, partition.n_cells,
+                     "the Taylor term is below split_tol in the undecided cells: sub-boxes change nothing")
     if ctx.no_pilot():
-        return Lever("sub-boxes", setting, None, None, partition.n_cells, note=ctx.no_pilot())
-    r = ctx.pilot_ratio(*ctx.bound_cells(partition.cells_lower[pilot], partition.cells_upper[pilot], rkhs_bound, tol))
-    # cells the rule leaves whole keep their boxes
-    split = (n_sub > 1)[None, :, None]
-    blo, bhi = _shrunk(ctx.lo, ctx.hi, ctx.flo, ctx.fhi, np.where(split, r[:, None] * ctx.e_lo, ctx.e_lo),
-                       np.where(split, r[:, None] * ctx.e_hi, ctx.e_hi))
-    share = ctx.q_yes(partition, blo, bhi)
-    say(f"advice: sub-boxes -> Q_yes {100 * share:.0f} % of X")
-    return Lever("sub-boxes", setting, share, share - ctx.base, partition.n_cells, float(np.median(r)),
-                 time.perf_counter() - t0)
+        return _Plan("sub-boxes", setting, partition.n_cells, ctx.no_pilot())
+
+    def build():
+        r = ctx.pilot_ratio(*ctx.bound_cells(partition.cells_lower[pilot], partition.cells_upper[pilot],
+                                             split_tol=tol))
+        # cells the rule leaves whole keep their boxes
+        return (partition, *ctx.scaled(r, n_sub > 1), float(np.median(r)), "")
+
+    return _Plan("sub-boxes", setting, partition.n_cells, pilot_factor=float(np.mean(n_sub[pilot])),
+                 build=build)
 
 
 def pool_proposal(k: int, m: int) -> int:
@@ -414,24 +675,24 @@ def pool_proposal(k: int, m: int) -> int:
     return int(m) if int(m) <= POOL_ALL_MAX else int(min(int(m), POOL_FACTOR * int(k)))
 
 
-def _larger_pools(ctx: _Context, rkhs_bound: float, k: int, m: int, say) -> Lever:
-    """Lever (e), larger local pools (``local_points`` = :func:`pool_proposal`): the excess scaled by the ratio
+def _larger_pools(ctx: _Context, k: int, m: int) -> _Plan:
+    """Lever (d), larger local pools (``local_points`` = :func:`pool_proposal`): the excess scaled by the ratio
     measured on the pilot cells bounded with those pools. In 3-D the pools, not the certificate, are most of
     the slack over the optimal range (``benchmarks/results/local_auto.md``: 0.0047 with pools of 100 against
     0.0006 with all 1,024 points at r/l 0.03)."""
     partition, pilot = ctx.partition, ctx.pilot
-    t0 = time.perf_counter()
     K = pool_proposal(k, m)
     setting = (f"local_points = {K} (all points)" if K >= m else f"local_points = {K}") + f", now {int(k)}"
     if K <= k:
-        return Lever("larger local pools", setting, None, None, partition.n_cells,
-                     note="the pools already hold the proposed number of points")
+        return _Plan("larger local pools", setting, partition.n_cells,
+                     "the pools already hold the proposed number of points")
     if ctx.no_pilot():
-        return Lever("larger local pools", setting, None, None, partition.n_cells, note=ctx.no_pilot())
-    r = ctx.pilot_ratio(*ctx.bound_cells(partition.cells_lower[pilot], partition.cells_upper[pilot], rkhs_bound,
-                                         None, K))
-    blo, bhi = _shrunk(ctx.lo, ctx.hi, ctx.flo, ctx.fhi, r[:, None] * ctx.e_lo, r[:, None] * ctx.e_hi)
-    share = ctx.q_yes(partition, blo, bhi)
-    say(f"advice: local_points = {K} -> Q_yes {100 * share:.0f} % of X")
-    return Lever("larger local pools", setting, share, share - ctx.base, partition.n_cells, float(np.median(r)),
-                 time.perf_counter() - t0)
+        return _Plan("larger local pools", setting, partition.n_cells, ctx.no_pilot())
+
+    def build():
+        r = ctx.pilot_ratio(*ctx.bound_cells(partition.cells_lower[pilot], partition.cells_upper[pilot],
+                                             local_points=K))
+        return (partition, *ctx.scaled(r), float(np.median(r)), "")
+
+    return _Plan("larger local pools", setting, partition.n_cells, pilot_factor=K / max(int(k), 1),
+                 build=build)
