@@ -44,6 +44,7 @@ CASES = {
     "refine": "adaptive refinement of the undecided cells (box-tree partition)",
     "solver": "random IMDPs: end components, floors, interval iteration, both adversaries and objectives, "
               "a fixed strategy, rows of more than 256 successors",
+    "factored": "a small factored IMDP (solvers.factored): the operator's kernels, k-step and unbounded, DFA product",
 }
 
 #: Cell width of the tiny grid over X = [-2, 2]^2 (16 x 16 cells: like the demo's grid, no row
@@ -85,6 +86,8 @@ def _run_case(name: str, base, first):
         synthesize_from_data(base.replace(cell_size=[COARSE_CELL] * len(base.space_lower)), progress=False)
     elif name == "solver":
         _solver_models()
+    elif name == "factored":
+        _factored_models()
     elif name == "local":
         synthesize_from_data(base.replace(local_points=LOCAL_POINTS), progress=False)
     elif name == "ridge":
@@ -135,6 +138,42 @@ def _solver_models():
                                              method=method)
         solve_reachability(model, target, avoid=avoid, horizon=3)
         evaluate_strategy(model, target, res.strategy, avoid=avoid)
+
+
+def _factored_models():
+    """Solve a small factored IMDP through the factored solver's kernels (operator, fibre orders, support)."""
+    import warnings
+
+    from robust_imdp.errors import ConvergenceWarning
+    from robust_imdp.models.factored import AxisMarginals, FactoredIMDP
+    from robust_imdp.solvers.factored import solve_factored_product, solve_factored_reachability
+    from robust_imdp.spec.api import to_dfa
+
+    n, N = 4, 16
+    start = np.tile(np.array([0, 0, 1, 1] * 4), (2, 1))
+    axes = tuple(AxisMarginals(n=n, periodic=i == 1, start=start, lower=np.full((2, N, 3), 0.2),
+                               upper=np.full((2, N, 3), 0.4), out_lower=np.zeros((2, N)),
+                               out_upper=np.full((2, N), 0.1 if i == 0 else 0.0), rest_upper=np.full((2, N), 0.1),
+                               axis=i) for i in range(2))
+    model = FactoredIMDP(shape=(n, n), axes=axes)
+    target = np.zeros(N + 1, dtype=bool)
+    target[5] = True
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)  # 5 iterations: not converged, on purpose
+        _factored_solves(model, target, N, solve_factored_product, solve_factored_reachability, to_dfa)
+
+
+def _factored_solves(model, target, N, solve_factored_product, solve_factored_reachability, to_dfa):
+    for adversary in ("pessimistic", "optimistic"):
+        for objective in ("maximize", "minimize"):
+            # a few iterations compile every path (the rest mass keeps the upper side from converging)
+            solve_factored_reachability(model, target, avoid=[N], adversary=adversary, objective=objective,
+                                        max_iterations=5)
+        solve_factored_reachability(model, target, avoid=[N], adversary=adversary, horizon=3)
+    dfa = to_dfa("F a", ["a"])
+    letters = target.astype(np.int64)
+    opt = solve_factored_product(model, letters, dfa, avoid=[N], adversary="optimistic", max_iterations=5)
+    solve_factored_product(model, letters, dfa, avoid=[N], tie_break=opt, max_iterations=5)
 
 
 def kernels():

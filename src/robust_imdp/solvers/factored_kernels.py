@@ -228,17 +228,20 @@ def _omax_sorted(src, perm, poff, h, base, lev1, n_a, per_a, mg, mm, w_out, w_re
 
 
 @njit(cache=True, inline="always")
-def _sort_fibres(src, perm, n_fib, h):
+def _sort_fibres(src, perm, n_fib, h, keys):
     """``perm[f h:(f + 1) h]`` = the order of ``src[f h:(f + 1) h]`` by increasing value (insertion
-    sort: fibres are short), for every fibre f."""
+    sort on a local copy of the values: fibres are short), for every fibre f; ``keys``: scratch of
+    length >= h."""
     for f in range(n_fib):
         o = f * h
         for i in range(h):
             x = src[o + i]
             t = i
-            while t > 0 and src[o + perm[o + t - 1]] > x:
+            while t > 0 and keys[t - 1] > x:
+                keys[t] = keys[t - 1]
                 perm[o + t] = perm[o + t - 1]
                 t -= 1
+            keys[t] = x
             perm[o + t] = i
 
 
@@ -249,7 +252,8 @@ def fibre_order(w, n_last, out):
     for b in numba.prange((n_fib + 255) // 256):
         f0 = b * 256
         f1 = min(n_fib, f0 + 256)
-        _sort_fibres(w[f0 * n_last:f1 * n_last], out[f0 * n_last:f1 * n_last], f1 - f0, n_last)
+        keys = np.empty(n_last)
+        _sort_fibres(w[f0 * n_last:f1 * n_last], out[f0 * n_last:f1 * n_last], f1 - f0, n_last, keys)
 
 
 @njit(cache=True, inline="always")
@@ -265,7 +269,7 @@ def _value(src, perm, poff, h, base, lev1, n_a, per_a, mg, mm, w_out, w_rest, ad
 
 @njit(cache=True)
 def _reduce(level, g, pg, grid, mg, tr, w, w_perm, buf, pbuf, boff, w_out, w_rest, adv_max, direction, support,
-            keys, caps, pstride, plo):
+            keys, caps, pstride, plo, skeys):
     """Compute group g's ``W_level`` (into ``buf[boff[level]:]``, with the order of its fibres along
     its last axis in ``pbuf``; or return it at the leaves) from its parent pg's buffer (level 1:
     from ``w``)."""
@@ -331,7 +335,7 @@ def _reduce(level, g, pg, grid, mg, tr, w, w_perm, buf, pbuf, boff, w_out, w_res
             dst[o * h_in + c] = _value(src, sperm, poff, h, base, lev1, n_a, per_a, mg, mm, w_out, w_rest, adv_max,
                                        direction, support, keys, caps)
     if not support:
-        _sort_fibres(dst, pbuf[boff[level]:boff[level + 1]], n_outer, h_in)
+        _sort_fibres(dst, pbuf[boff[level]:boff[level + 1]], n_outer, h_in, skeys)
     return 0.0
 
 
@@ -351,11 +355,12 @@ def _root(g, grid, mg, tr, w, w_perm, w_out, w_rest, need_pc, adv_max, direction
     caps = np.empty(kmax + 2)
     pstride = np.empty(d, dtype=np.int64)
     plo = np.empty(d, dtype=np.int64)
+    skeys = np.empty(2 * grid.shape.max() + 1)  # a box's width is below 2 n (unwrapped positions)
     stack = np.empty(d + 1, dtype=np.int64)
     cur = np.empty(d + 1, dtype=np.int64)
     u = tr.mode[g]
     v = _reduce(1, g, -1, grid, mg, tr, w, w_perm, buf, pbuf, boff, w_out, w_rest, adv_max, direction, support,
-                keys, caps, pstride, plo)
+                keys, caps, pstride, plo, skeys)
     if d == 1:
         for t in range(tr.cell0[g], tr.cell1[g]):
             out_rows[u, tr.cells[u, t]] = v
@@ -371,7 +376,7 @@ def _root(g, grid, mg, tr, w, w_perm, w_out, w_rest, need_pc, adv_max, direction
             if not _needed(tr, need_pc, c):
                 continue
             v = _reduce(lev + 1, c, pg, grid, mg, tr, w, w_perm, buf, pbuf, boff, w_out, w_rest, adv_max, direction,
-                        support, keys, caps, pstride, plo)
+                        support, keys, caps, pstride, plo, skeys)
             if lev + 1 == d:
                 for t in range(tr.cell0[c], tr.cell1[c]):
                     out_rows[u, tr.cells[u, t]] = v

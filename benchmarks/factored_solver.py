@@ -1,0 +1,275 @@
+"""Factored solver benchmark: time and memory per Bellman sweep of the factored (odIMDP) solver on the
+linear systems of the interval-MDP literature, against the joint solver where the joint model fits.
+Writes ``benchmarks/results/factored_solver.json`` and ``factored_solver.md``.
+
+    python benchmarks/factored_solver.py                  # d = 4, 5, 6 at 8 intervals per axis (~10 min, 2 cores)
+    python benchmarks/factored_solver.py --dims 4 --n 6   # one smaller row
+
+System (Mathiesen, Haesaert, Laurenti, HSCC 2025; issue "factored exact integrals"): ``x' = A x + w``,
+``A_ii = 0.7``, ``A_{i,i+1} = -0.1`` (cyclic), ``w ~ N(0, 0.01 I)``, ``X = [-1, 1]^d``, ``n^d``
+cells, one mode, safety (stay in X) for ``--horizon`` steps.  The per-axis marginals come from
+``robust_imdp.abstraction.marginals.axis_marginals`` (certified) when that module is present, else
+from scipy's normal cdf (min at an end of the image interval, max at the clamped midpoint: a
+benchmark input, not a certified bound); the JSON says which.  Axis i's image interval depends on
+the cell's coordinates i and i + 1 only, so there are n^2 distinct marginals per axis, which the
+solver's prefix tree shares (docs/factored.md, "Sharing").
+
+Per dimension, in a fresh process (so the peak memory is that row's): the marginals' time, the
+model's size (stored numbers and interval entries per row, MB), the prepared operator (tree nodes
+per level, entries read per sweep against the unshared nested reduction), one Bellman sweep (wall
+and process CPU time; median of 3 after a warm-up), the safety bracket ``1 - P(leave X within k
+steps)`` under both adversaries (time, min / mean p_low), and, where ``FactoredIMDP.to_joint`` fits
+``--joint-max-entries``, the joint IMDP's size, its k-step solve by ``solve_reachability`` and the
+check that the factored p_low is never below the joint one.  The machine is shared: the load
+average is recorded.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+SIGMA = 0.1  # noise standard deviation (variance 0.01)
+
+
+def _rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _matrix(d):
+    A = 0.7 * np.eye(d)
+    for i in range(d):
+        A[i, (i + 1) % d] += -0.1
+    return A
+
+
+def _images(d, n):
+    """Cells' lower/upper corners and image boxes of A x over each cell (rounded outward by 4 ulps)."""
+    A = _matrix(d)
+    edges = np.linspace(-1.0, 1.0, n + 1)
+    idx = np.indices((n,) * d).reshape(d, -1)
+    cl, ch = edges[idx], edges[idx + 1]
+    pos, neg = np.clip(A, 0, None), np.clip(A, None, 0)
+    ylo = (pos @ cl + neg @ ch).T
+    yhi = (pos @ ch + neg @ cl).T
+    # the matrix products of d terms err by a few ulps: widen by 4 * d ulps of the magnitude (benchmark input)
+    pad = 4 * d * np.spacing(np.abs(ylo) + np.abs(yhi) + 1.0)
+    return ylo - pad, yhi + pad
+
+
+def _marginals_scipy(d, n, ylo, yhi):
+    from scipy.special import ndtr
+
+    from robust_imdp.models.factored import AxisMarginals
+    edges = np.linspace(-1.0, 1.0, n + 1)
+    N = ylo.shape[0]
+
+    def g(a, b, y):
+        return ndtr((b - y) / SIGMA) - ndtr((a - y) / SIGMA)
+
+    axes = []
+    for i in range(d):
+        a_, b_ = ylo[:, i], yhi[:, i]
+        L = np.stack([np.minimum(g(l, h, a_), g(l, h, b_)) for l, h in zip(edges[:-1], edges[1:])], -1)
+        H = np.stack([g(l, h, np.clip(0.5 * (l + h), a_, b_)) for l, h in zip(edges[:-1], edges[1:])], -1)
+        fin_lo, fin_hi = np.minimum(g(-1, 1, a_), g(-1, 1, b_)), g(-1, 1, np.clip(0.0, a_, b_))
+        # a relative allowance for ndtr's error (benchmark input, not certified)
+        L = np.clip(L * (1 - 1e-12), 0, 1)
+        H = np.clip(H * (1 + 1e-12) + 1e-300, 0, 1)
+        axes.append(AxisMarginals(n=n, periodic=False, start=np.zeros((1, N), np.int64), lower=L[None], upper=H[None],
+                                  out_lower=np.clip((1 - fin_hi) * (1 - 1e-12), 0, 1)[None],
+                                  out_upper=np.clip((1 - fin_lo) * (1 + 1e-12), 0, 1)[None],
+                                  rest_upper=np.zeros((1, N)), axis=i))
+    return tuple(axes)
+
+
+def _marginals(d, n):
+    """(axes, source, seconds)."""
+    ylo, yhi = _images(d, n)
+    t0 = time.perf_counter()
+    try:
+        from robust_imdp.abstraction.marginals import axis_marginals
+        from robust_imdp.models.geometry import Box, Partition
+        from robust_imdp.models.noise import GaussianNoise
+    except ImportError:
+        return _marginals_scipy(d, n, ylo, yhi), "scipy ndtr (benchmark input, not certified)", \
+            time.perf_counter() - t0
+    part = Partition(Box([-1.0] * d, [1.0] * d), 2.0 / n)
+    axes = axis_marginals(part, ylo[None], yhi[None], GaussianNoise([SIGMA] * d))
+    return axes, "abstraction.marginals.axis_marginals (certified)", time.perf_counter() - t0
+
+
+def _timed(fn, repeat=3):
+    """(result, median wall s, median CPU s) of ``repeat`` calls after one warm-up call."""
+    out = fn()
+    walls, cpus = [], []
+    for _ in range(repeat):
+        t0, c0 = time.perf_counter(), time.process_time()
+        out = fn()
+        walls.append(time.perf_counter() - t0)
+        cpus.append(time.process_time() - c0)
+    return out, float(np.median(walls)), float(np.median(cpus))
+
+
+def one(d: int, n: int, horizon: int, joint_max: int) -> dict:
+    """The row of dimension d (run in its own process)."""
+    import numba
+
+    from robust_imdp.models.factored import FactoredIMDP
+    from robust_imdp.solvers.factored import factored_bellman, factored_operator, solve_factored_reachability
+
+    row = {"d": d, "n": n, "cells": n ** d, "horizon": horizon, "threads": numba.get_num_threads()}
+    axes, source, t_marg = _marginals(d, n)
+    model = FactoredIMDP(shape=(n,) * d, axes=axes)
+    N = model.n_cells
+    row.update(marginals=source, marginals_s=round(t_marg, 2), k=list(model.k),
+               entries_per_row=model.entries_per_row, numbers_per_row=model.numbers_per_row,
+               rest_upper_max=float(max(ax.rest_upper.max() for ax in model.axes)),
+               model_mb=round(model.nbytes / 2**20, 1))
+    t0 = time.perf_counter()
+    op = factored_operator(model)
+    row.update(prepare_s=round(time.perf_counter() - t0, 2), tree_nodes=list(op.groups),
+               distinct_marginals=list(op.n_marginals), entries_per_sweep=op.work,
+               entries_per_sweep_unshared=op.unshared_work, operator_mb=round(op.nbytes / 2**20, 1))
+    w = np.random.default_rng(0).random(model.n_states)
+    t0 = time.perf_counter()
+    factored_bellman(model, w)  # first call: loads (or compiles) the kernels
+    row["first_sweep_s"] = round(time.perf_counter() - t0, 2)
+    for adv in ("pessimistic", "optimistic"):
+        _, wall, cpu = _timed(lambda: factored_bellman(model, w, adversary=adv))
+        row[f"sweep_{adv}_s"] = round(wall, 3)
+        row[f"sweep_{adv}_cpu_s"] = round(cpu, 3)
+    row["ns_per_entry_cpu"] = round(row["sweep_pessimistic_cpu_s"] / op.work * 1e9, 2)
+    # safety = 1 - P(reach outside within k steps); one mode: the controller has no choice.
+    # p_low: the adversary maximising the exit (objective "minimize", pessimistic); p_up: minimising it.
+    target = [N]
+    t0, c0 = time.perf_counter(), time.process_time()
+    exit_hi = solve_factored_reachability(model, target, objective="minimize", adversary="pessimistic", horizon=horizon)
+    exit_lo = solve_factored_reachability(model, target, objective="minimize", adversary="optimistic", horizon=horizon)
+    row["solve_s"] = round(time.perf_counter() - t0, 2)
+    row["solve_cpu_s"] = round(time.process_time() - c0, 2)
+    row["sweeps"] = 4 * horizon  # lower and upper side of each adversary per step
+    p_low = np.clip(np.nextafter(1.0 - exit_hi.upper[:N], -np.inf), 0, 1)
+    p_up = np.clip(np.nextafter(1.0 - exit_lo.lower[:N], np.inf), 0, 1)
+    row.update(p_low_min=float(p_low.min()), p_low_mean=float(p_low.mean()), p_low_max=float(p_low.max()),
+               p_up_mean=float(p_up.mean()), gap_mean=float((p_up - p_low).mean()),
+               bracket_width_max=float(max(exit_hi.precision, exit_lo.precision)))
+    row["factored_peak_rss_mb"] = round(_rss_mb(), 0)
+    entries = model.joint_entries()
+    row["joint_entries"] = entries
+    row["joint_numbers_per_row"] = round(2 * (entries - 1) / (N * model.n_modes) + 1, 1)  # lower, upper + floor
+    if entries <= joint_max:
+        from robust_imdp.solvers.api import solve_reachability
+        t0 = time.perf_counter()
+        J = model.to_joint(max_entries=joint_max)
+        row["joint_build_s"] = round(time.perf_counter() - t0, 2)
+        row["joint_mb"] = round(J.memory_bytes / 2**20, 1)
+        t0, c0 = time.perf_counter(), time.process_time()
+        j_hi = solve_reachability(J, target, objective="minimize", adversary="pessimistic", horizon=horizon)
+        row["joint_solve_s"] = round(time.perf_counter() - t0, 2)
+        row["joint_solve_cpu_s"] = round(time.process_time() - c0, 2)
+        j_low = np.clip(np.nextafter(1.0 - j_hi.upper[:N], -np.inf), 0, 1)
+        row.update(joint_p_low_mean=float(j_low.mean()),
+                   factored_minus_joint_p_low_min=float((p_low - j_low).min()),
+                   factored_minus_joint_p_low_max=float((p_low - j_low).max()),
+                   factored_never_below_joint=bool(np.all(p_low >= j_low - 1e-12)))
+    else:
+        row["joint"] = f"does not fit: {entries:,} entries > --joint-max-entries {joint_max:,}"
+    row["peak_rss_mb"] = round(_rss_mb(), 0)
+    row["load_end"] = os.getloadavg()
+    return row
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", dir=path.parent)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+    os.replace(tmp, path)
+
+
+def _md(data) -> str:
+    rows = data["rows"]
+    lines = ["# Factored solver (`benchmarks/factored_solver.py`)", "",
+             f"{data['command']}; {data['date']}; commit {data['commit']}; load at start {data['load_start']}; "
+             f"numba threads {rows[0]['threads'] if rows else '?'}.", "",
+             "Linear system x' = A x + w (A_ii = 0.7, A_{i,i+1} = -0.1 cyclic, w ~ N(0, 0.01 I)), X = [-1, 1]^d, "
+             f"one mode, safety for {rows[0]['horizon'] if rows else '?'} steps. Marginals: "
+             f"{rows[0]['marginals'] if rows else '?'}.", "",
+             "| d | cells | numbers / row (entries) | model MB | distinct marginals / axis | entries read / sweep "
+             "(unshared) | sweep s (CPU s) | ns / entry (CPU) | k-step bracket s | peak RSS MB | p_low mean (min) | "
+             "joint |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        if "joint" in r:
+            joint = r["joint"]
+        else:
+            joint = (f"{r['joint_entries']:,} entries, {r['joint_mb']} MB, solve {r['joint_solve_s']} s; p_low mean "
+                     f"{r['joint_p_low_mean']:.4f}; factored - joint in [{r['factored_minus_joint_p_low_min']:.2e}, "
+                     f"{r['factored_minus_joint_p_low_max']:.2e}]")
+        lines.append(
+            f"| {r['d']} | {r['cells']:,} | {r['numbers_per_row']} ({r['entries_per_row']}) | {r['model_mb']} | "
+            f"{r['distinct_marginals'][0]} | {r['entries_per_sweep']:,} ({r['entries_per_sweep_unshared']:.3g}) | "
+            f"{r['sweep_pessimistic_s']} ({r['sweep_pessimistic_cpu_s']}) | {r['ns_per_entry_cpu']} | "
+            f"{r['solve_s']} ({r['sweeps']} sweeps) | {r['peak_rss_mb']:.0f} | {r['p_low_mean']:.4f} "
+            f"({r['p_low_min']:.4f}) | {joint} |")
+    lines += ["", "Columns: numbers / row = stored numbers per (cell, mode), sum_i (2 k_i + 4); entries = sum_i (k_i + 1). "
+              "Entries read / sweep: listed entries read by one sweep through the prefix tree of shared marginals, "
+              "against a nested reduction per row. Sweep: one application of the operator to every row (median of "
+              "3, wall clock, process CPU time in brackets). k-step bracket: lower and upper ends for both "
+              "adversaries (p_low and p_up of safety). Joint: `FactoredIMDP.to_joint` solved by "
+              "`solve_reachability` (same horizon), where it fits."]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--dims", type=int, nargs="+", default=[4, 5, 6])
+    ap.add_argument("--n", type=int, default=8, help="intervals per axis")
+    ap.add_argument("--horizon", type=int, default=10)
+    ap.add_argument("--joint-max-entries", type=int, default=30_000_000)
+    ap.add_argument("--one", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--no-write", action="store_true")
+    args = ap.parse_args(argv)
+    if args.one is not None:
+        print(json.dumps(one(args.one, args.n, args.horizon, args.joint_max_entries)))
+        return 0
+    load_start = os.getloadavg()
+    rows = []
+    for d in args.dims:
+        cmd = [sys.executable, __file__, "--one", str(d), "--n", str(args.n), "--horizon", str(args.horizon),
+               "--joint-max-entries", str(args.joint_max_entries)]
+        r = subprocess.run(cmd, capture_output=True, text=True)
+        if r.returncode != 0:
+            print(r.stderr[-3000:], file=sys.stderr)
+            return r.returncode
+        row = json.loads(r.stdout.strip().splitlines()[-1])
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    try:
+        commit = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
+                                text=True).stdout.strip()
+    except OSError:
+        commit = None
+    data = {"rows": rows, "command": "python benchmarks/factored_solver.py " + " ".join(argv or sys.argv[1:]),
+            "commit": commit, "load_start": load_start, "load_end": os.getloadavg(),
+            "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
+    if not args.no_write:
+        RESULTS.mkdir(exist_ok=True)
+        _write_atomic(RESULTS / "factored_solver.json", json.dumps(data, indent=1) + "\n")
+        _write_atomic(RESULTS / "factored_solver.md", _md(data))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
