@@ -7,6 +7,8 @@
     robust-imdp example NAME --out DIR            write a case study's problem file and data
     robust-imdp suggest DIR --problem P --budget N  where to sample next: N (x, mode) requests as CSV
     robust-imdp improve P --true-system S --budget N  the sampling loop: suggest, simulate, re-bound, re-solve
+    robust-imdp calibrate PROBLEM.toml --out DIR  suggest lengthscale and rkhs_bound from the data (evidence,
+                                                  not proof); write DIR/calibration.json and .png
     robust-imdp --version
 
 ``simulate`` exits with status 1 when more cells are flagged than chance allows (the result's
@@ -217,6 +219,25 @@ def _parser() -> argparse.ArgumentParser:
     im.add_argument("--allow-outside", action="store_true", help="accept next states outside X")
     im.add_argument("--quiet", action="store_true", help="no progress lines (the per-round lines stay)")
     _add_tight(im, "its local_points from the starting data")
+
+    ca = sub.add_parser("calibrate", parents=[common], help="suggest lengthscale and rkhs_bound from the data",
+                        description="Per mode and component: GP likelihood and cross-validation curves of the "
+                                    "lengthscale, the certified minimum RKHS norm, held-out violations of the "
+                                    "certified bound per B with a Clopper-Pearson bound, affine trends "
+                                    "(robust_imdp.bounds.calibrate, docs/calibration.md). Writes calibration.json "
+                                    "and calibration.png into --out and prints the suggested [learning] table; "
+                                    "never edits the problem file. Evidence, not proof.")
+    ca.add_argument("problem", type=Path, help="TOML problem file")
+    ca.add_argument("--out", type=Path, default=Path("calibration"), help="output directory (default ./calibration)")
+    ca.add_argument("--folds", type=_at_least(2), default=5, help="cross-validation folds (default 5)")
+    ca.add_argument("--seed", type=_at_least(0), default=0, help="random seed of the subsets and folds (default 0)")
+    ca.add_argument("--keep-lengthscale", action="store_true",
+                    help="keep the problem's lengthscale (e.g. one per input dimension) and calibrate B only")
+    ca.add_argument("--workers", type=_at_least(1), default=None,
+                    help="local cores: 1 = this process on one core, N > 1 = a local Dask cluster of N processes "
+                         "(default: this process, numba threads on all cores)")
+    ca.add_argument("--no-figures", action="store_true", help="do not write calibration.png")
+    ca.add_argument("--quiet", action="store_true", help="no progress lines")
 
     ex = sub.add_parser("example", parents=[common], help="write a case study's problem file and data",
                         description="Generate the data of a paper case study with a fixed seed "
@@ -614,6 +635,36 @@ def _cmd_improve(args) -> int:
     return command(args, _load_true_system(args.true_system))
 
 
+#: The files ``calibrate`` writes (replaced as one set, ``io.result_file.staged_outputs``).
+CALIBRATION_OUTPUTS = ("calibration.json", "calibration.png")
+
+
+def _cmd_calibrate(args) -> int:
+    from robust_imdp.io.files import load_problem
+    from robust_imdp.io.result_file import staged_outputs
+    from robust_imdp.jsonable import jsonable
+
+    created = _writable_dir(args.out, "--out")
+    try:
+        problem = load_problem(args.problem)
+        progress = None if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))
+        cal = problem.calibrate(folds=args.folds, rng=args.seed, keep_lengthscale=args.keep_lengthscale,
+                                workers=args.workers, progress=progress)
+        with staged_outputs(args.out, CALIBRATION_OUTPUTS) as stage:  # the previous files stay until all are new
+            (stage.path / "calibration.json").write_text(json.dumps(jsonable(cal.to_dict()), indent=1))
+            if not args.no_figures:
+                from robust_imdp.plotting import save_calibration_figure
+
+                save_calibration_figure(cal, stage.path / "calibration.png")
+    except BaseException:
+        _remove_if_empty(created)
+        raise
+    print(cal.summary())
+    print(f"wrote {args.out / 'calibration.json'}" + ("" if args.no_figures else " and calibration.png")
+          + f"; {args.problem} is unchanged")
+    return Exit.OK
+
+
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
     """Warnings read like the errors: ``robust-imdp: warning: <message>``, no source line."""
     print(f"robust-imdp: warning: {message}", file=sys.stderr if file is None else file, flush=True)
@@ -623,7 +674,7 @@ def main(argv=None) -> int:
     """Entry point of ``robust-imdp``; returns the exit status."""
     args = _parser().parse_args(argv)
     commands = {"run": _cmd_run, "simulate": _cmd_simulate, "export": _cmd_export, "example": _cmd_example,
-                "suggest": _cmd_suggest, "improve": _cmd_improve}
+                "suggest": _cmd_suggest, "improve": _cmd_improve, "calibrate": _cmd_calibrate}
     try:
         with warnings.catch_warnings():
             if not args.debug:  # --debug keeps Python's format, with the source line

@@ -55,6 +55,8 @@ __all__ = [
     "threshold_segments",
     "seam_segments",
     "save_figures",
+    "plot_calibration",
+    "save_calibration_figure",
 ]
 
 CLASS_COLOURS = {"yes": "#2ca25f", "maybe": "#fec44f", "no": "#de2d26"}
@@ -780,3 +782,110 @@ def _save(fig, path: Path, dpi: int) -> Path:
     fig.savefig(path, dpi=dpi)
     plt.close(fig)
     return path
+
+# --------------------------------------------------------------------------- calibration
+#: Most components drawn by :func:`plot_calibration` (one row each).
+CALIBRATION_ROWS = 24
+
+
+def _calibration_doc(calibration) -> dict:
+    """The ``calibration.json`` document of a ``bounds.calibrate.Calibration``, a dict of it, or its path."""
+    if isinstance(calibration, (str, Path)):
+        import json
+
+        return json.loads(Path(calibration).read_text())
+    if isinstance(calibration, Mapping):
+        return dict(calibration)
+    if hasattr(calibration, "to_dict"):
+        return calibration.to_dict()
+    raise InvalidInputError(f"calibration must be a Calibration, its dict or the path of calibration.json; got "
+                            f"{type(calibration).__name__}")
+
+
+def plot_calibration(calibration, *, fig=None):
+    """The evidence of ``robust-imdp calibrate``, one row per learned component (at most :data:`CALIBRATION_ROWS`).
+
+    Left: the GP log marginal likelihood (per point) and the K-fold cross-validation RMSE against the
+    lengthscale, their optima and the suggested lengthscale. Middle: the certified minimum norm against the
+    lengthscale (the lower bound on B; refuted below it), the suggested lengthscale marked. Right: held-out
+    violations of the certified bound against B, the minimum norm and the suggested B marked. The footer
+    says what the numbers do not prove.
+
+    Parameters
+    ----------
+    calibration : bounds.calibrate.Calibration, its ``to_dict()``, or the path of ``calibration.json``
+    fig : matplotlib Figure, optional
+
+    Returns
+    -------
+    matplotlib Figure
+    """
+    doc = _calibration_doc(calibration)
+    comps = doc.get("components", [])[:CALIBRATION_ROWS]
+    if not comps:
+        raise InvalidInputError("the calibration has no learned component to draw")
+    rows = len(comps)
+    if fig is None:
+        fig = plt.figure(figsize=(13.0, 2.6 * rows + 0.6), constrained_layout=True)
+    axes = fig.subplots(rows, 3, squeeze=False)
+    for r, c in enumerate(comps):
+        curves, held = c["lengthscale_curves"], c["held_out"]
+        grid = np.asarray(curves["grid"], float)
+        l_sugg = np.atleast_1d(np.asarray(c["suggested"]["lengthscale"], float))
+        name = f"mode {c['mode']}, component {c['component']}"
+        ax = axes[r, 0]
+        ax.semilogx(grid, curves["cv_rmse"], "o-", color="#3182bd", ms=3, label="CV RMSE (left)")
+        ax.set_ylabel("CV RMSE", color="#3182bd")
+        tw = ax.twinx()
+        tw.semilogx(grid, curves["log_likelihood_per_point"], "s-", color="#e6550d", ms=3,
+                    label="log likelihood / point (right)")
+        tw.set_ylabel("log lik. / point", color="#e6550d")
+        ax.axvline(curves["cv_optimum"], color="#3182bd", ls="--", lw=1)
+        ax.axvline(curves["likelihood_optimum"], color="#e6550d", ls="--", lw=1)
+        ax.axvline(float(np.min(l_sugg)), color="black", lw=1.4, label="suggested")
+        ax.set_xlabel("lengthscale")
+        ax.set_title(f"{name}: lengthscale", fontsize=9)
+        if r == 0:
+            h1, l1 = ax.get_legend_handles_labels()
+            h2, l2 = tw.get_legend_handles_labels()
+            ax.legend(h1 + h2, l1 + l2, fontsize=7, loc="best")
+        ax = axes[r, 1]
+        ax.loglog(grid, np.maximum(np.asarray(curves["min_norm"], float), 1e-12), "o-", color="#636363", ms=3,
+                  label="certified minimum norm")
+        ax.axvline(float(np.min(l_sugg)), color="black", lw=1.4)
+        ax.plot([float(np.min(l_sugg))], [max(c["min_norm"]["value"], 1e-12)], "D", color="black", ms=5,
+                label=f"at the suggestion: {c['min_norm']['value']:.3g}")
+        ax.set_xlabel("lengthscale")
+        ax.set_ylabel("minimum norm")
+        ax.set_title(f"{name}: B below the curve is refuted", fontsize=9)
+        ax.legend(fontsize=7, loc="best")
+        ax = axes[r, 2]
+        k = int(held["evaluated"])
+        B = np.asarray(held["rkhs_bounds"], float)
+        v = np.asarray(held["violations"], float)
+        ax.semilogx(B[:k], v[:k], "o-", color="#de2d26", ms=3,
+                    label=f"held-out violations (of {held['n_held_out']})")
+        if k < B.size:
+            ax.semilogx(B[k - 1:], np.zeros(B.size - k + 1), ":", color="#de2d26", lw=1,
+                        label="0 beyond (the bound widens with B)")
+        ax.axvline(c["min_norm"]["value"], color="#636363", ls="--", lw=1, label="minimum norm")
+        ax.axvline(c["suggested"]["rkhs_bound"], color="black", lw=1.4,
+                   label=f"suggested B = {c['suggested']['rkhs_bound']:g}")
+        if held.get("clopper_pearson_upper") is not None:
+            ax.plot([], [], " ", label=f"P[new sample outside] <= {held['clopper_pearson_upper']:.3g} "
+                                       f"({held['confidence']:g})")
+        ax.set_xlabel("B (rkhs_bound)")
+        ax.set_ylabel("violations")
+        ax.set_title(f"{name}: held-out evidence", fontsize=9)
+        ax.legend(fontsize=7, loc="best")
+    total = len(doc.get("components", []))
+    foot = doc.get("statement", "")
+    if total > rows:
+        foot = f"(first {rows} of {total} components) " + foot
+    fig.suptitle("robust-imdp calibrate: " + foot, fontsize=8, wrap=True)
+    return fig
+
+
+def save_calibration_figure(calibration, path, *, dpi: int = 110) -> Path:
+    """Write :func:`plot_calibration` to ``path`` (PNG); returns the path."""
+    return _save(plot_calibration(calibration), Path(path), dpi)

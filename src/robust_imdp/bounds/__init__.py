@@ -2,4 +2,4 @@
 
 from robust_imdp._lazy import exports
 
-__getattr__, __dir__ = exports(__name__, ["rkhs", "rkhs_model", "rkhs_weights", "rkhs_check", "rkhs_local", "gp", "gp_model", "gp_error", "gp_cells", "assumptions", "methods", "fit"])
+__getattr__, __dir__ = exports(__name__, ["rkhs", "rkhs_model", "rkhs_weights", "rkhs_check", "rkhs_local", "gp", "gp_model", "gp_error", "gp_cells", "assumptions", "methods", "fit", "calibrate"])

@@ -429,6 +429,37 @@ class Problem:
         values.update(changes)
         return Problem(**values)
 
+    def calibrate(self, *, folds: int = 5, rng=0, keep_lengthscale: bool = False, workers: int | None = None,
+                  scheduler: str | None = None, progress=None):
+        """Suggest ``rkhs_bound`` and ``lengthscale`` per mode and component from the data: evidence, not proof.
+
+        ``bounds.calibrate.calibrate_problem`` (docs/calibration.md): the GP likelihood and cross-validation
+        curves of the lengthscale, the certified minimum norm, held-out violations of the certified bound per
+        B with a Clopper-Pearson bound, and affine trends. The problem itself is not changed; the result's
+        ``suggested`` holds the values in the shapes of ``[learning]`` (``learning_table()`` as TOML).
+
+        Parameters
+        ----------
+        folds : int >= 2
+        rng : seed of the subsets and folds
+        keep_lengthscale : bool
+            Keep this problem's lengthscale (e.g. one per input dimension) and calibrate B only.
+        workers, scheduler
+            Where the components run, as in ``synthesize_from_data`` (``pipeline.parallel.open_scheduler``).
+        progress : callable(str), optional
+            One line per finished component.
+
+        Returns
+        -------
+        bounds.calibrate.Calibration
+        """
+        from robust_imdp.bounds.calibrate import calibrate_problem
+        from robust_imdp.pipeline.parallel import open_scheduler
+
+        with open_scheduler(workers=workers, scheduler=scheduler) as sched:
+            return calibrate_problem(self, folds=folds, rng=rng, keep_lengthscale=keep_lengthscale, scheduler=sched,
+                                     progress=progress)
+
     @classmethod
     def from_arrays(cls, x, u, x_next, *, lower, upper, cell_size, regions, formula, threshold, modes, noise,
                     rkhs_bound, horizon=None, lengthscale=None, names=None, **options) -> "Problem":
