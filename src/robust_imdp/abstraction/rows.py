@@ -73,6 +73,13 @@ in the corollary a periodic axis contributes the factors ``p = P_v = 1`` and nev
 
 Rounding: all computed bounds go through :mod:`robust_imdp._fp` (error bound + ``np.nextafter``):
 probabilities of good events down, upper bounds up; margins/gaps down, expansions up.
+
+Exact transitions (``transitions="exact"``, docs/abstraction.md): instead of Thm 1's containment
+events, every entry's bounds are the exact minimum and maximum over the image box of the noise's
+mass in the target (per axis, ``abstraction.marginals``; joint rows, ``abstraction.exact_rows``).
+:func:`abstract_rows` dispatches to them and returns the same :class:`AbstractionRows` (Thm 1's
+per-row eps/eta records are NaN and ``containing_cell`` -1 there), so chunking, refinement, the
+cache and every consumer of :class:`Abstraction` work unchanged.
 """
 
 from __future__ import annotations
@@ -85,6 +92,7 @@ import numpy as np
 
 from robust_imdp._fp import U, down, up
 from robust_imdp.abstraction.cell_bounds import CellBounds, CellErrors, confidence_cell_bounds
+from robust_imdp.abstraction.exact_rows import exact_rows
 from robust_imdp.abstraction.periodic import circle_margin
 from robust_imdp.abstraction.probabilities import EPS_LEVELS, _combine_down, _complement_up, _Mode, _separated_best
 from robust_imdp.abstraction.targets import targets_of
@@ -95,7 +103,10 @@ from robust_imdp.models.noise import NoiseModel
 
 __all__ = ["CellBounds", "Abstraction", "AbstractionRows", "abstract", "abstract_rows", "assemble_abstraction",
            "select_rows", "join_rows",
-           "confidence_cell_bounds", "EPS_LEVELS"]
+           "confidence_cell_bounds", "EPS_LEVELS", "TRANSITIONS"]
+
+#: How transition bounds are computed: Thm 1's containment events, or the exact per-axis integrals.
+TRANSITIONS = ("thm1", "exact")
 
 
 @dataclass(frozen=True, eq=False)
@@ -119,6 +130,9 @@ class Abstraction:
         The cell containing ``Im(q)`` with positive margins (-1 if none).
     nnz_per_row : (n_choices,) int array
         Listed entries per IMDP row (including the outside state).
+    transitions : {"thm1", "exact"}
+        How the bounds were computed (module docstring); with "exact" the Thm 1 records above are
+        NaN / -1 and ``floor_tol`` is not used.
     """
 
     imdp: IMDP
@@ -133,6 +147,7 @@ class Abstraction:
     lower_eta: np.ndarray
     containing_cell: np.ndarray
     nnz_per_row: np.ndarray = field(repr=False)
+    transitions: str = "thm1"
 
     @property
     def n_modes(self) -> int:
@@ -143,6 +158,8 @@ class Abstraction:
         m = self.imdp
         meta = {"partition": self.partition.to_dict(), "eps_rule": self.eps_rule, "combine": self.combine,
                 "floor_tol": self.floor_tol}
+        if self.transitions != "thm1":  # files of Thm 1 abstractions stay as they were
+            meta["transitions"] = self.transitions
         arrays = dict(state_ptr=m.state_ptr, row_ptr=m.row_ptr, col=m.col, lower=m.lower, upper=m.upper,
                       floor=m.floor, actions=m.actions, floor_eps=self.floor_eps, floor_eta=self.floor_eta,
                       lower_eps=self.lower_eps, lower_eta=self.lower_eta, containing_cell=self.containing_cell,
@@ -163,12 +180,12 @@ class Abstraction:
                        floor_tol=float(meta["floor_tol"]), floor_eps=np.array(z["floor_eps"]),
                        floor_eta=np.array(z["floor_eta"]), lower_eps=np.array(z["lower_eps"]),
                        lower_eta=np.array(z["lower_eta"]), containing_cell=np.array(z["containing_cell"]),
-                       nnz_per_row=np.array(z["nnz_per_row"]))
+                       nnz_per_row=np.array(z["nnz_per_row"]), transitions=meta.get("transitions", "thm1"))
 
 
 def abstract(partition: Partition, cell_bounds: CellBounds, noise: NoiseModel, error_models=None, *,
              eta=None, eps_rule: str = "optimized", combine: str = "product", floor_tol: float = 1e-6,
-             block_size: int = 4096) -> Abstraction:
+             block_size: int = 4096, transitions: str = "thm1") -> Abstraction:
     """Build the IMDP abstraction (Thm 1 with corrected complements, corollary for outside X).
 
     Parameters
@@ -197,6 +214,11 @@ def abstract(partition: Partition, cell_bounds: CellBounds, noise: NoiseModel, e
         762 "maybe" cells of the 32x32 example into "yes" for +5 % non-zeros).
     block_size : int
         Cells processed at once (memory/speed trade-off only).
+    transitions : {"thm1", "exact"}
+        Thm 1's bounds, or the exact per-axis integrals (module docstring; docs/abstraction.md):
+        never looser per entry, and the only ones with non-zero lower bounds when the noise is
+        wider than a cell. ``eta`` and ``eps_rule`` are Thm 1's and unused by "exact"; there every
+        row's floor is at least ``floor_tol / 10`` and entries below it are not listed.
 
     Returns
     -------
@@ -211,7 +233,7 @@ def abstract(partition: Partition, cell_bounds: CellBounds, noise: NoiseModel, e
     """
     return assemble_abstraction(partition, [abstract_rows(
         partition, cell_bounds, noise, error_models, eta=eta, eps_rule=eps_rule, combine=combine,
-        floor_tol=floor_tol, block_size=block_size, _chunk=False)])
+        floor_tol=floor_tol, block_size=block_size, transitions=transitions, _chunk=False)])
 
 
 @dataclass(frozen=True, eq=False)
@@ -237,11 +259,12 @@ class AbstractionRows:
     combine: str
     eta: np.ndarray | None
     floor_tol: float
+    transitions: str = "thm1"
 
 
 def abstract_rows(partition: Partition, cell_bounds: CellBounds, noise: NoiseModel, error_models=None, *,
                   eta=None, eps_rule: str = "optimized", combine: str = "product", floor_tol: float = 1e-6,
-                  block_size: int = 4096, _chunk: bool = True) -> AbstractionRows:
+                  block_size: int = 4096, transitions: str = "thm1", _chunk: bool = True) -> AbstractionRows:
     """The rows of :func:`abstract` for the cells whose image boxes ``cell_bounds`` holds (a chunk).
 
     A pure function of its arguments: each row depends only on its own cell's image box (and the
@@ -252,7 +275,13 @@ def abstract_rows(partition: Partition, cell_bounds: CellBounds, noise: NoiseMod
     Steps: check the arguments; per mode, the candidate (eps, p) pairs and noise context
     (:class:`~robust_imdp.abstraction.probabilities._Mode`); pass 1 lists every row's targets and
     its floor; pass 2 computes the bounds block by block (:func:`_block_rows`).
+    ``transitions="exact"``: the rows of :func:`~robust_imdp.abstraction.exact_rows.exact_rows` instead.
     """
+    if transitions not in TRANSITIONS:
+        raise InvalidInputError(f"transitions must be one of {', '.join(TRANSITIONS)}; got {transitions!r}")
+    if transitions == "exact":
+        return _exact_abstraction_rows(partition, cell_bounds, noise, error_models, eps_rule, combine, floor_tol,
+                                       _chunk)
     errors, eta_fixed = _check_arguments(partition, cell_bounds, noise, error_models, eta, eps_rule, combine,
                                          floor_tol, _chunk)
     modes = [_Mode(u, cell_bounds, errors, noise, eta_fixed, eps_rule, floor_tol, combine)
@@ -272,6 +301,20 @@ def abstract_rows(partition: Partition, cell_bounds: CellBounds, noise: NoiseMod
         floor_eps=np.stack([md.floor_eps for md in modes]), floor_eta=np.stack([md.floor_eta for md in modes]),
         n_modes=cell_bounds.n_modes, eps_rule=eps_rule, combine=combine,
         eta=None if eta_fixed is None else np.array(eta_fixed), floor_tol=float(floor_tol))
+
+
+def _exact_abstraction_rows(partition, cell_bounds, noise, error_models, eps_rule, combine, floor_tol, chunk):
+    """:func:`abstract_rows` with ``transitions="exact"``: the exact rows, Thm 1's records NaN / -1."""
+    _check_arguments(partition, cell_bounds, noise, error_models, None, eps_rule, combine, floor_tol, chunk)
+    # floor_tol / 10: the floor below which listed entries are dropped (module doc of exact_rows)
+    ex = exact_rows(partition, cell_bounds, noise, error_models, combine=combine, floor_level=floor_tol / 10)
+    M, N, d = cell_bounds.image_lower.shape
+    nan = np.full((M, N, d), np.nan)
+    return AbstractionRows(
+        row_len=ex.row_len, col=ex.col, lower=ex.lower, upper=ex.upper, floor=ex.floor, lower_eps=nan,
+        lower_eta=nan.copy(), containing=np.full((M, N), -1, dtype=np.int64), floor_eps=nan.copy(),
+        floor_eta=nan.copy(), n_modes=M, eps_rule=eps_rule, combine=combine, eta=None, floor_tol=float(floor_tol),
+        transitions="exact")
 
 
 def _check_arguments(partition, cell_bounds, noise, error_models, eta, eps_rule, combine, floor_tol, chunk):
@@ -481,7 +524,7 @@ def select_rows(rows: AbstractionRows, cells) -> AbstractionRows:
         row_len=lens, col=rows.col[idx], lower=rows.lower[idx], upper=rows.upper[idx], floor=rows.floor[r],
         lower_eps=rows.lower_eps[:, cells], lower_eta=rows.lower_eta[:, cells], containing=rows.containing[:, cells],
         floor_eps=rows.floor_eps[:, cells], floor_eta=rows.floor_eta[:, cells], n_modes=M, eps_rule=rows.eps_rule,
-        combine=rows.combine, eta=rows.eta, floor_tol=rows.floor_tol)
+        combine=rows.combine, eta=rows.eta, floor_tol=rows.floor_tol, transitions=rows.transitions)
 
 
 def join_rows(chunks) -> AbstractionRows:
@@ -496,7 +539,15 @@ def join_rows(chunks) -> AbstractionRows:
         row_len=cat("row_len"), col=cat("col"), lower=cat("lower"), upper=cat("upper"), floor=cat("floor"),
         lower_eps=cat("lower_eps", 1), lower_eta=cat("lower_eta", 1), containing=cat("containing", 1),
         floor_eps=cat("floor_eps", 1), floor_eta=cat("floor_eta", 1), n_modes=f.n_modes, eps_rule=f.eps_rule,
-        combine=f.combine, eta=f.eta, floor_tol=f.floor_tol)
+        combine=f.combine, eta=f.eta, floor_tol=f.floor_tol, transitions=_same_transitions(chunks))
+
+
+def _same_transitions(chunks) -> str:
+    """The chunks' common ``transitions`` (rows of both kinds in one IMDP would be a caller's bug)."""
+    kinds = {getattr(c, "transitions", "thm1") for c in chunks}
+    if len(kinds) != 1:
+        raise InvalidInputError(f"chunks must all have the same transitions; got {sorted(kinds)}")
+    return kinds.pop()
 
 
 def assemble_abstraction(partition: Partition, chunks) -> Abstraction:
@@ -534,7 +585,7 @@ def assemble_abstraction(partition: Partition, chunks) -> Abstraction:
         imdp=imdp, partition=partition, eps_rule=first.eps_rule, combine=first.combine, eta=first.eta,
         floor_tol=first.floor_tol, floor_eps=cat("floor_eps"), floor_eta=cat("floor_eta"),
         lower_eps=cat("lower_eps"), lower_eta=cat("lower_eta"), containing_cell=cat("containing"),
-        nnz_per_row=row_len,
+        nnz_per_row=row_len, transitions=_same_transitions(chunks),
     )
 
 
