@@ -474,7 +474,7 @@ def _rebuild(partition, rows, cell_bounds, cells, problem):
 
 
 def _abstraction_options(problem) -> dict:
-    return {"eta": problem.eta, "eps_rule": problem.eps_rule, "combine": problem.combine}
+    return problem.abstraction_options()
 
 
 # ---------------------------------------------------------------------------------------------- the loop

@@ -79,12 +79,18 @@ def _split_key(problem: Problem) -> list:
     return [] if tol is None else [("split_tol", float(tol))]
 
 
+def _transitions_key(problem: Problem) -> list:
+    """``[("transitions", value)]`` unless Thm 1's bounds are used (keys of Thm 1 abstractions are unchanged)."""
+    kind = getattr(problem, "transitions", "thm1")
+    return [] if kind == "thm1" else [("transitions", kind)]
+
+
 def abstraction_key(problem: Problem) -> str:
     """Hash of everything the abstraction depends on (not the formula, threshold, horizon)."""
     h = hashlib.sha256(bounds_key(problem).encode())
     _fingerprint(h, [None if problem.eta is None else np.asarray(problem.eta, float),
                      problem.eps_rule, problem.combine, problem.guarantee,
-                     float(problem.confidence)])
+                     float(problem.confidence)] + _transitions_key(problem))
     return h.hexdigest()[:20]
 
 

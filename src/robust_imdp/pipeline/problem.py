@@ -15,6 +15,11 @@ from robust_imdp.errors import InvalidInputError
 
 CLASS_NAMES = ("yes", "no", "maybe")
 GUARANTEES = ("confidence", "paper")
+#: ``[abstraction].transitions``: Thm 1's containment bounds or the exact per-axis integrals (the values of
+#: ``abstraction.rows.TRANSITIONS``, kept here so that importing the problem does not load the abstraction).
+TRANSITIONS = ("thm1", "exact")
+#: The default of ``transitions`` (docs/abstraction.md, "When each wins").
+DEFAULT_TRANSITIONS = "thm1"
 #: How the unknown part is bounded over a cell (see :class:`Problem`): the method registry's names.
 ERROR_BOUNDS = methods.ERROR_BOUNDS
 #: Failure probability allowed to the assumption check's noise bound when the noise is unbounded.
@@ -171,6 +176,7 @@ class AbstractionConfig:
     combine: str
     guarantee: str
     confidence: float
+    transitions: str = DEFAULT_TRANSITIONS
 
 
 @dataclass(frozen=True, eq=False)
@@ -206,6 +212,11 @@ class Problem:
         Branch-and-bound budget per cell and problem (bounds stay sound, only looser).
     eta : (n,) float array or None
         Noise threshold of Thm 1; None = the noise model's default.
+    transitions : {"thm1", "exact"}
+        How the transition bounds are computed (``[abstraction].transitions``; docs/abstraction.md):
+        Thm 1's containment events, or the exact minimum and maximum over each image box of the noise's
+        mass in every target (never looser per entry, and the only ones that certify anything when the
+        noise is wider than a cell; ``eta`` and ``eps_rule`` are Thm 1's and unused there).
     guarantee : {"confidence", "paper"}
         How the GP error enters the abstraction. ``"confidence"`` (default, sound for the one
         fixed system that produced the data): the error bound of every GP is taken at one
@@ -292,6 +303,7 @@ class Problem:
     dim_names: tuple | None = None
     periodic: tuple | None = None
     split_tol: float | None = None
+    transitions: str = DEFAULT_TRANSITIONS
 
     def __post_init__(self):
         if self.periodic is not None:
@@ -336,6 +348,8 @@ class Problem:
                                         f"its Taylor term exceeds it) or None (never); got {self.split_tol!r}")
             method.check_split()
         method.check_noise_options(tau, self.iid_noise)
+        if self.transitions not in TRANSITIONS:
+            raise InvalidInputError(f"transitions must be one of {', '.join(TRANSITIONS)}; got {self.transitions!r}")
         method.check_gp_options(self.gp_options)
         self._check_known_parts()
         if self.refine is not None:
@@ -382,7 +396,12 @@ class Problem:
 
     @property
     def abstraction(self) -> AbstractionConfig:
-        return AbstractionConfig(self.eta, self.eps_rule, self.combine, self.guarantee, self.confidence)
+        return AbstractionConfig(self.eta, self.eps_rule, self.combine, self.guarantee, self.confidence,
+                                 self.transitions)
+
+    def abstraction_options(self) -> dict:
+        """The keyword options of ``abstraction.abstract`` / ``abstract_rows`` this problem asks for (one place)."""
+        return {"eta": self.eta, "eps_rule": self.eps_rule, "combine": self.combine, "transitions": self.transitions}
 
     @property
     def method(self) -> methods.BoundMethod:

@@ -86,6 +86,7 @@ def _parameters(problem: Problem, abstraction) -> dict:
         "eta_used": getattr(abstraction, "eta", None),
         "eps_rule": problem.eps_rule,
         "combine": problem.combine,
+        "transitions": problem.transitions,
         "guarantee": problem.guarantee,
         "confidence": float(problem.confidence) if problem.guarantee == "confidence" else None,
         "error_bound": problem.error_bound,
@@ -118,7 +119,7 @@ def _chunked_abstract(problem: Problem, partition, cell_bounds, log: _Log, run: 
     N = partition.n_cells
     starts = list(range(0, N, chunk))
     sched = run.sched
-    opts = {"eta": problem.eta, "eps_rule": problem.eps_rule, "combine": problem.combine}
+    opts = problem.abstraction_options()
     args = []
     part = partition if sched is None else sched.share(partition)
     for s0 in starts:
@@ -176,7 +177,7 @@ def _build_abstraction(problem: Problem, partition, log: _Log, cache_dir=None, r
                                             _chunk_cells(run, partition.n_cells, per_task))
         else:
             abstraction = abstract(partition, cell_bounds, problem.noise, error_models,
-                                   eta=problem.eta, eps_rule=problem.eps_rule, combine=problem.combine)
+                                   **problem.abstraction_options())
     diagnostics = dict(diagnostics)
     diagnostics["successors_per_row"] = float(np.mean(abstraction.nnz_per_row))
     log.info(f"IMDP: {abstraction.imdp.n_states} states, {int(np.sum(abstraction.nnz_per_row))} "
@@ -336,8 +337,7 @@ def _refine(problem: Problem, partition, abstraction, syn, cell_bounds, dfa, log
         out = refine(BoxPartition(partition), cell_bounds, _cell_bounder(problem, partition, log, run),
                      problem.noise, dfa, threshold=problem.threshold, horizon=problem.horizon,
                      options=problem.refine, abstraction=abstraction, synthesis=syn,
-                     abstraction_options={"eta": problem.eta, "eps_rule": problem.eps_rule,
-                                          "combine": problem.combine},
+                     abstraction_options=problem.abstraction_options(),
                      progress=log.info if log.enabled else None)
     diagnostics["refinement"] = _jsonable({"stopped": out.stopped, "options": problem.refine.to_dict(),
                                            "rounds": [r.to_dict() for r in out.rounds]})
