@@ -1,5 +1,6 @@
-"""Cell bounds to an interval MDP (the paper's Thm 1, corrected, with an outside-X state)."""
+"""Cell bounds to an interval MDP (the paper's Thm 1, corrected, with an outside-X state; or the exact per-axis integrals)."""
 
 from robust_imdp._lazy import exports
 
-__getattr__, __dir__ = exports(__name__, ["cell_bounds", "probabilities", "periodic", "targets", "rows"])
+__getattr__, __dir__ = exports(__name__, ["cell_bounds", "probabilities", "periodic", "targets", "marginals",
+                                          "exact_rows", "rows"])
