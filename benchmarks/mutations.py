@@ -81,8 +81,8 @@ _VI_K_RETURN = ("    return ReachabilityResult(lower=lo, upper=up, strategy=stra
                 "precision=prec, converged=True)")
 _SYN_CHECK = "    bad = np.flatnonzero(~(p_low <= p_up))"
 _FLOOR = "        floors[u] = _complement_up(_combine_down(md.floor_p, md.floor_pv, combine))"
-_LOCAL_OPT = ("                            val[q, jv, o, sd] = _certify(bidx, bw, nb, ys, b, eb, Kp, K_err, s0, "
-              "a1[o], 0.0, G, sgn)[0]")
+_LOCAL_OPT = ("                            cert = _certify(bidx, bw, nb, ys, b, eb, Kp, K_err, s0, "
+              "a1[o], 0.0, G, sgn)")
 _LOCAL_RIDGE_UP = ("                        val[q, jv, o, 0] = _certified_value(idx, w, k, ys, l1, l2, rr, a1[o], "
                    "a2[o], G, 1.0)[0]")
 _LOCAL_RIDGE_LO = ("                        val[q, jv, o, 1] = _certified_value(idx, w, k, ys, l1, l2, rr, a1[o], "
@@ -400,16 +400,16 @@ MUTATIONS = [
                      "outward)"),
     # ------------------------------------------------------------------ sub-box pruning and shared weight sums (issue 20)
     dict(name="rkhs-local-split-optimal-noise-shrink-1e-3", file="src/robust_imdp/bounds/rkhs_local.py",
-         original="cv = _certify_parts(bidx, bw, nb, yo, Bg[j, jv], EBg[j, jv], K_err, s0g[j, jv], a1[o], 0.0, G, sgn,",
-         replacement="cv = _certify_parts(bidx, bw, nb, yo, Bg[j, jv], EBg[j, jv], K_err, s0g[j, jv], a1[o] * 0.999, 0.0, G, sgn,",
+         original="cert = _certify_parts(bidx, bw, nb, yo, Bg[j, jv], EBg[j, jv], K_err, s0g[j, jv], a1[o], 0.0, G,",
+         replacement="cert = _certify_parts(bidx, bw, nb, yo, Bg[j, jv], EBg[j, jv], K_err, s0g[j, jv], a1[o] * 0.999, 0.0, G,",
          description="local weights, split cells: the noise term of the optimal sub-box certificate shrunk by 0.1 %", tests=["tests/test_rkhs_local.py"]),
     dict(name="rkhs-local-split-optimal-rkhs-shrink-1e-3", file="src/robust_imdp/bounds/rkhs_local.py",
-         original="cv = _certify_parts(bidx, bw, nb, yo, Bg[j, jv], EBg[j, jv], K_err, s0g[j, jv], a1[o], 0.0, G, sgn,",
-         replacement="cv = _certify_parts(bidx, bw, nb, yo, Bg[j, jv], EBg[j, jv], K_err, s0g[j, jv], a1[o], 0.0, G * 0.999, sgn,",
+         original="cert = _certify_parts(bidx, bw, nb, yo, Bg[j, jv], EBg[j, jv], K_err, s0g[j, jv], a1[o], 0.0, G,",
+         replacement="cert = _certify_parts(bidx, bw, nb, yo, Bg[j, jv], EBg[j, jv], K_err, s0g[j, jv], a1[o], 0.0, G * 0.999,",
          description="local weights, split cells: the RKHS term of the optimal sub-box certificate shrunk by 0.1 %", tests=["tests/test_rkhs_local.py"]),
     dict(name="rkhs-optimal-cells-noise-shrink-1e-3", file="src/robust_imdp/bounds/rkhs_weights.py",
-         original="cv = _certify_parts(bidx, bw, nb, y, B[j, jv], EB[j, jv], K_err, s0[j, jv], dbar, 0.0, G, sgn,",
-         replacement="cv = _certify_parts(bidx, bw, nb, y, B[j, jv], EB[j, jv], K_err, s0[j, jv], dbar * 0.999, 0.0, G, sgn,",
+         original="cert = _certify_parts(bidx, bw, nb, y, B[j, jv], EB[j, jv], K_err, s0[j, jv], dbar, 0.0, G,",
+         replacement="cert = _certify_parts(bidx, bw, nb, y, B[j, jv], EB[j, jv], K_err, s0[j, jv], dbar * 0.999, 0.0, G,",
          description="global optimal weights: the noise term of the optimised vertex certificate shrunk by 0.1 %", tests=["tests/test_rkhs_local.py"]),
     dict(name="rkhs-weight-parts-wKw-shrink-1e-3", file="src/robust_imdp/bounds/rkhs_model.py",
          original="l1_up, l2_up, r_up = _norms_from_parts(idx, w, n, b, eb, K_err, s0, parts[0], parts[1], parts[2], parts[3])",

@@ -265,7 +265,9 @@ def bound_mode_chunk(X, Y, A, b, cells_lower, cells_upper, local, mode: dict, *,
 
     Returns
     -------
-    dict like ``rkhs.bound_chunk``'s; a known component has ``eps = 0`` and ``support = 0``.
+    dict like ``rkhs.bound_chunk``'s; a known component has ``eps = 0`` and ``support = 0``. With
+    ``settings["scales"]`` (every learned component's B times each scale) a known component's scaled
+    boxes are its own boxes: B = 0 stays 0.
     """
     from robust_imdp.bounds.rkhs import bound_chunk
 
@@ -289,17 +291,25 @@ def bound_mode_chunk(X, Y, A, b, cells_lower, cells_upper, local, mode: dict, *,
     out = {key: np.empty((k, n)) for key in ("lower", "upper", "eps")}
     out["support"] = np.zeros((k, n), dtype=np.int64)
     out["n_unconverged"] = 0
+    scales = settings.get("scales")
+    if scales is not None:
+        out["scaled_lower"] = np.empty((len(scales), k, n))
+        out["scaled_upper"] = np.empty((len(scales), k, n))
     lams = mode.get("local_lambda") or [None] * len(groups)
     for (idx, B, L, tau), lam in zip(groups, lams):
         if B == 0:
             lo, hi = known_component_ranges(np.asarray(A, float)[idx], np.asarray(b, float)[idx], cells_lower,
                                             cells_upper, tau)
             out["lower"][:, idx], out["upper"][:, idx], out["eps"][:, idx] = lo, hi, 0.0
+            if scales is not None:  # a known component is known at every scale of B
+                out["scaled_lower"][:, :, idx], out["scaled_upper"][:, :, idx] = lo[None], hi[None]
             continue
         r = run(idx, {"rkhs_bound": float(B), "lengthscale": np.asarray(L, float), "misspecification": float(tau)},
                 lam)
         for key in ("lower", "upper", "eps", "support"):
             out[key][:, idx] = r[key]
+        if scales is not None:
+            out["scaled_lower"][:, :, idx], out["scaled_upper"][:, :, idx] = r["scaled_lower"], r["scaled_upper"]
         out["n_unconverged"] += int(r["n_unconverged"])
     return out
 

@@ -102,6 +102,9 @@ class BoundMethod:
     confidence_in_bounds : bool
         The bound stage's boxes depend on ``confidence`` (its noise and iid events), so the bounds'
         cache key holds it.
+    margins : bool
+        Its bound stage certifies the boxes at larger factors of B with the same certificate weights, so a
+        run reports assumption margins (``pipeline/margins.py``).
     """
 
     name: str
@@ -122,6 +125,7 @@ class BoundMethod:
     advice_pilot: bool = False
     local_lambda: bool = False
     confidence_in_bounds: bool = False
+    margins: bool = False
 
     def __post_init__(self):
         if (self.refine or self.advice_pilot) and self.new_cells is None:
@@ -256,7 +260,7 @@ _ROUTE_TEXT = {"gp": "GP route", "rkhs": "RKHS route"}
 _RKHS = dict(route="rkhs", bounder="robust_imdp.pipeline.bound_rkhs:learn_and_bound",
              new_cells="robust_imdp.pipeline.bound_rkhs:cell_bounder", misspecification=True, iid_noise=True,
              local_points=True, split=True, refine=True, nonlinear_known=True, per_component=True, advice_pilot=True,
-             confidence_in_bounds=True)
+             confidence_in_bounds=True, margins=True)
 
 #: The registry, in the order the documentation lists the methods (the default first).
 METHODS: dict[str, BoundMethod] = {

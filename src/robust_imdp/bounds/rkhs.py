@@ -110,6 +110,9 @@ from robust_imdp.bounds.rkhs_model import (  # noqa: F401  (re-exported)
     cell_centres,
     certify_weights,
     split_counts,
+    rescale_vertex_values,
+    scaled_norm_bound,
+    scaled_ranges,
     sub_boxes,
     t_max_up,
     taylor_remainder_sqrt_up,
@@ -123,6 +126,7 @@ from robust_imdp.bounds.rkhs_weights import (  # noqa: F401  (re-exported)
     RIDGE_LAMBDAS,
     _active_set,
     _optimal_cells,
+    _optimal_cells_coef,
     _ridge_vertex_bounds,
     _ridge_weights,
     optimal_weights,
@@ -161,6 +165,9 @@ class CellRange:
         ``B sqrt(R(t_max))`` rounded up (plus tau).
     n_unconverged : int
         Vertex problems whose optimiser stopped early (their bounds are sound, maybe looser).
+    scaled_lower, scaled_upper : (n_scales, n_cells) float arrays or None
+        With ``scales``: the range under ``||h|| <= scale * B`` for each scale, certified by the same
+        weights (``rkhs_model.scaled_ranges``; docs/rkhs_bounds.md, "Assumption margins").
     """
 
     lower: np.ndarray
@@ -171,13 +178,15 @@ class CellRange:
     vertex_upper: np.ndarray
     taylor: np.ndarray
     n_unconverged: int = 0
+    scaled_lower: np.ndarray | None = None
+    scaled_upper: np.ndarray | None = None
 
 
 def cell_ranges(model: KernelModel, cells_lower, cells_upper, *, rkhs_bound: float, noise_bound: float,
                 misspecification: float = 0.0, known_row=None, known_offset: float = 0.0,
                 method: str = "optimal", iid_factor: float | None = None, iid_theta: float = 0.0,
                 chunk: int = 16, max_iter: int = 2000, tol: float = 1e-9, prune: bool = True,
-                split_tol: float | None = None) -> CellRange:
+                split_tol: float | None = None, scales=None) -> CellRange:
     """Certified range of ``known_row . x + known_offset + g(x)`` over every cell (eq. C).
 
     Parameters
@@ -206,6 +215,10 @@ def cell_ranges(model: KernelModel, cells_lower, cells_upper, *, rkhs_bound: flo
     split_tol : float or None
         Certify a cell on sub-boxes where its Taylor term exceeds this (:func:`split_counts`,
         :func:`sub_boxes`); the cell's range is the hull of its sub-boxes' ranges. None: never.
+    scales : sequence of float >= 1, optional
+        Also the range under ``||h|| <= scale * B`` for each scale, from the weights found for B
+        (eq. W holds for any weights; ``rkhs_model.scaled_ranges``): ``scaled_lower``/``scaled_upper``.
+        The sub-boxes and the weights are those of B; nothing is optimised again.
 
     Returns
     -------
@@ -243,22 +256,32 @@ def cell_ranges(model: KernelModel, cells_lower, cells_upper, *, rkhs_bound: flo
     if method == "optimal":
         cap = int(min(model.m, MAX_SUPPORT))
         ptr = _blocks(n_cells, starts, c.shape[0], int(chunk))
-        val, sup, stat = _optimal_cells(model.X, model.y, model.K, model.K_err, model.inv_l2, c, r, signs, dbar,
-                                        G_eff, cap, int(max_iter), float(tol), ptr, lin_v, bool(prune), parent)
+        val, sup, stat, coef = _optimal_cells_coef(model.X, model.y, model.K, model.K_err, model.inv_l2, c, r, signs,
+                                                   dbar, G_eff, cap, int(max_iter), float(tol), ptr, lin_v,
+                                                   bool(prune), parent)
         su, sl = val[:, :, 0], val[:, :, 1]
+        cu, cl = coef[:, :, 0], coef[:, :, 1]
         optimised = (stat[:, :, 0] != 6) & (stat[:, :, 1] != 6)
         support = sup.max(axis=(1, 2))
         n_unconv = int(np.sum((stat != 0) & (stat != 5) & (stat != 6)))
     else:
-        su, sl = _ridge_vertex_bounds(model, c, r, signs, dbar, 0.0, G_eff)
+        su, sl, cu = _ridge_vertex_bounds(model, c, r, signs, dbar, 0.0, G_eff, coef=True)
+        cl = cu
         optimised = None
         support = np.full(c.shape[0], model.m)
     if iid_factor is not None:
         a2 = float(_up(float(iid_factor) * float(iid_theta) * (1 + 4 * _U)))
-        iu, il = _ridge_vertex_bounds(model, c, r, signs, tau, a2, G_eff)
+        iu, il, ic = _ridge_vertex_bounds(model, c, r, signs, tau, a2, G_eff, coef=True)
+        # the certificate kept per vertex and side carries its own coefficient of G (for scales)
+        cu, cl = np.where(iu < su, ic, cu), np.where(il > sl, ic, cl)
         # Intersection of two intervals that both hold (the iid one on the data event).
         su, sl = np.minimum(su, iu), np.maximum(sl, il)
     lower_c, upper_c, taylor = _combine_vertices(lin_v, lin_err, su, sl, t_max, G_eff, tau)
+    scaled = (None, None)
+    if scales is not None:  # the same weights at scale * B (docs/rkhs_bounds.md, "Assumption margins")
+        G_s = [scaled_norm_bound(G, sc, d) for sc in scales]
+        scaled = scaled_ranges(lin_v, lin_err, su, sl, cu, cl, t_max, G_eff, tau, G_s,
+                               starts if c.shape[0] != n_cells else None)
     vu = _up(lin_v + su, lin_err + 2 * _U * (np.abs(lin_v) + np.abs(su)))
     vl = _down(lin_v + sl, lin_err + 2 * _U * (np.abs(lin_v) + np.abs(sl)))
     # Error radius (a diagnostic): half the vertex interval, over the vertices optimised on both
@@ -276,7 +299,7 @@ def cell_ranges(model: KernelModel, cells_lower, cells_upper, *, rkhs_bound: flo
         jv = np.arange(signs.shape[0])[None, :]
         vl, vu = vl[corner, jv], vu[corner, jv]
     return CellRange(lower=lower_c, upper=upper_c, eps=eps, support=support, vertex_lower=vl, vertex_upper=vu,
-                     taylor=taylor, n_unconverged=n_unconv)
+                     taylor=taylor, n_unconverged=n_unconv, scaled_lower=scaled[0], scaled_upper=scaled[1])
 
 
 # ============================================================================ noise events
@@ -342,7 +365,7 @@ class ImageRanges:
 def bound_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_bound: float, noise_bound,
                 misspecification: float = 0.0, method: str = "optimal", iid_factor: float | None = None,
                 iid_theta=None, local_points: int | None = None, local_lambda: float | None = None,
-                threads: int | None = None, split_tol: float | None = None) -> dict:
+                threads: int | None = None, split_tol: float | None = None, scales=None) -> dict:
     """Certified image boxes of one mode over a chunk of cells (all outputs): a pure function.
 
     The unit of work of the bound stage (``pipeline`` runs it on a scheduler). Its result
@@ -368,11 +391,14 @@ def bound_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_bound
         numba threads for this call (1 inside a scheduler's worker process).
     split_tol : float or None
         Certification sub-boxes where the Taylor term exceeds this (:func:`cell_ranges`).
+    scales : sequence of float >= 1, optional
+        Also the boxes under ``||h|| <= scale * B`` from the same weights (:func:`cell_ranges`).
 
     Returns
     -------
     dict with ``lower``, ``upper``, ``eps`` ((k, n) float arrays), ``support`` ((k, n) int array),
-    ``n_unconverged`` (int) and ``seconds`` (float).
+    ``n_unconverged`` (int) and ``seconds`` (float); with ``scales`` also ``scaled_lower`` and
+    ``scaled_upper`` ((n_scales, k, n) float arrays).
     """
     t0 = time.perf_counter()
     if threads is not None:
@@ -381,7 +407,7 @@ def bound_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_bound
         out = _local_chunk(X, Y, A, b, cells_lower, cells_upper, lengthscale=lengthscale, rkhs_bound=rkhs_bound,
                            noise_bound=noise_bound, misspecification=misspecification, method=method,
                            iid_factor=iid_factor, iid_theta=iid_theta, k=int(local_points), lam=local_lambda,
-                           split_tol=split_tol)
+                           split_tol=split_tol, **({} if scales is None else {"scales": tuple(scales)}))
         out["seconds"] = time.perf_counter() - t0
         return out
     Y = np.asarray(Y, float).reshape(np.shape(X)[0], -1)
@@ -391,6 +417,9 @@ def bound_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_bound
     k = np.shape(cells_lower)[0]
     out = {key: np.empty((k, n)) for key in ("lower", "upper", "eps")}
     out["support"] = np.empty((k, n), dtype=np.int64)
+    if scales is not None:
+        out["scaled_lower"] = np.empty((len(scales), k, n))
+        out["scaled_upper"] = np.empty((len(scales), k, n))
     unconv = 0
     A = np.asarray(A, float)
     b = np.asarray(b, float)
@@ -399,8 +428,10 @@ def bound_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_bound
         cr = cell_ranges(model, cells_lower, cells_upper, rkhs_bound=rkhs_bound, noise_bound=float(nb[i]),
                          misspecification=misspecification, known_row=A[i], known_offset=float(b[i]), method=method,
                          iid_factor=iid_factor, iid_theta=0.0 if th is None else float(th[i]), chunk=CELL_BLOCK,
-                         split_tol=split_tol)
+                         split_tol=split_tol, scales=scales)
         out["lower"][:, i], out["upper"][:, i], out["eps"][:, i] = cr.lower, cr.upper, cr.eps
+        if scales is not None:
+            out["scaled_lower"][:, :, i], out["scaled_upper"][:, :, i] = cr.scaled_lower, cr.scaled_upper
         out["support"][:, i] = cr.support
         unconv += cr.n_unconverged
     out["n_unconverged"] = unconv

@@ -12,7 +12,8 @@ from robust_imdp._kernels import inv_l2_up as _inv_l2, kernel_matrix as _kernel_
 from robust_imdp.bounds.rkhs_model import (CELL_BLOCK, _blocks, _certified_norms, _certified_value, _certify, _certify_parts,
                                            _check_cells, _weight_parts,
                                            _combine_vertices, _known_at_vertices, _vertex_functional, _writable, cell_centres,
-                                           split_counts, sub_boxes, t_max_up, vertex_signs)
+                                           scaled_norm_bound, scaled_ranges, split_counts, sub_boxes, t_max_up,
+                                           vertex_signs)
 from robust_imdp.bounds.rkhs_weights import METHODS, _active_set, _chol_factor, _chol_solve
 from robust_imdp.errors import InvalidInputError
 
@@ -20,8 +21,9 @@ from robust_imdp.errors import InvalidInputError
 
 @numba.njit(cache=True)
 def _local_group_optimal(Xp, Yp, inv_l2, c, r, signs, q0, q1, lin, Kp, K_err, a1, G, max_iter, tol, S, sg, ws, nS,
-                         bidx, bw, Pw, Lw, val, sup):  # pragma: no cover - compiled
-    """Optimal local weights for the sub-boxes ``q0 .. q1-1`` of one cell (one pool), into ``val``/``sup``.
+                         bidx, bw, Pw, Lw, val, sup, coef):  # pragma: no cover - compiled
+    """Optimal local weights for the sub-boxes ``q0 .. q1-1`` of one cell (one pool), into ``val``/``sup``
+    (and ``coef``: each value's coefficient of G, the upper bound of ``||phi_v - Phi* w||`` it used).
 
     Per output and side: every vertex of every sub-box first gets the certified value of the last
     weights found (none at first: ``w = 0``); sub-boxes are visited in the order of their best vertex
@@ -48,6 +50,7 @@ def _local_group_optimal(Xp, Yp, inv_l2, c, r, signs, q0, q1, lin, Kp, K_err, a1
     lastp = np.zeros(4)  # _weight_parts of the last weights
     zero = np.zeros(4)
     cheap = np.empty((nbox, V))
+    cheap_r = np.empty((nbox, V))
     key = np.empty(nbox)
     for o in range(n_out):
         for i in range(k):
@@ -61,8 +64,10 @@ def _local_group_optimal(Xp, Yp, inv_l2, c, r, signs, q0, q1, lin, Kp, K_err, a1
             for j in range(nbox):
                 top = -np.inf
                 for jv in range(V):
-                    cheap[j, jv] = _certify_parts(lastS, lastw, 0, yo, Bg[j, jv], EBg[j, jv], K_err, s0g[j, jv],
-                                                  a1[o], 0.0, G, sgn, zero)[0]
+                    cert = _certify_parts(lastS, lastw, 0, yo, Bg[j, jv], EBg[j, jv], K_err, s0g[j, jv], a1[o], 0.0,
+                                          G, sgn, zero)
+                    cheap[j, jv] = cert[0]
+                    cheap_r[j, jv] = cert[2]
                     if sgn * (lin[q0 + j, jv, o] + cheap[j, jv]) > top:
                         top = sgn * (lin[q0 + j, jv, o] + cheap[j, jv])
                 key[j] = -top
@@ -79,18 +84,21 @@ def _local_group_optimal(Xp, Yp, inv_l2, c, r, signs, q0, q1, lin, Kp, K_err, a1
                     if top <= best:  # no vertex of this sub-box can move the cell's bound
                         for jv in range(V):
                             val[qb, jv, o, sd] = cheap[j, jv]
+                            coef[qb, jv, o, sd] = cheap_r[j, jv]
                             sup[qb, jv, o, sd] = 0
                         continue
                 for jv in range(V):
-                    cv0 = _certify_parts(lastS, lastw, lastn, yo, Bg[j, jv], EBg[j, jv], K_err, s0g[j, jv], a1[o],
-                                         0.0, G, sgn, lastp)[0]
-                    if sgn * cv0 < sgn * cheap[j, jv]:
-                        cheap[j, jv] = cv0
+                    cert = _certify_parts(lastS, lastw, lastn, yo, Bg[j, jv], EBg[j, jv], K_err, s0g[j, jv], a1[o],
+                                          0.0, G, sgn, lastp)
+                    if sgn * cert[0] < sgn * cheap[j, jv]:
+                        cheap[j, jv] = cert[0]
+                        cheap_r[j, jv] = cert[2]
                 order = np.argsort(-sgn * (lin[qb, :, o] + cheap[j]))
                 for kk in range(V):
                     jv = order[kk]
                     if best > -np.inf and sgn * (lin[qb, jv, o] + cheap[j, jv]) <= best:
                         val[qb, jv, o, sd] = cheap[j, jv]
+                        coef[qb, jv, o, sd] = cheap_r[j, jv]
                         sup[qb, jv, o, sd] = lastn
                         continue
                     res = _active_set(Kp, ys, Bg[j, jv], s0g[j, jv], a1[o], G, S[o, sd], sg[o, sd], ws[o, sd],
@@ -99,11 +107,15 @@ def _local_group_optimal(Xp, Yp, inv_l2, c, r, signs, q0, q1, lin, Kp, K_err, a1
                     nb = res[1]
                     # eq. W for the active-set weights (the one certified evaluator), or the previous value
                     lastp[0], lastp[1], lastp[2], lastp[3] = _weight_parts(bidx, bw, nb, Kp)
-                    cv = _certify_parts(bidx, bw, nb, yo, Bg[j, jv], EBg[j, jv], K_err, s0g[j, jv], a1[o], 0.0, G, sgn,
-                                        lastp)[0]
+                    cert = _certify_parts(bidx, bw, nb, yo, Bg[j, jv], EBg[j, jv], K_err, s0g[j, jv], a1[o], 0.0, G,
+                                          sgn, lastp)
+                    cv = cert[0]
+                    cr = cert[2]
                     if sgn * cv > sgn * cheap[j, jv]:
                         cv = cheap[j, jv]
+                        cr = cheap_r[j, jv]
                     val[qb, jv, o, sd] = cv
+                    coef[qb, jv, o, sd] = cr
                     sup[qb, jv, o, sd] = nb
                     if sgn * (lin[qb, jv, o] + cv) > best:
                         best = sgn * (lin[qb, jv, o] + cv)
@@ -113,16 +125,24 @@ def _local_group_optimal(Xp, Yp, inv_l2, c, r, signs, q0, q1, lin, Kp, K_err, a1
                         lastw[p] = bw[p]
                     for k2 in range(kk + 1, V):  # the new weights certify the box's other vertices too
                         j2 = order[k2]
-                        c2 = _certify_parts(lastS, lastw, lastn, yo, Bg[j, j2], EBg[j, j2], K_err, s0g[j, j2], a1[o],
-                                            0.0, G, sgn, lastp)[0]
-                        if sgn * c2 < sgn * cheap[j, j2]:
-                            cheap[j, j2] = c2
+                        cert = _certify_parts(lastS, lastw, lastn, yo, Bg[j, j2], EBg[j, j2], K_err, s0g[j, j2], a1[o],
+                                              0.0, G, sgn, lastp)
+                        if sgn * cert[0] < sgn * cheap[j, j2]:
+                            cheap[j, j2] = cert[0]
+                            cheap_r[j, j2] = cert[2]
 
 
 # ============================================================================ local weights
+def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_iter, tol, ptr, group, lin):
+    """:func:`_local_cells_coef` without the coefficients: ``val, support``."""
+    val, sup, _ = _local_cells_coef(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_iter, tol, ptr,
+                                    group, lin)
+    return val, sup
+
+
 @numba.njit(cache=True, parallel=True)
-def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_iter, tol, ptr, group,
-                 lin):  # pragma: no cover
+def _local_cells_coef(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_iter, tol, ptr, group,
+                      lin):  # pragma: no cover
     """Certified bounds of ``<h, phi_v>`` (eq. W) with weights on each cell's pool of data points.
 
     ``pools[q]`` are the data points allowed to carry weight for cell q (any weights are sound;
@@ -133,8 +153,9 @@ def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_
     one kernel matrix and factorisation, and the warm starts run on through them; with ``optimal``
     they are pruned as in ``rkhs_weights._optimal_cells`` (:func:`_local_group_optimal`, using
     ``lin (n, V, n_out)``, the float known part at the vertices). Boxes ``ptr[j] .. ptr[j+1]-1``
-    form one parallel work unit. Returns ``val (n, V, n_out, 2)`` (side 0 upper, 1 lower) and the
-    support sizes.
+    form one parallel work unit. Returns ``val (n, V, n_out, 2)`` (side 0 upper, 1 lower), the support
+    sizes and ``coef`` (like ``val``): the upper bound of ``||phi_v - Phi* w||`` each value used (its
+    coefficient of G, for ``rkhs_model.rescale_vertex_values``).
     """
     n, d = c.shape
     V = signs.shape[0]
@@ -142,6 +163,7 @@ def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_
     n_out = Y.shape[1]
     val = np.empty((n, V, n_out, 2))
     sup = np.zeros((n, V, n_out, 2), dtype=np.int64)
+    coef = np.empty((n, V, n_out, 2))
     n_chunks = ptr.shape[0] - 1
     for ch in numba.prange(n_chunks):
         Xp = np.empty((k, d))
@@ -190,7 +212,7 @@ def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_
                         q1 += 1
                     if q1 - q > 1:  # the sub-boxes of one cell: bounded together, pruned
                         _local_group_optimal(Xp, Yp, inv_l2, c, r, signs, q, q1, lin, Kp, K_err, a1, G, max_iter, tol,
-                                             S, sg, ws, nS, bidx, bw, Pw, Lw, val, sup)
+                                             S, sg, ws, nS, bidx, bw, Pw, Lw, val, sup, coef)
                         done_to = q1
                         continue
             for jv in range(V):
@@ -209,6 +231,8 @@ def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_
                         val[q, jv, o, 1] = _certified_value(idx, w, k, ys, l1, l2, rr, a1[o], a2[o], G, -1.0)[0]
                         sup[q, jv, o, 0] = k
                         sup[q, jv, o, 1] = k
+                        coef[q, jv, o, 0] = rr  # both sides: the same weights and functional
+                        coef[q, jv, o, 1] = rr
                 else:
                     for o in range(n_out):
                         for sd in range(2):
@@ -221,9 +245,11 @@ def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_
                             nb = res[1]
                             for i in range(k):
                                 ys[i] = Yp[i, o]
-                            val[q, jv, o, sd] = _certify(bidx, bw, nb, ys, b, eb, Kp, K_err, s0, a1[o], 0.0, G, sgn)[0]
+                            cert = _certify(bidx, bw, nb, ys, b, eb, Kp, K_err, s0, a1[o], 0.0, G, sgn)
+                            val[q, jv, o, sd] = cert[0]
+                            coef[q, jv, o, sd] = cert[2]
                             sup[q, jv, o, sd] = nb
-    return val, sup
+    return val, sup, coef
 
 
 def local_pools(X, cells_lower, cells_upper, lengthscale, k: int) -> np.ndarray:
@@ -283,8 +309,8 @@ def local_lambda(X, cells_lower, cells_upper, *, lengthscale, rkhs_bound: float,
 
 
 def _local_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_bound, noise_bound, misspecification,
-                 method, iid_factor, iid_theta, k, lam, split_tol=None):
-    """:func:`bound_chunk` with local weights (see its ``local_points``)."""
+                 method, iid_factor, iid_theta, k, lam, split_tol=None, scales=None):
+    """:func:`bound_chunk` with local weights (see its ``local_points``; ``scales``: its ranges at ``scale * B``)."""
     if method not in METHODS:
         raise InvalidInputError(f"method must be one of {METHODS}; got {method!r}")
     X = _writable(X)
@@ -316,15 +342,18 @@ def _local_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_boun
     b = np.asarray(b, float)
     known = [_known_at_vertices(c, r, signs, A[i], float(b[i])) for i in range(n)]  # (lin_v, lin_err) per output
     lin = np.ascontiguousarray(np.stack([kv[0] for kv in known], axis=-1))  # (N, V, n): orders and prunes only
-    val, sup = _local_cells(X, Y, inv_l2, c, r, signs, pools, float(lam or 0.0), np.ascontiguousarray(dbar),
-                            np.zeros(n), G_eff, method == "optimal", 2000, 1e-9, ptr, parent, lin)
+    val, sup, coef = _local_cells_coef(X, Y, inv_l2, c, r, signs, pools, float(lam or 0.0), np.ascontiguousarray(dbar),
+                                       np.zeros(n), G_eff, method == "optimal", 2000, 1e-9, ptr, parent, lin)
     if iid_factor is not None:
         th = np.broadcast_to(np.asarray(iid_theta, float), (n,))
         a2 = _up(float(iid_factor) * th * (1 + 4 * _U))
         lam2 = local_lambda(X, lower, upper, lengthscale=lengthscale, rkhs_bound=rkhs_bound, noise_l1=tau,
                             noise_l2=float(a2.max()), k=k)
-        iv, _ = _local_cells(X, Y, inv_l2, c, r, signs, pools, lam2, np.full(n, tau), np.ascontiguousarray(a2),
-                             G_eff, False, 0, 0.0, ptr, parent, lin)
+        iv, _, icoef = _local_cells_coef(X, Y, inv_l2, c, r, signs, pools, lam2, np.full(n, tau),
+                                         np.ascontiguousarray(a2), G_eff, False, 0, 0.0, ptr, parent, lin)
+        # the certificate kept per vertex and side carries its own coefficient of G (for scales)
+        coef[..., 0] = np.where(iv[..., 0] < val[..., 0], icoef[..., 0], coef[..., 0])
+        coef[..., 1] = np.where(iv[..., 1] > val[..., 1], icoef[..., 1], coef[..., 1])
         val[..., 0] = np.minimum(val[..., 0], iv[..., 0])  # both intervals hold: intersect
         val[..., 1] = np.maximum(val[..., 1], iv[..., 1])
     t_max = t_max_up(r, inv_l2)
@@ -340,4 +369,13 @@ def _local_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_boun
         out["eps"][:, i] = np.maximum.reduceat(eps_i, starts)
     out["support"] = np.maximum.reduceat(sup.max(axis=(1, 3)), starts, axis=0)
     out["n_unconverged"] = 0
+    if scales is not None:  # the same weights at scale * B (docs/rkhs_bounds.md, "Assumption margins")
+        G_s = [scaled_norm_bound(rkhs_bound, sc, d) for sc in scales]
+        out["scaled_lower"] = np.empty((len(G_s), n_cells, n))
+        out["scaled_upper"] = np.empty((len(G_s), n_cells, n))
+        for i in range(n):
+            lin_v, lin_err = known[i]
+            out["scaled_lower"][:, :, i], out["scaled_upper"][:, :, i] = scaled_ranges(
+                lin_v, lin_err, val[:, :, i, 0], val[:, :, i, 1], coef[:, :, i, 0], coef[:, :, i, 1], t_max, G_eff,
+                tau, G_s, starts)
     return out

@@ -334,18 +334,22 @@ def _certify(idx, w, n, y, b, eb, K, K_err, s0, a1, a2, G, side):  # pragma: no 
     """Certified ``w.y + side (a1 ||w||_1 + a2 ||w||_2 + G ||phi - Phi* w||)`` (eq. W).
 
     The one certified evaluator: an upper bound (side = +1) or a lower bound (side = -1) of
-    the exact value for these weights, and the radius ``a1||w||_1 + a2||w||_2 + G r``.
+    the exact value for these weights, the radius ``a1||w||_1 + a2||w||_2 + G r`` and ``r_up``, the
+    upper bound of ``||phi - Phi* w||`` the value used: the coefficient of G, with which the same
+    weights certify (eq. W) at a larger norm bound (:func:`rescale_vertex_values`).
     """
     l1_up, l2_up, r_up = _certified_norms(idx, w, n, b, eb, K, K_err, s0)
-    return _certified_value(idx, w, n, y, l1_up, l2_up, r_up, a1, a2, G, side)
+    value, radius = _certified_value(idx, w, n, y, l1_up, l2_up, r_up, a1, a2, G, side)
+    return value, radius, r_up
 
 
 @numba.njit(cache=True)
 def _certify_parts(idx, w, n, y, b, eb, K_err, s0, a1, a2, G, side, parts):  # pragma: no cover - compiled
     """:func:`_certify` with the weights' sums ``parts = _weight_parts(idx, w, n, K)`` computed once
-    (the same arithmetic, so the same bits)."""
+    (the same arithmetic, so the same bits; the same three values)."""
     l1_up, l2_up, r_up = _norms_from_parts(idx, w, n, b, eb, K_err, s0, parts[0], parts[1], parts[2], parts[3])
-    return _certified_value(idx, w, n, y, l1_up, l2_up, r_up, a1, a2, G, side)
+    value, radius = _certified_value(idx, w, n, y, l1_up, l2_up, r_up, a1, a2, G, side)
+    return value, radius, r_up
 
 
 def certify_weights(model: KernelModel, b, b_err, s0, weights, *, noise_l1: float, rkhs_bound: float,
@@ -471,6 +475,88 @@ def _combine_vertices(lin_v, lin_err, su, sl, t_max, G: float, tau: float):
         best_up = np.minimum(best_up, up)
         best_lo = np.maximum(best_lo, lo)
     return best_lo, best_up, best_tay
+
+
+# ============================================================================ a larger norm bound
+def scaled_norm_bound(rkhs_bound: float, scale: float, d: int) -> float:
+    """The certificate's norm bound at ``scale * B``: ``up(up(scale B) * inflation)``, the main path's
+    ``G_eff = up(B * inflation)`` with ``B`` replaced by an upper bound of ``scale B`` (docs/rkhs_bounds.md,
+    "Assumption margins")."""
+    from robust_imdp._kernels import norm_inflation
+
+    scale = float(scale)
+    if not (np.isfinite(scale) and scale >= 1.0):
+        raise InvalidInputError(f"scale must be a finite float >= 1; got {scale!r}")
+    return float(_up(_up(float(rkhs_bound) * scale) * norm_inflation(int(d))))
+
+
+def rescale_vertex_values(su, sl, cu, cl, G: float, G_new: float):
+    """Vertex bounds of (eq. C) at the norm bound ``G_new >= G``, with the weights that certified them at ``G``.
+
+    Any weights give a bound (eq. W), so those found for ``G`` hold at ``G_new`` too:
+    ``w.y + dbar' ||w||_1 + G_new ||e|| = [w.y + dbar' ||w||_1 + G ||e||] + (G_new - G) ||e||``
+    with ``e = phi_v - Phi* w``. The bracket is at most the certified value ``su`` (at least ``sl`` on the
+    lower side) and ``||e||`` at most ``cu`` (``cl``), the upper bound of it that ``su`` (``sl``) used
+    (:func:`_certify`'s third value). Each step is rounded up: ``dG = up(G_new - G)``, ``up(dG * cu)``,
+    ``up(su + .)`` (``down(sl - .)``); with ``G_new = G`` the values move by a few ulps only.
+
+    Parameters
+    ----------
+    su, sl : (n, V) float arrays
+        Certified upper / lower bounds of ``<h, phi_v>`` at ``G`` (before the known part and the Taylor term).
+    cu, cl : (n, V) float arrays
+        Their coefficients of ``G`` (upper bounds of ``||phi_v - Phi* w||`` for the weights used), >= 0.
+    G, G_new : float, ``0 <= G <= G_new``
+
+    Returns
+    -------
+    su_new, sl_new : (n, V) float arrays
+    """
+    G, G_new = float(G), float(G_new)
+    if not (np.isfinite(G_new) and 0.0 <= G <= G_new):
+        raise InvalidInputError(f"G_new must be finite and >= G = {G!r}; got {G_new!r}")
+    cu = np.asarray(cu, float)
+    cl = np.asarray(cl, float)
+    if np.any(~(cu >= 0)) or np.any(~(cl >= 0)):
+        raise InvalidInputError("cu and cl (upper bounds of norms) must be >= 0 and not NaN")
+    dG = _up(G_new - G)  # >= the exact difference of the two floats
+    add_u = _up(dG * cu)
+    add_l = _up(dG * cl)
+    return _up(np.asarray(su, float) + add_u), _down(np.asarray(sl, float) - add_l)
+
+
+def scaled_ranges(lin_v, lin_err, su, sl, cu, cl, t_max, G: float, tau: float, G_scaled, starts=None):
+    """Cell ranges of (eq. C) at every norm bound of ``G_scaled``, re-using the weights found at ``G``.
+
+    :func:`rescale_vertex_values` moves every vertex value to ``G_s``; :func:`_combine_vertices` then adds the
+    known part and the Taylor remainder ``G_s rho(t_max)`` (recomputed at ``G_s``, both feature scalings) and
+    tau, as on the main path; ``starts`` (the first sub-box of every cell) takes the hull over sub-boxes.
+
+    Parameters
+    ----------
+    lin_v, lin_err, su, sl, cu, cl : (N, V) float arrays
+        The known part at the vertices and its error, the vertex bounds at ``G`` and their coefficients.
+    t_max : (N,) float array
+    G, tau : float
+    G_scaled : sequence (S) of float, each >= G
+    starts : (n_cells,) int array, optional
+
+    Returns
+    -------
+    lower, upper : (S, n_cells) float arrays
+    """
+    rows_lo, rows_up = [], []
+    for Gs in G_scaled:
+        su_s, sl_s = rescale_vertex_values(su, sl, cu, cl, G, Gs)
+        lo, up, _ = _combine_vertices(lin_v, lin_err, su_s, sl_s, t_max, float(Gs), tau)
+        if starts is not None:  # the hull of each cell's sub-boxes (eq. C holds on every sub-box)
+            lo = np.minimum.reduceat(lo, starts)
+            up = np.maximum.reduceat(up, starts)
+        rows_lo.append(lo)
+        rows_up.append(up)
+    n = su.shape[0] if starts is None else len(starts)
+    shape = (len(rows_lo), n)
+    return (np.reshape(np.array(rows_lo, float), shape), np.reshape(np.array(rows_up, float), shape))
 
 
 #: Suggested ``split_tol`` (off by default): a cell whose Taylor term ``B rho(t_max)`` exceeds it is

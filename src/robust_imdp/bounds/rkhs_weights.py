@@ -304,9 +304,16 @@ def _largest_group(group):  # pragma: no cover - compiled
     return best
 
 
+def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, tol, ptr, lin, prune, group):
+    """:func:`_optimal_cells_coef` without the coefficients: ``val, support, status``."""
+    val, sup, stat, _ = _optimal_cells_coef(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, tol, ptr,
+                                            lin, prune, group)
+    return val, sup, stat
+
+
 @numba.njit(cache=True, parallel=True)
-def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, tol, ptr, lin,
-                   prune, group):  # pragma: no cover - compiled
+def _optimal_cells_coef(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, tol, ptr, lin,
+                        prune, group):  # pragma: no cover - compiled
     """Certified bounds of ``<h, phi_v>`` (eq. W) with optimal weights, all cells, vertices, sides.
 
     Per cell and side, every vertex first gets the (certified) value of the neighbouring problem's
@@ -319,7 +326,9 @@ def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, 
     order of their neighbour-weight values (largest first): the sub-box that decides the cell's
     bound is optimised first and most of the others are pruned whole. Boxes ``ptr[j] .. ptr[j+1]-1``
     form one parallel work unit (warm starts run through it). Returns ``val (n, V, 2)`` (side 0:
-    upper bound, side 1: lower bound), ``support (n, V, 2)`` and ``status (n, V, 2)``.
+    upper bound, side 1: lower bound), ``support (n, V, 2)``, ``status (n, V, 2)`` and ``coef (n, V, 2)``:
+    the upper bound of ``||phi_v - Phi* w||`` each value used (its coefficient of G, for
+    ``rkhs_model.rescale_vertex_values``).
     """
     n, d = c.shape
     V = signs.shape[0]
@@ -327,6 +336,7 @@ def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, 
     val = np.empty((n, V, 2))
     sup = np.zeros((n, V, 2), dtype=np.int64)
     stat = np.zeros((n, V, 2), dtype=np.int64)
+    coef = np.empty((n, V, 2))
     n_chunks = ptr.shape[0] - 1
     gmax = _largest_group(group)
     for ch in numba.prange(n_chunks):
@@ -347,6 +357,7 @@ def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, 
         EB = np.empty((gmax, V, m))
         s0 = np.empty((gmax, V))
         cheap = np.empty((gmax, V))
+        cheap_r = np.empty((gmax, V))  # the coefficient of G of each cheap value
         key = np.empty(gmax)
         border = np.zeros(gmax, dtype=np.int64)
         ys = np.empty(m)
@@ -371,9 +382,10 @@ def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, 
                     for j in range(nbox):
                         top = -np.inf
                         for jv in range(V):
-                            cheap[j, jv] = _certify_parts(lastS[side], lastw[side], lastn[side], y, B[j, jv],
-                                                          EB[j, jv], K_err, s0[j, jv], dbar, 0.0, G, sgn,
-                                                          lastp[side])[0]
+                            cert = _certify_parts(lastS[side], lastw[side], lastn[side], y, B[j, jv], EB[j, jv],
+                                                  K_err, s0[j, jv], dbar, 0.0, G, sgn, lastp[side])
+                            cheap[j, jv] = cert[0]
+                            cheap_r[j, jv] = cert[2]
                             if sgn * (lin[q + j, jv] + cheap[j, jv]) > top:
                                 top = sgn * (lin[q + j, jv] + cheap[j, jv])
                         key[j] = -top
@@ -392,19 +404,22 @@ def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, 
                         if top <= best:  # no vertex of this sub-box can raise the cell's bound
                             for jv in range(V):
                                 val[qb, jv, side] = cheap[j, jv]
+                                coef[qb, jv, side] = cheap_r[j, jv]
                                 sup[qb, jv, side] = n_first
                                 stat[qb, jv, side] = 6
                             continue
                     for jv in range(V):
-                        cv0 = _certify_parts(lastS[side], lastw[side], lastn[side], y, B[j, jv], EB[j, jv], K_err,
-                                             s0[j, jv], dbar, 0.0, G, sgn, lastp[side])[0]
-                        if nbox == 1 or sgn * cv0 < sgn * cheap[j, jv]:
-                            cheap[j, jv] = cv0
+                        cert = _certify_parts(lastS[side], lastw[side], lastn[side], y, B[j, jv], EB[j, jv], K_err,
+                                              s0[j, jv], dbar, 0.0, G, sgn, lastp[side])
+                        if nbox == 1 or sgn * cert[0] < sgn * cheap[j, jv]:
+                            cheap[j, jv] = cert[0]
+                            cheap_r[j, jv] = cert[2]
                     order = np.argsort(-sgn * (lin[qb] + cheap[j]))
                     for k in range(V):
                         jv = order[k]
                         if prune and best > -np.inf and sgn * (lin[qb, jv] + cheap[j, jv]) <= best:
                             val[qb, jv, side] = cheap[j, jv]
+                            coef[qb, jv, side] = cheap_r[j, jv]
                             sup[qb, jv, side] = lastn[side]
                             stat[qb, jv, side] = 6
                             continue
@@ -415,11 +430,15 @@ def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, 
                         stat[qb, jv, side] = res[3]
                         # the certificate: the best weights met (any weights are sound; none -> w = 0)
                         newp[0], newp[1], newp[2], newp[3] = _weight_parts(bidx, bw, nb, K)
-                        cv = _certify_parts(bidx, bw, nb, y, B[j, jv], EB[j, jv], K_err, s0[j, jv], dbar, 0.0, G, sgn,
-                                            newp)[0]
+                        cert = _certify_parts(bidx, bw, nb, y, B[j, jv], EB[j, jv], K_err, s0[j, jv], dbar, 0.0, G,
+                                              sgn, newp)
+                        cv = cert[0]
+                        cr = cert[2]
                         if sgn * cv > sgn * cheap[j, jv]:  # the neighbour's weights were better: keep them
                             cv = cheap[j, jv]
+                            cr = cheap_r[j, jv]
                         val[qb, jv, side] = cv
+                        coef[qb, jv, side] = cr
                         sup[qb, jv, side] = nb
                         if sgn * (lin[qb, jv] + cv) > best:
                             best = sgn * (lin[qb, jv] + cv)
@@ -432,31 +451,33 @@ def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, 
                         if prune:  # the weights just found certify the remaining vertices of this box too
                             for k2 in range(k + 1, V):
                                 j2 = order[k2]
-                                c2 = _certify_parts(bidx, bw, nb, y, B[j, j2], EB[j, j2], K_err, s0[j, j2], dbar, 0.0,
-                                                    G, sgn, newp)[0]
-                                if sgn * c2 < sgn * cheap[j, j2]:
-                                    cheap[j, j2] = c2
+                                cert = _certify_parts(bidx, bw, nb, y, B[j, j2], EB[j, j2], K_err, s0[j, j2], dbar,
+                                                      0.0, G, sgn, newp)
+                                if sgn * cert[0] < sgn * cheap[j, j2]:
+                                    cheap[j, j2] = cert[0]
+                                    cheap_r[j, j2] = cert[2]
                         if res[3] == 2 or res[3] == 3:
                             # inconsistent or ill-conditioned support: restart cold next time
                             nS[side] = 0
             q = q1
-    return val, sup, stat
+    return val, sup, stat, coef
 
 
 # ============================================================================ ridge weights
 @numba.njit(cache=True, parallel=True)
 def _certify_dense(W, y, B, EB, K, K_err, s0, a1, a2, G):  # pragma: no cover - compiled
-    """Certified (upper, lower, radius) of (eq. W) for dense weight columns ``W[:, k]``."""
+    """Certified (upper, lower, coefficient) of (eq. W) for dense weight columns ``W[:, k]``: the coefficient of
+    G is the upper bound of ``||phi - Phi* w||`` both sides used (the same weights and functional)."""
     m, N = W.shape
     up = np.empty(N)
     lo = np.empty(N)
-    rad = np.empty(N)
+    coef = np.empty(N)
     idx = np.arange(m)
     for k in numba.prange(N):
         w = np.ascontiguousarray(W[:, k])
-        up[k], rad[k] = _certify(idx, w, m, y, B[:, k], EB[:, k], K, K_err, s0[k], a1, a2, G, 1.0)
-        lo[k], _ = _certify(idx, w, m, y, B[:, k], EB[:, k], K, K_err, s0[k], a1, a2, G, -1.0)
-    return up, lo, rad
+        up[k], _, coef[k] = _certify(idx, w, m, y, B[:, k], EB[:, k], K, K_err, s0[k], a1, a2, G, 1.0)
+        lo[k] = _certify(idx, w, m, y, B[:, k], EB[:, k], K, K_err, s0[k], a1, a2, G, -1.0)[0]
+    return up, lo, coef
 
 
 def _ridge_weights(model: KernelModel, B, s0, a1: float, a2: float, G: float, lambdas=RIDGE_LAMBDAS):
@@ -489,13 +510,16 @@ def _ridge_weights(model: KernelModel, B, s0, a1: float, a2: float, G: float, la
     return W
 
 
-def _ridge_vertex_bounds(model: KernelModel, c, r, signs, a1: float, a2: float, G: float):
-    """Certified (upper, lower) bounds of ``<h, phi_v>`` (n, V) with the best ridge weights per vertex."""
+def _ridge_vertex_bounds(model: KernelModel, c, r, signs, a1: float, a2: float, G: float, coef: bool = False):
+    """Certified (upper, lower) bounds of ``<h, phi_v>`` (n, V) with the best ridge weights per vertex; with
+    ``coef`` also their coefficient of G (n, V), the same for both sides."""
     vp = vertex_problems(model, c, r, signs)
     Bm = np.ascontiguousarray(vp["b"].reshape(-1, model.m).T)
     EB = np.ascontiguousarray(vp["b_err"].reshape(-1, model.m).T)
     s0 = vp["s0"].ravel()
     W = _ridge_weights(model, Bm, s0, a1, a2, G)
-    up, lo, _ = _certify_dense(np.ascontiguousarray(W), model.y, Bm, EB, model.K, model.K_err, s0, a1, a2, G)
+    up, lo, cf = _certify_dense(np.ascontiguousarray(W), model.y, Bm, EB, model.K, model.K_err, s0, a1, a2, G)
     V = signs.shape[0]
+    if coef:
+        return up.reshape(-1, V), lo.reshape(-1, V), cf.reshape(-1, V)
     return up.reshape(-1, V), lo.reshape(-1, V)

@@ -188,6 +188,13 @@ def _finish_ranges(lower, upper, known_ranges) -> None:
             _add_known_range(lower[u], upper[u], known_ranges[u])
 
 
+def _has_scales(part: dict, scales, k: int, n: int) -> bool:
+    """Whether a saved chunk holds the boxes at exactly ``scales`` (``rkhs.bound_chunk``'s ``scaled_*``)."""
+    shape = (len(scales), k, n)
+    return ("scales" in part and np.array_equal(np.asarray(part["scales"], float), np.asarray(scales, float))
+            and all(np.shape(part.get(key)) == shape for key in ("scaled_lower", "scaled_upper")))
+
+
 def _check_part(part: dict, k: int, n: int) -> dict:
     """A saved bound chunk, checked to hold ``k`` cells x ``n`` outputs (else ValueError: computed again)."""
     for key in ("lower", "upper", "eps", "support"):
@@ -200,13 +207,16 @@ def _check_part(part: dict, k: int, n: int) -> dict:
 
 
 # ---------------------------------------------------------------------------------------------- the grid's cells
-def _resume(parts_dir, tasks, chunk: int, N: int, n: int, log: _Log) -> dict:
-    """The chunks an interrupted run saved under ``parts_dir`` (checked; a damaged one is computed again)."""
+def _resume(parts_dir, tasks, chunk: int, N: int, n: int, log: _Log, scales=None) -> dict:
+    """The chunks an interrupted run saved under ``parts_dir`` (checked; a damaged one is computed again). With
+    ``scales`` (the assumption margins' boxes) a chunk saved without the boxes of those scales is computed again."""
     results: dict = {}
     if parts_dir is not None and parts_dir.exists():
         for u, s0 in tasks:
             part = read_cache_entry(parts_dir / f"m{u}-c{s0}-{chunk}.npz",
                                     lambda f, k=min(chunk, N - s0): _check_part(_load_npz(f), k, n))
+            if part is not None and scales is not None and not _has_scales(part, scales, min(chunk, N - s0), n):
+                part = None  # saved by a run without margins (or with other scales): bounded again
             if part is not None:
                 results[(u, s0)] = part
         if results:
@@ -263,6 +273,8 @@ def _run_missing(problem: Problem, data, partition, settings, local, extras, tas
     t0 = time.perf_counter()
     for i, res in sched.run(_bound_task, args, settings):
         key = missing[i]
+        if "scales" in settings:  # saved with the chunk: a resumed chunk says which scales it holds
+            res = dict(res, scales=np.asarray(settings["scales"], float))
         results[key] = res
         if parts_dir is not None:  # saved as it completes: an interrupted run resumes from here
             write_cache_entry(parts_dir / f"m{key[0]}-c{key[1]}-{chunk}.npz",
@@ -281,6 +293,16 @@ def _assemble(results: dict, M: int, N: int, n: int, chunk: int):
         lower[u, sl], upper[u, sl], support[u, sl] = r["lower"], r["upper"], r["support"]
         unconv += int(r["n_unconverged"])
     return lower, upper, support, unconv
+
+
+def _assemble_scaled(results: dict, scales, M: int, N: int, n: int, chunk: int):
+    """The chunks' boxes at every scale of B as (n_scales, M, N, n) arrays (``rkhs.bound_chunk``'s ``scaled_*``)."""
+    lower = np.empty((len(scales), M, N, n))
+    upper = np.empty((len(scales), M, N, n))
+    for (u, s0), r in results.items():
+        sl = slice(s0, min(N, s0 + chunk))
+        lower[:, u, sl], upper[:, u, sl] = r["scaled_lower"], r["scaled_upper"]
+    return lower, upper
 
 
 def _statement(confidence: float, noise_bound, data_fail: float, iid_delta: float) -> str:
@@ -316,6 +338,10 @@ def learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" =
     iid_theta = problem.noise.sub_gaussian_parameter() if problem.iid_noise else None
     settings = _chunk_settings(problem, noise_bound, iid_theta,
                                None if iid_theta is None else hoeffding_factor(M * n * N * 2 ** n, iid_delta))
+    # the assumption margins (pipeline/margins.py): the boxes at scale * B from the same weights, when asked
+    scales = getattr(run, "margin_scales", None)
+    if scales is not None:
+        settings["scales"] = tuple(float(s) for s in scales)
     chunk = _chunk_cells(run, N, CHUNK_CELLS)
     tasks = [(u, s0) for u in range(M) for s0 in range(0, N, chunk)]
     local, extras = _mode_settings(problem, data, partition, noise_bound)
@@ -324,7 +350,7 @@ def learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" =
                                                + ("all points" if loc is None else f"{loc[0]} nearest points")
                                                for u, loc in enumerate(local)))
     parts_dir = None if cache_dir is None else Path(cache_dir) / f"bounds-{bounds_key(problem)}.parts"
-    results = _resume(parts_dir, tasks, chunk, N, n, log)
+    results = _resume(parts_dir, tasks, chunk, N, n, log, settings.get("scales"))
     missing = [t for t in tasks if t not in results]
     with log.stage("bound"):
         if missing:
@@ -332,6 +358,11 @@ def learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" =
                          parts_dir, run, log)
     lower, upper, support, unconv = _assemble(results, M, N, n, chunk)
     _finish_ranges(lower, upper, known_ranges)
+    if scales is not None:  # the margins' boxes: the known part's range added at every scale too
+        s_lower, s_upper = _assemble_scaled(results, settings["scales"], M, N, n, chunk)
+        for j in range(len(settings["scales"])):
+            _finish_ranges(s_lower[j], s_upper[j], known_ranges)
+        run.scaled_bounds = (settings["scales"], s_lower, s_upper)
     confidence = 1.0 - data_fail - (iid_delta if iid_theta is not None else 0.0)
     log.info(f"bounded images of {N} cells x {M} modes x {n} outputs ({problem.error_bound} weights)")
     statement = _statement(confidence, noise_bound, data_fail, iid_delta)
@@ -357,6 +388,13 @@ def cell_bounder(problem: Problem, partition, log: _Log, run: _Run, task=None):
     data_fail, _ = _failure_budget(problem)
     noise_bound = _data_noise_bound(problem, data, data_fail)
     settings = _chunk_settings(problem, noise_bound)
+    # the assumption margins of a refined result (pipeline/margins.py): the run's own problem's new cells are
+    # certified at the larger factors of B too (not the advice's pilots, whose problems differ)
+    scales = getattr(run, "margin_scales", None) if getattr(run, "margin_problem", None) is problem else None
+    if scales is not None:
+        settings["scales"] = tuple(scales)
+        if not hasattr(run, "scaled_new_cells"):
+            run.scaled_new_cells = {}
     local, extras = _mode_settings(problem, data, partition, noise_bound)
     sched = run.scheduler(log)
     shared = _share_data(sched, data)
@@ -368,10 +406,21 @@ def cell_bounder(problem: Problem, partition, log: _Log, run: _Run, task=None):
         tasks = [(u, s0) for u in range(M) for s0 in range(0, k, chunk)]
         args = _task_args(problem, shared, lower, upper, local, extras, tasks, chunk)
         lo, hi = np.empty((M, k, n)), np.empty((M, k, n))
+        if scales is not None:
+            slo, shi = np.empty((len(scales), M, k, n)), np.empty((len(scales), M, k, n))
         for i, res in sched.run(task or _bound_task, args, settings):
             u, s0 = tasks[i]
             lo[u, s0:s0 + chunk], hi[u, s0:s0 + chunk] = res["lower"], res["upper"]
-        _finish_ranges(lo, hi, _known_ranges(problem, lower, upper))
+            if scales is not None:
+                slo[:, u, s0:s0 + chunk], shi[:, u, s0:s0 + chunk] = res["scaled_lower"], res["scaled_upper"]
+        known = _known_ranges(problem, lower, upper)
+        _finish_ranges(lo, hi, known)
+        if scales is not None:  # kept by the cell's bounds for the margins of the refined cells
+            for j in range(len(scales)):
+                _finish_ranges(slo[j], shi[j], known)
+            for q in range(k):
+                run.scaled_new_cells[(np.asarray(lower[q], float).tobytes(), np.asarray(upper[q], float).tobytes())] = (
+                    slo[:, :, q].copy(), shi[:, :, q].copy())
         return lo, hi
 
     return bound_cells
