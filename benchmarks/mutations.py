@@ -520,6 +520,11 @@ MUTATIONS = [
          replacement="    return ReachabilityResult(lower=np.minimum(lo * (1 + 1e-3), 1.0), upper=up, strategy=strat, iterations=k, precision=prec, converged=True)",
          description="factored k-step value iteration: lower end of every bracket x (1 + 1e-3) (capped at 1)",
          tests=["tests/test_factored.py"]),
+    dict(name="factored-kstep-budget-off", file=_FAC,
+         original="        E = float(up_rounded(E * lip + delta, 3))",
+         replacement="        E = 0.0",
+         description="factored k-step values: no rounding budget (the plain float iterate as both ends; an a-priori "
+                     "bound: a 0.1 % shrink of it cannot be seen, its absence can)", tests=["tests/test_factored.py"]),
     dict(name="factored-safety-complement-inward", file=_FAC,
          original="        lo = np.clip(np.nextafter(1.0 - res.upper, -np.inf), 0.0, 1.0)",
          replacement="        lo = np.clip(np.nextafter(1.0 - res.upper, -np.inf) * (1 + 1e-3), 0.0, 1.0)",

@@ -46,8 +46,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from robust_imdp._fp import U, up_rounded
 from robust_imdp.errors import ConvergenceWarning, DimensionError, InvalidInputError
 from robust_imdp.models.factored import FactoredIMDP
+from robust_imdp.models.imdp import ROW_SUM_TOL
 from robust_imdp.solvers.common import (Adversary, Control, Objective, ReachabilityResult, adversary_maximises,
                                         enum_value, target_avoid)
 from robust_imdp.solvers.engine import _TIE_TOL
@@ -375,30 +377,59 @@ class _Layers:
 
 
 # --------------------------------------------------------------------------- value iteration
+def _step_error(op):
+    """``(delta, lip)``: one plain (round-to-nearest) application of the operator to any ``x`` in [0, 1]
+    is within ``delta`` of the exact one (sup norm), and the exact operator is ``lip``-Lipschitz.
+
+    Per level, the float O-maximisation is within ``LEVEL_ERR(k)`` of the exact one with the same
+    inputs (:mod:`robust_imdp.solvers.factored_kernels`), plus the mass the greedy leaves unassigned
+    where a row's upper sums fall short of 1 (at most ``ROW_SUM_TOL``, the model's validation); the
+    later levels carry an error through a sum with weights of total at most ``1 + ROW_SUM_TOL``
+    (``p = lower`` where the lower sums exceed 1 within the tolerance), and so does every level for
+    a difference of inputs: ``lip = (1 + ROW_SUM_TOL)^d``.  Both are rounded up."""
+    d = op.model.dim
+    lip = 1.0
+    delta = 0.0
+    for k in op.model.k:
+        err = (16.0 * (k + 2) + 64.0) * U + ROW_SUM_TOL
+        delta = delta * (1.0 + ROW_SUM_TOL) + err  # the later levels carry it with weight <= 1 + tol
+        lip *= 1.0 + ROW_SUM_TOL
+    # d + 2 roundings of non-negative terms: one relative gamma covers them, one ulp more
+    return float(up_rounded(delta, 3 * d + 2)), float(up_rounded(lip, 2 * d + 2))
+
+
 def _bounded(lay, V0, active, k, tie):
-    """k-step values: k Jacobi steps, rounded down (lower) and up (upper); strategy (k, S, n)."""
+    """k-step values and strategy (k, S, n): one plain Jacobi sweep per step and a global error budget.
+
+    With ``v_t`` the floating-point iterate and ``V_t`` the exact one, ``|v_t - V_t| <= E_t`` on every
+    node, ``E_t = lip E_{t-1} + delta`` (:func:`_step_error`): ``|B~(v) - B(V)| <= |B~(v) - B(v)| +
+    |B(v) - B(V)| <= delta + lip |v - V|``; targets and value-0 nodes are exact.  The bracket is
+    ``[v_k - E_k, v_k + E_k]`` rounded outward and clamped to [0, 1] (safe: ``V_k`` is a probability);
+    ``E_10`` is about 1e-10 on a 6-D model.  Half the sweeps of two directed iterations."""
     S, n = V0.shape
-    lo, up, opt = V0.copy(), V0.copy(), V0.copy()
+    v, opt = V0.copy(), V0.copy()
     strat = np.zeros((k, S, n), dtype=np.int64)
+    delta, lip = _step_error(lay.op)
+    E = 0.0
     for t in range(1, k + 1):
         sl = None if lay.strategy is None else lay.strategy[k - t if lay.strategy.shape[0] == k else 0]
-        new_lo, new_up, new_opt = lo.copy(), up.copy(), opt.copy()
+        new_v, new_opt = v.copy(), opt.copy()
         for s in range(S):
             if not active[s].any():
                 continue
             ss = None if sl is None else sl[s]
-            new_lo[s], arg, rows_lo = lay.layer(lo, s, active[s], -1, ss)
-            new_up[s], arg_up, _ = lay.layer(up, s, active[s], +1, ss)
-            if lay.ctrl == Control.MINIMISE:
-                arg = arg_up  # the reported side of a minimising controller is the upper one
+            new_v[s], arg, rows = lay.layer(v, s, active[s], 0, ss)
             if tie:
-                new_opt[s], _, rows_up = lay.layer(opt, s, active[s], +1, None, adv_max=True, ctrl=Control.MAXIMISE)
-                arg[:lay.N] = _lex(rows_lo, rows_up)
+                new_opt[s], _, rows_up = lay.layer(opt, s, active[s], 0, None, adv_max=True, ctrl=Control.MAXIMISE)
+                arg[:lay.N] = _lex(rows, rows_up)
             strat[k - t, s] = arg
-        lo, up, opt = new_lo, new_up, new_opt
+        v, opt = new_v, new_opt
+        E = float(up_rounded(E * lip + delta, 3))
     if lay.ctrl == Control.FIXED:
         strat = np.broadcast_to(lay.strategy, strat.shape).copy() if lay.strategy.shape[0] == k else \
             np.repeat(lay.strategy, k, 0)
+    lo = np.where(active, np.clip(np.nextafter(v - E, -np.inf), 0.0, 1.0), v)
+    up = np.where(active, np.clip(np.nextafter(v + E, np.inf), 0.0, 1.0), v)
     prec = float(np.max(up - lo)) if up.size else 0.0
     return ReachabilityResult(lower=lo, upper=up, strategy=strat, iterations=k, precision=prec, converged=True)
 
