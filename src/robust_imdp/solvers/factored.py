@@ -23,9 +23,10 @@ Soundness of the iteration
 --------------------------
 ``B`` is monotone (the O-maximisation is, and so are the min/max of ``w``), with controller max,
 min or a fixed mode per node.  The value ``V`` reported is its least fixed point (unbounded) or
-its k-fold application to the target indicator (k steps).  Lower bounds: ``l_0`` = target
+its k-fold application to the target indicator (k steps).  k steps: one round-to-nearest sweep
+per step and a global rounding budget (:func:`_bounded`).  Unbounded lower bounds: ``l_0`` = target
 indicator, ``l <- max(l, B_down(l))`` with ``B_down <= B`` (outward rounding per level,
-:mod:`robust_imdp.solvers.factored_kernels`), so ``l <= V`` by induction.  Upper bounds (unbounded):
+:mod:`robust_imdp.solvers.factored_kernels`), so ``l <= V`` by induction.  Upper bounds:
 ``u_0`` = 1 except on the nodes that provably cannot reach the target (support graph of the
 operator, value 0) and ``u <- min(u, B_up(u))``: ``u >= V`` implies ``B_up(u) >= B(u) >= B(V) =
 V``.  Both are sound for any number of iterations; without end-component deflation the upper
