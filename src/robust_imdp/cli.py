@@ -136,6 +136,11 @@ def _parser() -> argparse.ArgumentParser:
                           "move most of X into Q_yes, by re-solving with modified image boxes; auto: cheapest "
                           "first within 25 %% of the run's time before it (re-solves of at most 65,536 cells); "
                           "on: every lever, no budget")
+    run.add_argument("--margins", choices=("on", "off"), default="on",
+                     help="assumption margins (default on): per cell the largest factor beta of 1, 1.25, 1.5, 2, 3, "
+                          "4 at which the controller keeps the cell's class with every rkhs_bound B replaced by "
+                          "beta B (result.json's b_margin, b_margin.png, the summary); the same certificate "
+                          "weights, one abstraction and evaluation per factor (docs/margins.md)")
     _add_tight(run)
     run.add_argument("--quiet", action="store_true", help="no progress lines")
     run.add_argument("--workers", type=_at_least(1), default=None,
@@ -286,7 +291,7 @@ def _remove_if_empty(directories) -> None:
 #: complete (``io.result_file.staged_outputs``): then nothing of the previous result is left beside the
 #: new one, and a run that fails or is interrupted leaves the previous result exactly as it was.
 RESULT_OUTPUTS = ("result.json", "result.npz", "validation.json", "trajectories.png", "partition.png",
-                  "classes.png", "p_low.png", "error.png", "bounds.png")
+                  "classes.png", "p_low.png", "error.png", "bounds.png", "b_margin.png")
 #: The files ``simulate`` writes into the result directory, replaced as one the same way.
 VALIDATION_OUTPUTS = ("validation.json", "trajectories.png")
 
@@ -354,7 +359,8 @@ def _run_into(args, out: Path, cache: Path) -> int:
                                           else ""))
     result = synthesize_from_data(problem, progress=not args.quiet, abstraction_cache=cache,
                                   workers=args.workers, scheduler=args.scheduler, check_resources=not args.yes,
-                                  advice={"auto": "auto", "on": True, "off": False}[args.advice])
+                                  advice={"auto": "auto", "on": True, "off": False}[args.advice],
+                                  margins=getattr(args, "margins", "on") == "on")
     from robust_imdp.io.result_file import staged_outputs
 
     # the new result and figures are written beside the old ones and replace them only when all are complete

@@ -5,7 +5,8 @@ Every function takes a result (a :class:`~robust_imdp.io.files.ResultFile`, a pi
 returns the Axes. :func:`save_figures` writes the standard set of PNGs for any dimension:
 
 * 1-D: ``bounds.png`` -- p_low and p_up against x over the cells' classes (:func:`plot_bounds_1d`);
-* 2-D: ``partition.png``, ``classes.png``, ``p_low.png``, ``error.png`` (and ``trajectories.png``);
+* 2-D: ``partition.png``, ``classes.png``, ``p_low.png``, ``error.png``, ``b_margin.png`` (the assumption
+  margins, :func:`plot_margins`, where the run computed them) (and ``trajectories.png``);
   simulated paths of any other dimension: :func:`plot_trajectory_panels` (1-D: state against step;
   3-D and more: projections on pairs of coordinates);
 * 3-D and more: the same four as panels of 2-D slices x_3 = c at a few values c
@@ -44,6 +45,7 @@ __all__ = [
     "plot_partition",
     "plot_classes",
     "plot_values",
+    "plot_margins",
     "plot_trajectories",
     "plot_trajectory_panels",
     "plot_eta_sweep",
@@ -257,6 +259,59 @@ def plot_values(result, which: str = "p_low", ax=None, *, title: str | None = No
     _frame(ax, res, title or f"{names.get(which, which)} of P(sat) for {res.formula!r}")
     if colorbar:
         ax.figure.colorbar(coll, ax=ax, shrink=0.85, label=names.get(which, which))
+    return ax
+
+
+#: The colours of the Q_yes cells' assumption margins, one per factor of B (light: kept only at B, dark: at 4 B).
+MARGIN_COLOURS = ("#ffffcc", "#d9f0a3", "#addd8e", "#78c679", "#31a354", "#006837")
+_MARGIN_NO, _MARGIN_MAYBE = "#fcbba1", "#f0f0f0"  # Q_no cells (any margin), Q_? cells (none)
+
+
+def _margin_scales(res: ResultFile) -> tuple:
+    scales = (res.diagnostics.get("margins") or {}).get("scales")
+    return tuple(float(v) for v in scales) if scales else (1.0, 1.25, 1.5, 2.0, 3.0, 4.0)
+
+
+def _margin_handles(res: ResultFile) -> list:
+    """Legend patches of the margin map: per factor the Q_yes cells kept at least there, then Q_no and Q_?."""
+    scales = _margin_scales(res)
+    yes = res.classes == "yes"
+    b = np.asarray(res.b_margin, float)
+    handles = [Patch(facecolor=MARGIN_COLOURS[min(j, len(MARGIN_COLOURS) - 1)], edgecolor="#bdbdbd",
+                     label=f"Q_yes up to {s:g} B: {int(np.sum(yes & (b == s)))}") for j, s in enumerate(scales)]
+    handles.append(Patch(facecolor=_MARGIN_NO, label=f"Q_no: {int(np.sum(res.classes == 'no'))}"))
+    handles.append(Patch(facecolor=_MARGIN_MAYBE, edgecolor="#bdbdbd",
+                         label=f"Q_? (no margin): {int(np.sum(res.classes == 'maybe'))}"))
+    return handles
+
+
+def plot_margins(result, ax=None, *, title: str | None = None, legend: bool = True):
+    """Map of the assumption margins ``b_margin`` (docs/margins.md): each Q_yes cell coloured by the largest
+    factor beta of B at which the run's controller keeps it in Q_yes (light: only at B; dark: up to 4 B);
+    Q_no cells pale red, Q_? cells grey; with the formula's regions outlined.
+
+    Raises
+    ------
+    InvalidInputError
+        The result has no margins (run with margins off, known dynamics, the GP route).
+    """
+    res = _result(result)
+    if res.b_margin is None:
+        raise InvalidInputError("the result has no assumption margins (b_margin): run with margins on "
+                                "(the default; not computed for known dynamics and error_bound 'chowdhury')")
+    scales = _margin_scales(res)
+    b = np.asarray(res.b_margin, float)
+    idx = np.searchsorted(np.asarray(scales), np.nan_to_num(b, nan=scales[0]))
+    colours = np.array([MARGIN_COLOURS[min(int(j), len(MARGIN_COLOURS) - 1)] for j in idx], dtype=object)
+    colours[res.classes == "no"] = _MARGIN_NO
+    colours[res.classes == "maybe"] = _MARGIN_MAYBE
+    ax = _ax(ax)
+    ax.add_collection(PolyCollection(_rects(res), facecolors=colours, edgecolors="white", linewidths=0.2))
+    _draw_regions(ax, res, fill=False, label_text=True, lw=1.8, only=res.dfa_atoms)
+    _frame(ax, res, title or "Assumption margin: largest beta with the cell Q_yes at beta B")
+    if legend:
+        ax.legend(handles=_margin_handles(res), loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2,
+                  fontsize=7, frameon=False)
     return ax
 
 
@@ -602,6 +657,7 @@ def _slice_view(res: ResultFile, point: np.ndarray, drawn: list) -> ResultFile:
         p_up_star=res.p_up_star[q], error=res.error[q], classes=res.classes[q],
         strategy_by_time=None if res.strategy_by_time is None else res.strategy_by_time[:, q],
         dim_names=None if res.dim_names is None else tuple(res.dim_names[j] for j in drawn),
+        b_margin=None if getattr(res, "b_margin", None) is None else res.b_margin[q],
         parameters={**res.parameters, "_axis_names": tuple(_axis_text(res, j, tex=True) for j in drawn),
                     "_slice": fixed_text, "_cells": q})
 
@@ -663,7 +719,8 @@ def plot_slices(result, kind: str = "classes", *, n_slices: int = 4, axis: int =
 
     Parameters
     ----------
-    kind : "classes", "partition", or a per-cell value ("p_low", "p_up", "p_up_star", "error")
+    kind : "classes", "partition", "b_margin" (:func:`plot_margins`), or a per-cell value ("p_low", "p_up",
+        "p_up_star", "error")
     n_slices : int, number of panels
     axis : int, the sliced coordinate (0-based; default the third)
     slice : dict, optional
@@ -708,6 +765,8 @@ def plot_slices(result, kind: str = "classes", *, n_slices: int = 4, axis: int =
         title = view.parameters["_slice"]
         if kind == "classes":
             plot_classes(view, ax, title=title, legend=False)
+        elif kind == "b_margin":
+            plot_margins(view, ax, title=title, legend=False)
         elif kind == "partition":
             plot_partition(view, ax, title=title)
             if ax.get_legend() is not None:
@@ -723,6 +782,8 @@ def plot_slices(result, kind: str = "classes", *, n_slices: int = 4, axis: int =
         fig.legend(handles=[Patch(facecolor=CLASS_COLOURS[c], label=f"{CLASS_TEXT[c]}: {counts[c]} of {res.n_cells}")
                             for c in ("yes", "maybe", "no")], loc="outside lower center", ncol=3, fontsize=8,
                    frameon=False)
+    elif kind == "b_margin":
+        fig.legend(handles=_margin_handles(res), loc="outside lower center", ncol=4, fontsize=8, frameon=False)
     elif kind != "partition":
         sm = plt.cm.ScalarMappable(norm=Normalize(0.0, 1.0), cmap="magma" if kind == "error" else "viridis")
         fig.colorbar(sm, ax=shown, shrink=0.8, label=kind)
@@ -730,7 +791,7 @@ def plot_slices(result, kind: str = "classes", *, n_slices: int = 4, axis: int =
             fig.legend(handles=[Line2D([], [], color=THRESHOLD_COLOUR, ls="--", lw=1.6,
                                        label=f"{kind} = threshold {res.threshold:g} (contour)")],
                        loc="outside lower center", fontsize=8, frameon=False)
-    what = {"classes": "Classification", "partition": "Partition"}.get(kind, kind)
+    what = {"classes": "Classification", "partition": "Partition", "b_margin": "Assumption margin"}.get(kind, kind)
     how = "slice" if axis is None else f"slices {_axis_text(res, axis)} = const"
     rest = [j for j in range(d) if j not in drawn and j != axis and j not in fixed]
     fig.suptitle(suptitle or f"{what} for {res.formula!r}: {how}"
@@ -741,9 +802,9 @@ def plot_slices(result, kind: str = "classes", *, n_slices: int = 4, axis: int =
 def save_figures(result, out_dir, *, trajectories=None, prefix: str = "", dpi: int = 130, slice=None) -> list:
     """Write the standard PNGs for a result of any dimension (see the module docstring).
 
-    1-D: ``bounds.png``. 2-D: ``partition``, ``classes``, ``p_low``, ``error`` (and
-    ``trajectories`` if given). 3-D and more: the same four as panels of slices
-    (``trajectories`` are not drawn), where ``slice`` fixes coordinates (:func:`plot_slices`).
+    1-D: ``bounds.png``. 2-D: ``partition``, ``classes``, ``p_low``, ``error``, ``b_margin`` (where the
+    result has assumption margins; :func:`plot_margins`) and ``trajectories`` (if given). 3-D and more:
+    the same but trajectories as panels of slices, where ``slice`` fixes coordinates (:func:`plot_slices`).
 
     Returns
     -------
@@ -761,14 +822,17 @@ def save_figures(result, out_dir, *, trajectories=None, prefix: str = "", dpi: i
         plot_bounds_1d(res, ax)
         written.append(_save(fig, out / f"{prefix}bounds.png", dpi))
         return written
+    margins = getattr(res, "b_margin", None) is not None  # b_margin.png where the run computed margins
     if d >= 3:
-        for kind in ("partition", "classes", "p_low", "error"):
+        for kind in ("partition", "classes", "p_low", "error") + (("b_margin",) if margins else ()):
             written.append(_save(plot_slices(res, kind, slice=slice), out / f"{prefix}{kind}.png", dpi))
         return written
     jobs = [("partition", lambda ax: plot_partition(res, ax)),
             ("classes", lambda ax: plot_classes(res, ax)),
             ("p_low", lambda ax: plot_values(res, "p_low", ax)),
             ("error", lambda ax: plot_values(res, "error", ax, cmap="magma"))]
+    if margins:
+        jobs.append(("b_margin", lambda ax: plot_margins(res, ax)))
     if trajectories is not None:
         jobs.append(("trajectories", lambda ax: plot_trajectories(res, trajectories, ax)))
     for name, draw in jobs:

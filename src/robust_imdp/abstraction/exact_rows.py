@@ -23,9 +23,8 @@ noise; a target cell is a box ``z = prod_i z_i``.
   the largest listed upper bound or ``rest_j``; on a ``BoxPartition`` ``m_j = 1``); the row's
   ``floor`` is the largest of these, raised to ``floor_level`` where it is positive (any larger
   floor is an upper bound too; a zero floor, e.g. of bounded noise, stays 0). Listed entries whose upper bound is at most the floor are dropped (they are covered by it;
-  only their lower bound, at most the floor, is lost). ``abstract`` passes ``floor_tol / 10``: on
-  car parking (docs/abstraction.md) that lists 311 instead of 530 entries per row for the same
-  Q_yes, and mean p_low 0.24712 instead of 0.24721.
+  only their lower bound, at most the floor, is lost). ``abstract`` passes ``floor_tol / 20``
+  (docs/abstraction.md: on car parking about 330 instead of 530 entries per row, the same Q_yes).
 * **A learned error that holds with probability** ``P_g`` (the GP route with
   ``guarantee = "paper"``): on the error event ``E_g`` the image box grows by ``eps`` and the bounds
   above hold for the grown box; off it nothing is known. Thm 1 combines them the same way

@@ -218,7 +218,7 @@ def abstract(partition: Partition, cell_bounds: CellBounds, noise: NoiseModel, e
         Thm 1's bounds, or the exact per-axis integrals (module docstring; docs/abstraction.md):
         never looser per entry, and the only ones with non-zero lower bounds when the noise is
         wider than a cell. ``eta`` and ``eps_rule`` are Thm 1's and unused by "exact"; there every
-        row's floor is at least ``floor_tol / 10`` and entries below it are not listed.
+        row's floor is at least ``floor_tol / 20`` and entries below it are not listed.
 
     Returns
     -------
@@ -306,8 +306,8 @@ def abstract_rows(partition: Partition, cell_bounds: CellBounds, noise: NoiseMod
 def _exact_abstraction_rows(partition, cell_bounds, noise, error_models, eps_rule, combine, floor_tol, chunk):
     """:func:`abstract_rows` with ``transitions="exact"``: the exact rows, Thm 1's records NaN / -1."""
     _check_arguments(partition, cell_bounds, noise, error_models, None, eps_rule, combine, floor_tol, chunk)
-    # floor_tol / 10: the floor below which listed entries are dropped (module doc of exact_rows)
-    ex = exact_rows(partition, cell_bounds, noise, error_models, combine=combine, floor_level=floor_tol / 10)
+    # floor_tol / 20: the floor below which listed entries are dropped (docs/abstraction.md, "Never looser")
+    ex = exact_rows(partition, cell_bounds, noise, error_models, combine=combine, floor_level=floor_tol / 20)
     M, N, d = cell_bounds.image_lower.shape
     nan = np.full((M, N, d), np.nan)
     return AbstractionRows(

@@ -198,6 +198,24 @@ def staged_outputs(out_dir, owned):
 
 
 RESULT_FORMAT = "robust_imdp.result/1"
+
+
+def _margin_entry(result) -> dict:
+    """``{"b_margin": [...]}`` (NaN, a Q_? cell, written as null) when the result has assumption margins, else ``{}``."""
+    b = getattr(result, "b_margin", None)
+    return {} if b is None else {"b_margin": np.asarray(b, dtype=float)}
+
+
+def _margin_of(doc: dict, n_cells: int):
+    """A document's ``b_margin`` as a (n_cells,) float array (null read as NaN), or None."""
+    if doc.get("b_margin") is None:
+        return None
+    b = np.array([np.nan if v is None else v for v in doc["b_margin"]], dtype=float)
+    if b.shape != (n_cells,):
+        raise ValueError(f"b_margin must have one entry per cell ({n_cells}); got {b.shape[0]}")
+    return b
+
+
 CLASS_NAMES = ("yes", "no", "maybe")
 
 
@@ -235,6 +253,10 @@ def result_to_dict(result) -> dict[str, Any]:
         refinement of ``"no"``; the other "no" cells are "no" under this controller only).
     formula, threshold, horizon, parameters, timings
         What was solved, with which settings, and stage times in seconds.
+    b_margin : list of float or null, only when the run computed assumption margins
+        Per cell the largest factor beta of (1, 1.25, 1.5, 2, 3, 4) such that the run's controller keeps
+        the cell's class (Q_yes or Q_no) with every ``rkhs_bound`` B replaced by beta B, at beta and every
+        smaller factor; null for Q_? cells (docs/margins.md). ``diagnostics.margins`` has the counts.
     diagnostics : dict
         Why cells are undecided: ``confidence`` (probability over the data with which every
         bound holds; 1 for bounded noise with the deterministic bound) and ``statement``,
@@ -297,6 +319,7 @@ def result_to_dict(result) -> dict[str, Any]:
         "formula": result.formula,
         "threshold": result.threshold,
         "horizon": result.horizon,
+        **_margin_entry(result),
         "parameters": result.parameters,
         "diagnostics": {**(getattr(result, "diagnostics", {}) or {}),
                         **({"advice": result.advice} if getattr(result, "advice", None) else {})},
@@ -316,7 +339,8 @@ def save_result(result, out_dir) -> Path:
     needs besides (``Controller.from_tables``; files written before they were added lack them, and
     ``load_result`` reads ``result.json`` in any case): ``label_letters`` int64 (n_cells,) letters over
     ``dfa_atoms`` (str (A,)), ``dfa_initial`` int64 (), ``dfa_accepting`` bool (S,), ``space_lower``,
-    ``space_upper`` float (d,), and ``periodic`` bool (d,) only when a dimension is periodic.
+    ``space_upper`` float (d,), and ``periodic`` bool (d,) only when a dimension is periodic; ``b_margin``
+    float (n_cells,) (NaN for Q_? cells) only when the run computed assumption margins.
 
     Returns
     -------
@@ -352,6 +376,7 @@ def save_result(result, out_dir) -> Path:
         "no_strategy_can": np.asarray(doc["no_strategy_can"], dtype=bool),
         "modes": np.asarray(doc["modes"], dtype=str),
         **controller_arrays,
+        **({} if getattr(result, "b_margin", None) is None else {"b_margin": np.asarray(result.b_margin, float)}),
     }
 
     def write_npz(tmp: Path) -> None:
@@ -414,6 +439,8 @@ class ResultFile:
     periodic : tuple of bool or None
     diagnostics : dict
         ``result.json``'s ``diagnostics`` (the advice under ``"advice"``); empty for files without it.
+    b_margin : (n_cells,) float array or None
+        The assumption margins (``b_margin``; NaN for Q_? cells), None for files without them.
     """
 
     space_lower: np.ndarray
@@ -442,6 +469,7 @@ class ResultFile:
     dim_names: tuple | None = None
     periodic: tuple | None = None
     diagnostics: dict = field(default_factory=dict)
+    b_margin: np.ndarray | None = None
 
     @property
     def n_cells(self) -> int:
@@ -553,6 +581,7 @@ class ResultFile:
                 dim_names=None if doc["space"].get("names") is None else tuple(doc["space"]["names"]),
                 periodic=None if not any(doc["space"].get("periodic") or ()) else tuple(doc["space"]["periodic"]),
                 diagnostics=dict(doc.get("diagnostics") or {}),
+                b_margin=_margin_of(doc, cl.shape[0]),
             )
         except (KeyError, TypeError, IndexError, ValueError) as exc:
             raise InvalidInputError(

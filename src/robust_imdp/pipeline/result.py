@@ -52,6 +52,10 @@ def summary_text(*, formula: str, threshold: float, horizon, classes, p_low, err
     why = diagnostics_line(diagnostics)
     if why:
         lines.append(why)
+    if (diagnostics or {}).get("margins"):
+        from robust_imdp.synthesis.margins import margins_line
+
+        lines.append(margins_line(diagnostics["margins"]))
     if advice:
         from robust_imdp.synthesis.advice import advice_line
 
@@ -88,7 +92,13 @@ class Result:
     diagnostics : dict
         Why cells are undecided (JSON-able): the stated confidence, the error radius ``eps``
         per mode and output (median, max, against the cell half-width), the mean number of
-        successors per IMDP row and the assumption check (data-implied minimum RKHS norms).
+        successors per IMDP row and the assumption check (data-implied minimum RKHS norms);
+        ``margins``: the assumption margins' counts per factor of B (or why they were skipped).
+    b_margin : (n_cells,) float array or None
+        Assumption margins (docs/margins.md): per cell the largest factor beta of (1, 1.25, 1.5, 2, 3, 4)
+        such that the run's controller keeps the cell's class (Q_yes, Q_no) with every B replaced by
+        beta B; NaN for Q_? cells. None when not computed (``margins=False``, known dynamics, the GP route,
+        :func:`resynthesize`).
     """
 
     problem: Problem
@@ -102,6 +112,7 @@ class Result:
     from_cache: bool = False
     diagnostics: dict = field(default_factory=dict)
     advice: dict = field(default_factory=dict)
+    b_margin: np.ndarray | None = None
 
     # Convenience views used by io.result_to_dict and plotting.
     def suggest_samples(self, n: int) -> list:

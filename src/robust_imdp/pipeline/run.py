@@ -210,7 +210,7 @@ def _class_names(classes, syn, threshold) -> np.ndarray:
 
 def synthesize_from_data(problem: Problem, *, progress: bool = True, abstraction_cache=None, client=None,
                          workers: int | None = None, scheduler: str | None = None, chunk_cells: int | None = None,
-                         check_resources: bool = True, advice="auto") -> Result:
+                         check_resources: bool = True, advice="auto", margins: bool = True) -> Result:
     """Learn, bound, abstract and synthesize: data and formula in, guarantees out.
 
     Parameters
@@ -243,6 +243,12 @@ def synthesize_from_data(problem: Problem, *, progress: bool = True, abstraction
         ``"auto"``: within a budget of ``advice.ADVICE_SHARE`` (25 %) of the run's time before it, cheapest
         lever first, each re-solve of at most ``advice.MAX_CELLS`` cells; True: every lever, no budget; False:
         none. Its estimates are saved in ``abstraction_cache`` as they complete and reused by a later run.
+    margins : bool
+        Assumption margins (``pipeline/margins.py``, docs/margins.md): per cell the largest factor of
+        ``synthesis.margins.MARGIN_SCALES`` (1 .. 4) at which the run's controller keeps the cell's class with
+        every B scaled by it (``result.b_margin``, the summary's ``assumption margins:`` line). The bound stage
+        certifies the larger-B boxes with the same weights (no new optimisation); each factor costs one
+        abstraction and one evaluation of the controller. Not computed for known dynamics and the GP route.
 
     Returns
     -------
@@ -252,10 +258,18 @@ def synthesize_from_data(problem: Problem, *, progress: bool = True, abstraction
 
     if advice not in ("auto", True, False):
         raise InvalidInputError(f"advice must be 'auto', True or False; got {advice!r}")
+    if margins not in (True, False):
+        raise InvalidInputError(f"margins must be True or False; got {margins!r}")
     log = _Log(progress)
     run = _Run(client=client, workers=workers, scheduler=scheduler, chunk_cells=chunk_cells,
                check_resources=check_resources)
     run.advice = advice
+    run.margins = margins
+    if margins:  # the bound stage certifies the boxes at the larger factors of B too (pipeline/margins.py)
+        from robust_imdp.pipeline.margins import bound_scales, skip_reason
+
+        if skip_reason(problem) is None:
+            run.margin_scales, run.margin_problem = bound_scales(), problem
     with log.stage("specify"):
         dfa = to_dfa(problem.formula)
         _check_atoms(dfa, problem)
@@ -299,15 +313,35 @@ def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cac
     advice = run_advice(problem, partition, abstraction, cell_bounds, dfa, classes, log, run, abstraction_cache,
                         diagnostics)
     parameters = _parameters(problem, abstraction)
+    grid = partition
     if problem.refine is not None:  # adaptive refinement of the undecided cells (see docs/refinement.md)
         partition, abstraction, syn, classes, diagnostics, parameters["abstraction_key"] = _refine(
             problem, partition, abstraction, syn, cell_bounds, dfa, log, run, abstraction_cache, diagnostics)
+    b_margin, margins_doc = _margins(problem, grid, partition, syn, classes, dfa, log, run, abstraction_cache)
+    if margins_doc:
+        diagnostics = {**diagnostics, "margins": margins_doc}
     log.timings["total"] = time.perf_counter() - log.t0
     result = Result(problem=problem, partition=partition, abstraction=abstraction, dfa=dfa,
                     synthesis=syn, class_names=classes, timings=dict(log.timings),
                     parameters=parameters, from_cache=from_cache,
-                    diagnostics=diagnostics, advice=advice)
+                    diagnostics=diagnostics, advice=advice, b_margin=b_margin)
     return result
+
+
+def _margins(problem: Problem, grid, partition, syn, classes, dfa, log: _Log, run: _Run, cache_dir):
+    """The assumption margins (``pipeline.margins.run_margins``) when the run asks for them: ``(b_margin or None,
+    the diagnostics' dict or {})``; the margins' abstractions go through :func:`_chunked_abstract`, as the run's."""
+    if not getattr(run, "margins", False):
+        return None, {}
+    from robust_imdp.pipeline.margins import run_margins
+
+    quiet = _Log(False)
+
+    def abstract(part, cell_bounds):
+        return _chunked_abstract(problem, part, cell_bounds, quiet, run, _chunk_cells(run, part.n_cells, MAX_ROW_CELLS))
+
+    return run_margins(problem, grid, partition, syn, classes, dfa, log, run, cache_dir, abstract=abstract,
+                       learn_and_bound=_learn_and_bound)
 
 
 def _refine(problem: Problem, partition, abstraction, syn, cell_bounds, dfa, log: _Log, run: _Run, cache_dir,

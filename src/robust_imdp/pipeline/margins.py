@@ -1,0 +1,171 @@
+"""The run's assumption-margins stage (docs/margins.md): per cell, the largest factor of B at which it keeps its class.
+
+The bound stage certifies, besides the image boxes at B, the boxes at every factor of
+``synthesis.margins.MARGIN_SCALES`` with the same certificate weights (``bounds/rkhs_model.scaled_ranges``;
+nothing is optimised again). This stage gets those boxes (from the bound stage of this run, else from the
+cache, else by running the bound stage once more with them), abstracts them through the pipeline's own
+abstraction function (the one the run used, so ``[abstraction]`` options such as ``transitions`` apply),
+evaluates the run's controller on each (``synthesis.margins.strategy_bounds``) and stops when no cell
+keeps its class (``synthesis.margins.assumption_margins``).
+
+Refined results (``BoxPartition``): a cell created by refinement uses the boxes the refinement's bounder
+certified for it at each factor when this run bounded it, else those of its grid cell (it lies inside it,
+so the grid cell's box at ``beta B`` contains its image: sound, looser; its margin is then a lower bound).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from robust_imdp.pipeline.cache import _load_npz, _savez, bounds_key, read_cache_entry, write_cache_entry
+from robust_imdp.pipeline.problem import Problem
+from robust_imdp.pipeline.runtime import _Log, _Run
+
+__all__ = ["skip_reason", "bound_scales", "run_margins"]
+
+
+def bound_scales() -> tuple:
+    """The factors of B the bound stage certifies besides B itself (``MARGIN_SCALES`` without 1)."""
+    from robust_imdp.synthesis.margins import MARGIN_SCALES
+
+    return tuple(float(s) for s in MARGIN_SCALES[1:])
+
+
+def skip_reason(problem: Problem) -> str | None:
+    """Why this problem gets no margins, or None: known dynamics have no B; a method without re-usable
+    certificate weights (the GP route) has none to re-evaluate."""
+    if problem.known:
+        return "known dynamics: every component is known (rkhs_bound = 0), there is no B to scale"
+    if not problem.method.margins:
+        return (f"error_bound '{problem.error_bound}' bounds g with a GP posterior and Chowdhury & Gopalan's beta; "
+                "its boxes have no certificate weights to re-evaluate at a larger B (margins are computed on the "
+                "RKHS route, error_bound 'optimal' or 'ridge')")
+    return None
+
+
+def _cache_file(problem: Problem, cache_dir) -> Path | None:
+    return None if cache_dir is None else Path(cache_dir) / f"scaled-{bounds_key(problem)}.npz"
+
+
+def _read_scaled(path: Path, scales, shape):
+    """``(scales, lower, upper)`` of a saved entry holding exactly ``scales`` and boxes of ``shape`` (else ValueError)."""
+    z = _load_npz(path)
+    if not np.array_equal(np.asarray(z["scales"], float), np.asarray(scales, float)):
+        raise ValueError(f"scales {z['scales'].tolist()} are not {list(scales)}")
+    for key in ("lower", "upper"):
+        if z[key].shape != (len(scales),) + tuple(shape):
+            raise ValueError(f"{key} must have shape {(len(scales),) + tuple(shape)}; got {z[key].shape}")
+    return tuple(scales), z["lower"], z["upper"]
+
+
+def _scaled_bounds(problem: Problem, grid, log: _Log, run: _Run, cache_dir, learn_and_bound):
+    """``(scales, lower, upper)``, each box array ``(n_scales, n_modes, n_grid_cells, n)``: from this run's bound
+    stage, the cache, or the bound stage run again with the scales (once: saved in the cache)."""
+    scales = bound_scales()
+    shape = (len(problem.mode_names), grid.n_cells, int(np.size(problem.space_lower)))
+    path = _cache_file(problem, cache_dir)
+    got = getattr(run, "scaled_bounds", None)
+    if got is not None and tuple(got[0]) == scales:
+        if path is not None:
+            write_cache_entry(path, lambda tmp: _savez(tmp, {"scales": np.asarray(scales), "lower": got[1],
+                                                             "upper": got[2]}))
+        return got
+    if path is not None:
+        got = read_cache_entry(path, lambda f: _read_scaled(f, scales, shape))
+        if got is not None:
+            log.info(f"margins: reused the boxes at {', '.join(f'{s:g}' for s in scales)} x B ({path.name})")
+            return got
+    log.info("margins: the learned cell bounds were reused from a cache written without the boxes at larger B; "
+             "bounding the grid again with them (once: they are saved in the cache)")
+    run.margin_scales = scales
+    learn_and_bound(problem, grid, log, run, cache_dir)
+    got = run.scaled_bounds
+    if path is not None:
+        write_cache_entry(path, lambda tmp: _savez(tmp, {"scales": np.asarray(scales), "lower": got[1],
+                                                         "upper": got[2]}))
+    return got
+
+
+def _cell_boxes(partition, lower, upper, new_cells: dict):
+    """The boxes of ``partition``'s cells at every factor ``(n_scales, n_modes, n_cells, n)`` from the grid's:
+    the grid's own for an unrefined partition; for a ``BoxPartition``, a refined cell's own certified boxes
+    (``new_cells``, keyed by its bounds) where the run bounded it, else its grid cell's (a superset: sound).
+    Returns the boxes and the number of refined cells that fell back to their grid cell."""
+    base_cell = getattr(partition, "base_cell", None)
+    if base_cell is None:
+        return lower, upper, 0
+    base_cell = np.asarray(base_cell, dtype=np.int64)
+    lo, hi = lower[:, :, base_cell].copy(), upper[:, :, base_cell].copy()
+    refined = np.flatnonzero(np.asarray(partition.depth) > 0)
+    fallback = 0
+    for q in refined:
+        key = (partition.cells_lower[q].tobytes(), partition.cells_upper[q].tobytes())
+        own = new_cells.get(key)
+        if own is None:
+            fallback += 1
+        else:
+            lo[:, :, q], hi[:, :, q] = own
+    return lo, hi, fallback
+
+
+def run_margins(problem: Problem, grid, partition, synthesis, classes, dfa, log: _Log, run: _Run, cache_dir, *,
+                abstract, learn_and_bound) -> tuple:
+    """The margins of a run: ``(b_margin (n_cells,) float array or None, the diagnostics' dict)``.
+
+    Parameters
+    ----------
+    problem : Problem
+    grid : geometry.Partition
+        The grid the bound stage bounded.
+    partition : geometry.Partition or BoxPartition
+        The result's cells (``grid``, or the refined partition).
+    synthesis : synthesis.core.SynthesisResult
+        The run's solve on ``partition`` (its controller is evaluated at every factor).
+    classes : (n_cells,) str array
+    dfa : DFA
+    log, run, cache_dir
+        The run's log, scheduler options and cache directory.
+    abstract : callable(partition, cell_bounds) -> abstraction
+        The pipeline's abstraction function (the run's options).
+    learn_and_bound : callable(problem, partition, log, run, cache_dir)
+        The run's bound stage (used only when no boxes at larger B are at hand).
+
+    Returns
+    -------
+    b_margin : (n_cells,) float array (NaN for Q_? cells) or None when skipped
+    doc : dict
+        ``synthesis.margins.Margins.to_dict()`` plus ``statement`` and, for a refined partition,
+        ``refined_from_grid_cell``; or ``{"skipped": reason}``.
+    """
+    from robust_imdp.abstraction.cell_bounds import CellBounds
+    from robust_imdp.synthesis.margins import assumption_margins, strategy_bounds
+
+    why = skip_reason(problem)
+    if why is not None:
+        log.info(f"assumption margins: not computed ({why})")
+        return None, {"skipped": why}
+    with log.stage("margins"):
+        scales, lower, upper = _scaled_bounds(problem, grid, log, run, cache_dir, learn_and_bound)
+        lower, upper, fallback = _cell_boxes(partition, lower, upper, getattr(run, "scaled_new_cells", {}))
+        index = {s: j for j, s in enumerate(scales)}
+
+        def evaluate(scale):
+            j = index[float(scale)]
+            abstraction = abstract(partition, CellBounds(lower[j], upper[j], None))
+            return strategy_bounds(abstraction.imdp, partition.labels, partition.atoms, dfa, synthesis,
+                                   outside_state=partition.outside_state)
+
+        margins = assumption_margins(classes, evaluate, problem.threshold, (1.0,) + tuple(scales))
+    doc = margins.to_dict()
+    doc["statement"] = ("b_margin: per cell the largest factor beta of (1, 1.25, 1.5, 2, 3, 4) such that the run's "
+                        "controller keeps the cell's class (Q_yes: p_low >= threshold; Q_no: p_up < threshold) with "
+                        "every rkhs_bound B replaced by beta B (known components stay known), at that factor and "
+                        "every smaller one; null for Q_? cells")
+    if fallback:
+        doc["refined_from_grid_cell"] = int(fallback)
+    from robust_imdp.synthesis.margins import margins_line
+
+    log.info(margins_line(doc) + f" ({margins.seconds:.1f} s, {len(margins.solved)} abstractions solved)")
+    return margins.b_margin, doc
