@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -235,8 +236,7 @@ def test_margins_are_skipped_with_a_reason_on_the_gp_route_and_for_known_dynamic
     assert run_margins(gp, None, None, None, None, None, _quiet(), None, None, abstract=None,
                        learn_and_bound=None) == (None, {"skipped": why})
     assert skip_reason(tiny_problem()) is None
-    known = tiny_problem(rkhs_bound=0.0, data=None)
-    assert "known dynamics" in skip_reason(known)
+    assert "known dynamics" in skip_reason(SimpleNamespace(known=True))  # Problem.known: every component known
     assert margins_line({"skipped": why}) == f"assumption margins: not computed ({why})"
 
 

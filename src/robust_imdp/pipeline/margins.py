@@ -36,7 +36,7 @@ def bound_scales() -> tuple:
 def skip_reason(problem: Problem) -> str | None:
     """Why this problem gets no margins, or None: known dynamics have no B; a method without re-usable
     certificate weights (the GP route) has none to re-evaluate."""
-    if problem.known:
+    if getattr(problem, "known", False):  # Problem.known: every component known (no data)
         return "known dynamics: every component is known (rkhs_bound = 0), there is no B to scale"
     if not problem.method.margins:
         return (f"error_bound '{problem.error_bound}' bounds g with a GP posterior and Chowdhury & Gopalan's beta; "
