@@ -72,7 +72,7 @@ def estimate_resources(problem: Problem, n_dfa_states: int = 4) -> dict:
     n = int(np.size(problem.space_lower))
     N = problem.n_grid_cells
     M = len(problem.mode_names)
-    succ = 3 ** n + 1
+    succ = 3 ** n + 1 if getattr(problem, "transitions", "thm1") == "thm1" else exact_successors(problem) + 1
     imdp = N * M * (succ * 24 + 48)
     boxes = N * M * n * 8 * 8
     part = N * n * 8 * 6
@@ -107,6 +107,34 @@ def load_text(cores_used: int) -> str:
     busy = " (busy: others' work shares the cores)" if load > cores + 0.5 else ""
     return (f"at the speed measured now, load average {load:.1f} on {cores} cores{busy}: it holds while the load "
             "stays; the progress lines re-estimate from the measured rate")
+
+
+def exact_successors(problem: Problem, floor_tol: float = 1e-6) -> int:
+    """Listed successors per row of the exact transitions (``transitions = "exact"``), estimated on one cell.
+
+    A cell of ``cell_size`` whose image is a cell of the same size (the image is not known before the bound
+    stage), on grid intervals of ``cell_size`` around it: the per-axis upper bounds (``abstraction.marginals``)
+    and the joint entries whose product exceeds the rows' least floor ``floor_tol / 20`` (a product of factors
+    <= 1 stays below the floor once a partial product is: counted axis by axis), capped by the grid.
+    """
+    from robust_imdp.abstraction.marginals import interval_bounds
+
+    h = np.asarray(problem.cell_size, float).reshape(-1)
+    lo, up = np.asarray(problem.space_lower, float), np.asarray(problem.space_upper, float)
+    R = problem.noise.listing_radius(floor_tol / 20)
+    level = floor_tol / 20
+    partial = np.ones(1)
+    for j in range(h.size):
+        n_j = int(round((up[j] - lo[j]) / h[j]))
+        K = int(min(np.ceil(R[j] / h[j]) + 2, n_j))
+        t = np.arange(-K, K + 1)
+        _, hi = interval_bounds(problem.noise, j, 0.0, h[j], t * h[j], (t + 1) * h[j])
+        hi = hi[np.argsort(-hi)][:n_j]  # at most the grid's intervals
+        prod = (partial[:, None] * hi[None, :]).ravel()
+        partial = prod[prod > level]
+        if partial.size == 0:
+            return 1
+    return int(partial.size)
 
 
 def _available_memory() -> int | None:
