@@ -195,3 +195,29 @@ def test_boxes_at_beta_B_contain_functions_of_norm_up_to_beta_B():
                 cells += n
                 missed_at_B += at_B
     assert cells >= 1000 and missed_at_B > 0
+
+
+def test_per_component_assumptions_scale_every_learned_B_and_keep_known_components_known():
+    # A mode whose components differ (bounds.assumptions.bound_mode_chunk): component 1 learned with its own B,
+    # component 2 known (B = 0: its box is the known part's range + tau at every factor). The learned
+    # component's boxes at each factor equal those of bound_chunk with that component's B alone.
+    from robust_imdp.bounds.assumptions import bound_mode_chunk, resolve
+
+    d = 2
+    X, y, ls, lo, up, A, b0, dbar = _local_problem(97, d, 40, 5, 0.15)
+    Y = np.stack([y, 0.3 * X[:, 0]], axis=1)  # component 2 is exactly its known part 0.3 x_1 (+ noise 0)
+    Am = np.array([A, [0.3, 0.0]])
+    bm = np.array([b0, 0.0])
+    st = resolve([1.7, 0.0], ls.tolist(), [0.01, 0.02], ["m"], 2)
+    mode = {"noise_bound": np.array([dbar, dbar]), "groups": st.groups(0)}
+    kw = dict(lengthscale=1.0, rkhs_bound=1.0, misspecification=0.0, method="optimal", noise_bound=[dbar, dbar])
+    out = bound_mode_chunk(X, Y - X @ Am.T - bm, Am, bm, lo, up, None, mode, scales=SCALES, **kw)
+    # the known component: the same box at every factor
+    for j in range(len(SCALES)):
+        np.testing.assert_array_equal(out["scaled_lower"][j, :, 1], out["lower"][:, 1])
+        np.testing.assert_array_equal(out["scaled_upper"][j, :, 1], out["upper"][:, 1])
+    alone = rkhs.bound_chunk(X, (Y - X @ Am.T - bm)[:, :1], Am[:1], bm[:1], lo, up, lengthscale=ls, rkhs_bound=1.7,
+                             noise_bound=[dbar], misspecification=0.01, scales=SCALES)
+    np.testing.assert_array_equal(out["scaled_lower"][:, :, 0], alone["scaled_lower"][:, :, 0])
+    np.testing.assert_array_equal(out["scaled_upper"][:, :, 0], alone["scaled_upper"][:, :, 0])
+    assert np.all(out["scaled_upper"][-1, :, 0] > out["upper"][:, 0])  # the learned one grows
