@@ -175,13 +175,18 @@ def render(data: dict) -> list:
         def span(f):
             v = [f(c) for c in cs]
             return f"{min(v):.2f}-{max(v):.2f}" if len(v) > 1 else f"{v[0]:.2f}"
+        def norms():
+            v = [_inf(c["norm_at_suggested"]) for c in cs]
+            return f"{min(v):.2f}-" + ("inf" if max(v) == float("inf") else f"{max(v):.2f}")
+
+        def count(key):  # the truth is g alone: not the data's g + trend
+            return "-" if r["trend_added"] else f"{sum(c[key] for c in cs)}/{len(cs)}"
         lines.append(
             f"| {r['key']} | {cs[0]['l_true']:.3g} | {span(lambda c: c['l_ml'] / c['l_true'])} | "
             f"{span(lambda c: c['l_cv'] / c['l_true'])} | {span(lambda c: c['l_suggested'] / c['l_true'])} | "
             f"{span(lambda c: c['min_norm'])} | {span(lambda c: c['B'])} | "
-            f"{span(lambda c: min(_inf(c['norm_at_suggested']), 99.0))} | {sum(c['ok_lower'] for c in cs)}/{len(cs)} | "
-            f"{sum(c['ok_upper_true_l'] for c in cs)}/{len(cs)} | {sum(c['ok_lengthscale'] for c in cs)}/{len(cs)} | "
-            f"{sum(c['trend'] for c in cs)}/{len(cs)} | {r['seconds']:.0f} |")
+            f"{'-' if r['trend_added'] else norms()} | {count('ok_lower')} | {count('ok_upper_true_l')} | "
+            f"{count('ok_lengthscale')} | {sum(c['trend'] for c in cs)}/{len(cs)} | {r['seconds']:.0f} |")
     ruled = [c for c in comps if "rules" in c]
     if ruled:
         lines += ["", "## Rule table (the constants' decision)", "",
