@@ -59,3 +59,24 @@ def up_rounded(x, n_ops: int):
     ``(1 + 2 (n + 1) u)(1 - u) >= 1 + 2 n u``; one more ulp up with ``nextafter`` for good measure.
     """
     return np.nextafter(np.asarray(x, float) * (1.0 + 2.0 * (n_ops + 1) * U), np.inf)
+
+
+def complement_down(x):
+    """A lower bound of ``1 - x`` for floats ``x`` in [0, 1]: ``fl(1 - x)``, one ulp down only where it
+    rounded up.
+
+    The rounding error of ``s = fl(1 - x)`` is exact in floats (Fast2Sum, Dekker 1971: ``|1| >= |x|``):
+    ``e = (-x) - (s - 1)`` equals ``(1 - x) - s``, so ``e < 0`` says ``s`` lies above the real ``1 - x``.
+    """
+    x = np.asarray(x, float)
+    s = 1.0 - x
+    e = (-x) - (s - 1.0)
+    return np.where(e < 0, np.nextafter(s, -np.inf), s)
+
+
+def complement_up(x):
+    """An upper bound of ``1 - x`` for floats ``x`` in [0, 1] (:func:`complement_down`'s mirror image)."""
+    x = np.asarray(x, float)
+    s = 1.0 - x
+    e = (-x) - (s - 1.0)
+    return np.where(e > 0, np.nextafter(s, np.inf), s)

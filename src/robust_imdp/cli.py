@@ -561,12 +561,15 @@ def _cmd_export(args) -> int:
                 "alone (without --product)")
         letters = np.concatenate([res.label_letters, [0]])  # the outside state's letter is never read
         dfa = SimpleNamespace(n_states=S, initial=res.dfa_initial, accepting=res.dfa_accepting, delta=res.dfa_delta)
-        prod = materialize_product(imdp, letters, dfa, avoid=[n])
+        safety = getattr(res, "semantics", "reach") == "safety"  # target: the bad states; value 1 - P(reach)
+        prod = materialize_product(imdp, letters, dfa, avoid=[n], semantics="safety" if safety else "reach")
         initial = prod.initial[:n]  # the cells' initial product states (the outside state has one too)
         model, target, labels = prod.imdp, prod.target, {"avoid": prod.avoid}
         states.update({"dfa_states": S, "state": "s * (n_cells + 1) + q for DFA state s and state q",
                        "initial": initial, "horizon": res.horizon,
-                       "values": "from initial[q]: max-min = p_low[q], max-max = p_up_star[q] of result.json"})
+                       "values": ("from initial[q]: 1 - (min-max of reaching target) = p_low[q], 1 - (min-min) = "
+                                  "p_up_star[q] of result.json (safety reading)" if safety else
+                                  "from initial[q]: max-min = p_low[q], max-max = p_up_star[q] of result.json")})
     else:
         regions = sorted({a for lab in res.labels for a in lab})
         model, target, initial = imdp, None, np.arange(n)
@@ -583,8 +586,9 @@ def _cmd_export(args) -> int:
         written = write_prism_explicit(model, prefix, target=target, labels=labels, initial=initial)
         if args.product and res.horizon is not None:  # the k-step values: bounded until
             props = Path(str(prefix) + ".props")
-            props.write_text(f'Pmaxmin=? [ F<={int(res.horizon)} "target" ]\n'
-                             f'Pmaxmax=? [ F<={int(res.horizon)} "target" ]\n')
+            opt = "min" if getattr(res, "semantics", "reach") == "safety" else "max"  # safety: 1 - these
+            props.write_text(f'P{opt}{"max" if opt == "min" else "min"}=? [ F<={int(res.horizon)} "target" ]\n'
+                             f'P{opt}{opt}=? [ F<={int(res.horizon)} "target" ]\n')
         meta = Path(str(prefix) + ".states.json")
     from robust_imdp.jsonable import jsonable
 

@@ -66,6 +66,12 @@ class ProblemFileError(InvalidInputError):
 
 
 # --------------------------------------------------------------------------- run-time failures
+class VacuousSpecificationError(InvalidInputError):
+    """Under the reading in use, the specification is decided by the cells' own labels alone (every cell
+    satisfies it at time 0, or no trace can violate it), so its probability would say nothing about the
+    dynamics; the message says what to write instead (README, "Two readings of a formula")."""
+
+
 class AssumptionError(InvalidInputError):
     """The data refute a stated assumption (e.g. no function of RKHS norm <= B explains them).
 
@@ -121,6 +127,11 @@ class AssumptionWarning(RobustImdpWarning):
     """A user assumption looks doubtful (e.g. the RKHS bound B is below the norm of the posterior mean)."""
 
 
+class SpecificationWarning(RobustImdpWarning):
+    """The reading of the specification drops part of it, or some cells satisfy it by their own label alone
+    (README, "Two readings of a formula")."""
+
+
 class RegionOverlapWarning(RobustImdpWarning):
     """Two regions of the formula overlap (e.g. goal and obstacle): cells there carry both labels."""
 
@@ -137,6 +148,7 @@ __all__ = [
     "ExpressionDomainError",
     "OutsideDomainError",
     "AssumptionError",
+    "VacuousSpecificationError",
     "ProblemFileError",
     "ResourceError",
     "ConvergenceError",
@@ -144,5 +156,6 @@ __all__ = [
     "RobustImdpWarning",
     "ConvergenceWarning",
     "AssumptionWarning",
+    "SpecificationWarning",
     "RegionOverlapWarning",
 ]

@@ -13,6 +13,10 @@ checking ``p_low`` and **as not satisfied** when checking ``p_up``, so a reporte
 real one whatever the capped runs would have done. For k-step formulas (``horizon`` set) the cap
 is the horizon and capped runs are exactly the non-satisfying ones.
 
+Safety reading (a result with ``semantics = "safety"``): a run is violated when its DFA state becomes a
+sink (a bad prefix) or it leaves X, and satisfied when it reaches the horizon without either; without a
+horizon it is never decided, so every run is capped and counted as above.
+
 The controller is driven from the result tables (``result.json`` contract, read by
 :class:`robust_imdp.io.files.ResultFile`), independently of ``controller.py``: locate the cell, look the mode up in ``strategy[q][s]``, step the DFA with
 the new cell's label. Leaving X is a violation (the abstraction's absorbing outside state).
@@ -152,9 +156,14 @@ def simulate(result, true_system, x0, *, max_steps: int = MAX_STEPS, rng=None, r
             f"x0 must lie in X = [{res.space_lower.tolist()}, {res.space_upper.tolist()}]; "
             f"row {int(np.flatnonzero(q < 0)[0])} does not"
         )
-    # Standard product semantics: the first DFA move reads the initial cell's label.
+    # Standard product semantics: the first DFA move reads the initial cell's label. Under the safety reading
+    # an accepting DFA state decides nothing (only a bad prefix or leaving X does; the horizon's end satisfies).
+    safety = getattr(res, "semantics", "reach") == "safety"
+    done = np.zeros_like(res.dfa_accepting) if safety else res.dfa_accepting
+    if safety and res.horizon is not None:
+        max_steps = min(int(max_steps), int(res.horizon))
     s = res.dfa_delta[res.dfa_initial, res.label_letters[q]]
-    status = np.where(res.dfa_accepting[s], SATISFIED, np.where(sink[s], VIOLATED, RUNNING))
+    status = np.where(done[s], SATISFIED, np.where(sink[s], VIOLATED, RUNNING))
     steps = np.zeros(len(x), dtype=np.int64)
     hist = [x.copy()] if record else None
     for t in range(max_steps):
@@ -178,10 +187,11 @@ def simulate(result, true_system, x0, *, max_steps: int = MAX_STEPS, rng=None, r
         ok = run[~out]
         q[ok] = q_new[~out]
         s[ok] = res.dfa_delta[s[ok], res.label_letters[q[ok]]]
-        status[ok] = np.where(res.dfa_accepting[s[ok]], SATISFIED,
-                              np.where(sink[s[ok]], VIOLATED, RUNNING))
+        status[ok] = np.where(done[s[ok]], SATISFIED, np.where(sink[s[ok]], VIOLATED, RUNNING))
         if record:
             hist.append(x.copy())
+    if safety and res.horizon is not None:  # k-step safety: no bad prefix within the horizon satisfies it
+        status[(status == RUNNING) & (steps >= int(res.horizon))] = SATISFIED
     paths = []
     if record:
         h = np.stack(hist)  # (T + 1, R, n)

@@ -4,7 +4,9 @@ Problem file contract (keys in ``[brackets]`` are tables; ``?`` marks optional k
 
     [space]         lower, upper, cell_size          (lists of n floats), names? (n dimension names)
     [[regions.NAME]] lower, upper                    (one entry per box; any number of regions)
-    [spec]          formula, threshold, horizon?     (horizon: int for k-step, absent = unbounded)
+    [spec]          formula, threshold, horizon?     (horizon: int for k-step, absent = unbounded),
+                    semantics? ("auto" | "reach" | "safety": the reading of the formula, README "Two
+                    readings of a formula"; auto: safety for a safety formula such as G safe, else reach)
     [data]          path                             (.csv or .npz, relative to the problem file)
     [modes.NAME]    A (n x n), b (n)                 (known affine part f_u(x) = A x + b), or
                     f (n expressions in x1..xn)       (known nonlinear part, robust_imdp.models.known)
@@ -72,7 +74,7 @@ OLD_LEARNING_TABLE = "gp"
 # table -> (required keys, optional keys)
 _SCHEMA: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "space": (("lower", "upper", "cell_size"), ("names", "periodic")),
-    "spec": (("formula", "threshold"), ("horizon",)),
+    "spec": (("formula", "threshold"), ("horizon", "semantics")),
     "data": (("path",), ()),
     "noise": (("kind",), ("sigma", "bound")),
     LEARNING_TABLE: (("rkhs_bound",), ("lengthscale", "error_bound", "misspecification", "iid_noise", "local_points",
@@ -209,6 +211,7 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
     periodic = _parse_periodic(doc["space"], n, where)
     regions = _parse_regions(doc["regions"], lower, upper, where, periodic)
     formula, threshold, horizon = _parse_spec(doc["spec"], where)
+    semantics = _parse_semantics(doc["spec"], where)
     data_path = doc["data"]["path"]
     if not isinstance(data_path, str) or not data_path:
         raise ProblemFileError(f"{where}: [data].path must be a file name; got {data_path!r}")
@@ -221,7 +224,7 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
         refine = _parse_refine(doc["refine"], gp, n, f"[{learning}]", where)
     return {
         "lower": lower, "upper": upper, "cell_size": cell_size, "names": dim_names, "regions": regions,
-        "formula": formula, "threshold": threshold, "horizon": horizon,
+        "formula": formula, "threshold": threshold, "horizon": horizon, "semantics": semantics,
         "data_path": data_path, "modes": modes, "noise": noise, "learning": gp, "learning_table": learning,
         "abstraction": ab, "refine": refine, "periodic": periodic,
     }
@@ -326,6 +329,20 @@ def _parse_spec(spec: dict, where: str):
     if horizon is not None:
         horizon = _number(horizon, "[spec].horizon", where, lo=1, integer=True)
     return formula, threshold, horizon
+
+
+def _parse_semantics(spec: dict, where: str) -> str:
+    """``[spec].semantics``: the reading of the formula ("auto" when absent)."""
+    from robust_imdp.spec.dfa import SEMANTICS
+
+    value = spec.get("semantics", "auto")
+    if value not in SEMANTICS:
+        raise ProblemFileError(
+            f"{where}: [spec].semantics must be one of {', '.join(SEMANTICS)} (auto: safety for a safety formula "
+            f"such as G safe, reach otherwise); got {value!r}"
+            + (f" (did you mean {close[0]!r}?)" if isinstance(value, str)
+               and (close := difflib.get_close_matches(value, SEMANTICS, n=1, cutoff=0.6)) else ""))
+    return value
 
 
 def _parse_modes(doc_modes, n: int, where: str) -> dict:
@@ -645,6 +662,7 @@ def load_problem(path):
         error_bound=error_bound,
         misspecification=misspecification, iid_noise=iid_noise, local_points=local_points,
         refine=spec["refine"], dim_names=spec["names"], periodic=spec.get("periodic"), split_tol=split_tol,
+        semantics=spec.get("semantics", "auto"),
     )
 
 

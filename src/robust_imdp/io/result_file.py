@@ -200,6 +200,14 @@ def staged_outputs(out_dir, owned):
 RESULT_FORMAT = "robust_imdp.result/1"
 
 
+def _semantics_of(doc: dict) -> str:
+    """The reading of a ``result.json`` document: its ``semantics`` ("safety"), "reach" when absent."""
+    value = doc.get("semantics", "reach")
+    if value not in ("reach", "safety"):
+        raise ValueError(f"semantics must be 'reach' or 'safety'; got {value!r}")
+    return value
+
+
 def _margin_entry(result) -> dict:
     """``{"b_margin": [...]}`` (NaN, a Q_? cell, written as null) when the result has assumption margins, else ``{}``."""
     b = getattr(result, "b_margin", None)
@@ -253,6 +261,10 @@ def result_to_dict(result) -> dict[str, Any]:
         refinement of ``"no"``; the other "no" cells are "no" under this controller only).
     formula, threshold, horizon, parameters, timings
         What was solved, with which settings, and stage times in seconds.
+    semantics : str, only for the safety reading
+        ``"safety"``: the bounds are of "no prefix is a bad prefix and the path stays in X" (within the
+        horizon, or for ever); absent: the reach reading, "some prefix is accepted" (README, "Two readings
+        of a formula").
     b_margin : list of float or null, only when the run computed assumption margins
         Per cell the largest factor beta of (1, 1.25, 1.5, 2, 3, 4) such that the run's controller keeps
         the cell's class (Q_yes or Q_no) with every ``rkhs_bound`` B replaced by beta B, at beta and every
@@ -270,7 +282,8 @@ def result_to_dict(result) -> dict[str, Any]:
     How to run the controller without the library: start in cell q0 with DFA state
     ``s = delta[initial][L(q0)]``; while s is neither accepting nor a sink, apply
     ``strategy[q][s]``, step the system, stop with a violation if the state leaves X, else
-    find the new cell q' and set ``s = delta[s][L(q')]``.
+    find the new cell q' and set ``s = delta[s][L(q')]``. With ``semantics`` "safety" an accepting s
+    decides nothing: the run is violated at a sink or on leaving X and satisfied at the horizon.
     """
     part = result.partition
     dfa = result.dfa
@@ -319,6 +332,7 @@ def result_to_dict(result) -> dict[str, Any]:
         "formula": result.formula,
         "threshold": result.threshold,
         "horizon": result.horizon,
+        **({"semantics": "safety"} if getattr(result, "semantics", "reach") == "safety" else {}),
         **_margin_entry(result),
         "parameters": result.parameters,
         "diagnostics": {**(getattr(result, "diagnostics", {}) or {}),
@@ -439,6 +453,8 @@ class ResultFile:
     periodic : tuple of bool or None
     diagnostics : dict
         ``result.json``'s ``diagnostics`` (the advice under ``"advice"``); empty for files without it.
+    semantics : {"reach", "safety"}
+        The reading the bounds are of (``semantics``; "reach" when the document has none).
     b_margin : (n_cells,) float array or None
         The assumption margins (``b_margin``; NaN for Q_? cells), None for files without them.
     """
@@ -469,6 +485,7 @@ class ResultFile:
     dim_names: tuple | None = None
     periodic: tuple | None = None
     diagnostics: dict = field(default_factory=dict)
+    semantics: str = "reach"
     b_margin: np.ndarray | None = None
 
     @property
@@ -581,6 +598,7 @@ class ResultFile:
                 dim_names=None if doc["space"].get("names") is None else tuple(doc["space"]["names"]),
                 periodic=None if not any(doc["space"].get("periodic") or ()) else tuple(doc["space"]["periodic"]),
                 diagnostics=dict(doc.get("diagnostics") or {}),
+                semantics=_semantics_of(doc),
                 b_margin=_margin_of(doc, cl.shape[0]),
             )
         except (KeyError, TypeError, IndexError, ValueError) as exc:

@@ -300,5 +300,8 @@ def _save_abstraction_entry(cache_file: Path, abstraction, doc: dict) -> None:
 def refined_key(problem: Problem) -> str:
     """Hash of everything a refined abstraction depends on: the abstraction's, the options and the spec."""
     h = hashlib.sha256(abstraction_key(problem).encode())
-    _fingerprint(h, [problem.refine.to_dict(), problem.formula, float(problem.threshold), problem.horizon])
+    spec = [problem.refine.to_dict(), problem.formula, float(problem.threshold), problem.horizon]
+    if getattr(problem, "semantics", "auto") != "auto":  # only then: the keys of "auto" runs are as before
+        spec.append(problem.semantics)
+    _fingerprint(h, spec)
     return h.hexdigest()[:20]

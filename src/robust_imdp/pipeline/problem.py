@@ -11,6 +11,7 @@ import numpy as np
 
 from robust_imdp.bounds import methods
 from robust_imdp.errors import InvalidInputError
+from robust_imdp.spec.dfa import SEMANTICS  # the values of ``semantics``: the reading of the formula
 
 
 CLASS_NAMES = ("yes", "no", "maybe")
@@ -144,6 +145,7 @@ class SpecConfig:
     threshold: float
     horizon: int | None
     regions: dict
+    semantics: str = "auto"
 
 
 @dataclass(frozen=True, eq=False)
@@ -248,6 +250,11 @@ class Problem:
         Let only the ``local_points`` data points nearest to each cell carry certificate weight
         (``rkhs.local_pools``): the cost per cell no longer grows with the data, and no m x m
         kernel matrix is built. None: all points up to ``LOCAL_AUTO`` points per mode, else 100.
+    semantics : {"auto", "reach", "safety"}
+        The reading of the formula (``[spec].semantics``; README, "Two readings of a formula"): "reach", a
+        path satisfies it when some prefix (within the horizon) is accepted; "safety", when no prefix is a
+        bad prefix and the path stays in X; "auto" (default), the reading the formula's DFA gives
+        (``spec.dfa.classify``: safety for a safety formula such as ``G safe``, reach otherwise).
     split_tol : float > 0 or None
         Sub-box certification (``[learning].split_tol``; ``rkhs.cell_ranges``): a cell whose Taylor
         remainder ``B sqrt(R(t_max))`` exceeds it is certified on ``s^d`` sub-boxes (``rkhs.split_counts``)
@@ -303,6 +310,7 @@ class Problem:
     dim_names: tuple | None = None
     periodic: tuple | None = None
     split_tol: float | None = None
+    semantics: str = "auto"
     transitions: str = DEFAULT_TRANSITIONS
 
     def __post_init__(self):
@@ -320,6 +328,9 @@ class Problem:
             object.__setattr__(self, "dim_names", tuple(names))
         if self.guarantee not in GUARANTEES:
             raise InvalidInputError(f"guarantee must be one of {GUARANTEES}; got {self.guarantee!r}")
+        if self.semantics not in SEMANTICS:
+            raise InvalidInputError(f"semantics must be one of {', '.join(map(repr, SEMANTICS))} (the reading of "
+                                    f"the formula); got {self.semantics!r}")
         c = float(self.confidence)
         if not 0.0 < c < 1.0:
             raise InvalidInputError(f"confidence must lie in (0, 1); got {self.confidence!r}")
@@ -386,7 +397,7 @@ class Problem:
 
     @property
     def spec(self) -> SpecConfig:
-        return SpecConfig(self.formula, self.threshold, self.horizon, self.regions)
+        return SpecConfig(self.formula, self.threshold, self.horizon, self.regions, self.semantics)
 
     @property
     def learning(self) -> LearningConfig:
@@ -606,7 +617,8 @@ class Problem:
         m = int(np.asarray(getattr(self.data, "u", ())).shape[0])
         return (f"Problem({lo.size}-D, {int(np.prod(shape))} cells ({' x '.join(map(str, shape))}); {box}\n"
                 f"  formula {self.formula!r}, threshold {float(self.threshold):g}"
-                f"{'' if self.horizon is None else f', horizon {self.horizon}'}; regions {list(self.regions)}\n"
+                f"{'' if self.horizon is None else f', horizon {self.horizon}'}"
+                f"{'' if self.semantics == 'auto' else f', semantics {self.semantics!r}'}; regions {list(self.regions)}\n"
                 f"  modes {list(self.mode_names)}, {m} samples, {type(self.noise).__name__}, "
                 f"rkhs_bound {_setting_text(self.rkhs_bound)}, error_bound {self.error_bound!r})")
 

@@ -139,6 +139,11 @@ class Result:
         return self.problem.formula
 
     @property
+    def semantics(self) -> str:
+        """The reading the bounds are of: "reach" (some prefix accepted) or "safety" (no bad prefix, staying in X)."""
+        return getattr(self.synthesis, "semantics", "reach")
+
+    @property
     def threshold(self) -> float:
         return float(self.problem.threshold)
 

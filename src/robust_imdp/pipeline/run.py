@@ -191,9 +191,35 @@ def _synthesize(problem: Problem, partition, abstraction, dfa, log: _Log):
     with log.stage("synthesize"):
         syn = synthesize(abstraction.imdp, partition.labels, partition.atoms, dfa,
                          threshold=problem.threshold, horizon=problem.horizon,
-                         outside_state=partition.outside_state)
+                         outside_state=partition.outside_state, semantics=problem.semantics)
     classes = _class_names(syn.classes, syn, problem.threshold)
     return syn, classes
+
+
+def _reading_line(problem: Problem, dfa) -> str:
+    """Which reading of the formula the run uses and why (README, "Two readings of a formula")."""
+    from robust_imdp.spec.api import resolve_semantics
+
+    reading, kind = resolve_semantics(dfa, problem.semantics)
+    what = ("a path satisfies it when some prefix is accepted" if reading == "reach" else
+            "a path satisfies it when no prefix is a bad prefix and it stays in X")
+    scope = f"within {problem.horizon} steps" if problem.horizon is not None else "with no horizon"
+    why = f"auto: {kind.reason}" if problem.semantics == "auto" else "[spec].semantics"
+    return f"semantics: {reading} ({what}, {scope}; {why})"
+
+
+def _check_reading(problem: Problem, partition, dfa) -> None:
+    """Refuse, before the long stages, a formula the cells' labels decide alone under the reading in use
+    (``spec.dfa.check_reading``; its warnings come with the solve)."""
+    import warnings
+
+    from robust_imdp.spec.api import check_reading, resolve_semantics
+    from robust_imdp.synthesis.controller import remap_letters
+
+    reading, kind = resolve_semantics(dfa, problem.semantics)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        check_reading(dfa, remap_letters(partition.labels, partition.atoms, dfa.atoms), reading, kind)
 
 
 def _class_names(classes, syn, threshold) -> np.ndarray:
@@ -274,6 +300,7 @@ def synthesize_from_data(problem: Problem, *, progress: bool = True, abstraction
         dfa = to_dfa(problem.formula)
         _check_atoms(dfa, problem)
     log.info(f"DFA: {dfa.n_states} states over atoms {list(dfa.atoms)}")
+    log.info(_reading_line(problem, dfa))
     _warn_overlaps(problem, dfa)
     _preflight(problem, dfa, log, run)
     try:
@@ -289,6 +316,7 @@ def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cac
         partition = Partition(Box(problem.space_lower, problem.space_upper), problem.cell_size,
                               _region_objects(problem), names=problem.dim_names, periodic=problem.periodic)
     log.info(f"partition: {partition.n_cells} cells")
+    _check_reading(problem, partition, dfa)
 
     abstraction, from_cache, diagnostics, cell_bounds = None, False, {}, None
     cache_file = diag_file = None
@@ -371,6 +399,7 @@ def _refine(problem: Problem, partition, abstraction, syn, cell_bounds, dfa, log
         out = refine(BoxPartition(partition), cell_bounds, _cell_bounder(problem, partition, log, run),
                      problem.noise, dfa, threshold=problem.threshold, horizon=problem.horizon,
                      options=problem.refine, abstraction=abstraction, synthesis=syn,
+                     synthesize=_refine_solver(problem, dfa),
                      abstraction_options=problem.abstraction_options(),
                      progress=log.info if log.enabled else None)
     diagnostics["refinement"] = _jsonable({"stopped": out.stopped, "options": problem.refine.to_dict(),
@@ -382,12 +411,24 @@ def _refine(problem: Problem, partition, abstraction, syn, cell_bounds, dfa, log
     return out.partition, out.abstraction, out.synthesis, classes, diagnostics, key
 
 
+def _refine_solver(problem: Problem, dfa):
+    """``(abstraction, partition) -> SynthesisResult`` of the refinement rounds: the run's solve, with its reading."""
+    from robust_imdp.synthesis.core import synthesize
+
+    def solve(ab, part):
+        return synthesize(ab.imdp, part.labels, part.atoms, dfa, threshold=problem.threshold, horizon=problem.horizon,
+                          outside_state=part.outside_state, semantics=problem.semantics)
+
+    return solve
+
+
 def resynthesize(result: Result, *, formula: str | None = None, threshold: float | None = None,
-                 horizon="keep", progress: bool = True) -> Result:
-    """Solve a new formula / threshold / horizon on ``result``'s abstraction (no re-learning)."""
+                 horizon="keep", progress: bool = True, semantics: str | None = None) -> Result:
+    """Solve a new formula / threshold / horizon / reading (``semantics``) on ``result``'s abstraction (no
+    re-learning)."""
     from robust_imdp.spec.api import to_dfa
 
-    changes = {}
+    changes = {} if semantics is None else {"semantics": semantics}
     if formula is not None:
         changes["formula"] = formula
     if threshold is not None:
@@ -399,6 +440,7 @@ def resynthesize(result: Result, *, formula: str | None = None, threshold: float
     with log.stage("specify"):
         dfa = to_dfa(problem.formula)
         _check_atoms(dfa, problem)
+    log.info(_reading_line(problem, dfa))
     syn, classes = _synthesize(problem, result.partition, result.abstraction, dfa, log)
     log.timings["total"] = time.perf_counter() - log.t0
     out = Result(problem=problem, partition=result.partition, abstraction=result.abstraction,

@@ -93,7 +93,10 @@ value V* is its *least* fixed point (for every combination max/min x max/min).
   what makes the guesses succeed; components with one use the checks with Lemma D's caps
   above, falling back to interval iteration with Lemma D.
 
-Strategy extraction: rows within ``_TIE_TOL`` of the best (w.r.t. the final lower values) are
+Strategy extraction: a minimising controller takes, at every node, a row of least value against
+the proven upper vector (:func:`_minimising_strategy`: where ``B(u) <= u`` such a strategy's value is
+at most u, and on the nodes proven 0 it keeps away from the target for ever).  A maximising one:
+rows within ``_TIE_TOL`` of the best (w.r.t. the final lower values) are
 optimal; among them a backward attractor picks rows that make progress toward the target, so a
 maximising strategy is never trapped in an end component by a tie.  Ties are broken
 lexicographically when the optimistic (max, max) solve is given (``tie_break``): among the
@@ -279,7 +282,11 @@ def _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, pre
         warnings.warn(f"value iteration stopped after {it} iterations with max(upper - lower) = {gap:.3g} > "
                       f"precision {precision:g}; the returned bounds are sound but loose", ConvergenceWarning,
                       stacklevel=3)
-    strat = _extract_strategy(sw, imdp, nxt, lo, target, active, active2 | one, ctrl, adv_max, strategy, tie_break)
+    if ctrl == Control.MINIMISE:
+        strat = _minimising_strategy(sw, nxt, up, active)
+    else:
+        strat = _extract_strategy(sw, imdp, nxt, lo, target, active, active2 | one, ctrl, adv_max, strategy,
+                                  tie_break)
     return ReachabilityResult(lower=lo, upper=up, strategy=strat, iterations=it, precision=gap, converged=converged)
 
 
@@ -340,6 +347,23 @@ def _interval_iteration(sw, imdp, nxt, lo, up, active, ctrl, adv_max, flat_strat
 #: sound bracket [lo, up] (L, n) of the active nodes and returns (lo, up, iterations).  A new
 #: algorithm is one function of this shape and one entry here (docs: robust_imdp.solvers.api).
 METHODS = {"vi": _value_iteration, "interval": _interval_iteration}
+
+
+def _minimising_strategy(sw, nxt, up, active):
+    """A minimising controller's strategy: on every non-target node, a row of least value against the proven
+    upper vector ``up`` (module docstring, "Strategy extraction").
+
+    Why ``up`` and not the lower vector: where ``B(up) <= up`` (what the upper iteration keeps and the
+    guesses are checked against), a strategy pi taking such rows has ``B_pi(up) = B(up) <= up``, so its value
+    -- the least fixed point of ``B_pi`` -- is at most ``up`` (Knaster-Tarski): the strategy achieves the
+    reported upper bound. On the nodes the graph pre-computation proved 0 (``up = 0``) a least row is one
+    whose every possible successor has value 0, i.e. a row that keeps the path away from the target for
+    ever; the first row there might not. The caller re-evaluates the strategy in any case.
+    """
+    sw.active = active
+    sw.layers = [l for l in range(nxt.shape[0]) if active[l].any()]
+    _, arg, _ = sw.sweep(up, +1)
+    return arg
 
 
 def _extract_strategy(sw, imdp, nxt, lo, target, active, swept, ctrl, adv_max, strategy, tie_break):

@@ -4,7 +4,10 @@ Semantics (the *standard* one; the paper's printed definition reads the first la
 from product state (q, s) under choice u the system moves to (q', delta(s, L(q'))); the initial
 product state of cell q is (q, delta(s0, L(q))).  Accepting DFA states are absorbing targets;
 ``avoid`` states (the outside-X state) are absorbing, never accepting, value 0 in every layer;
-DFA states that cannot reach acceptance are sinks with value 0.
+DFA states that cannot reach acceptance are sinks with value 0.  That is the reach reading of the
+specification; under the safety reading (``semantics="safety"``) the avoid states and the sinks are
+the bad nodes the controller keeps away from, accepting states are not absorbing, and the value is
+one minus the minimal probability of reaching a bad node (:func:`solve_product`).
 
 Lazy: values live in an (S, n) array (DFA state, base state).  Layer s reuses the base IMDP's
 rows with successor values ``w_s[q'] = V[delta(s, L(q')), q']`` (a gather: per entry in the
@@ -30,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from robust_imdp._fp import complement_down, complement_up
 from robust_imdp.errors import DimensionError, InvalidInputError, InvalidModelError
 from robust_imdp.models.imdp import IMDP
 from robust_imdp.solvers.api import check_method
@@ -137,16 +141,41 @@ def _dfa_arrays(imdp: IMDP, letters, dfa, avoid):
     return nxt, target, zero, initial_state
 
 
-def _result(res, initial_state) -> ProductResult:
+def _result(res, initial_state, safety=False) -> ProductResult:
     ar = np.arange(initial_state.shape[0])
-    return ProductResult(lower=res.lower, upper=res.upper, strategy=res.strategy, initial_state=initial_state,
-                         initial_lower=res.lower[initial_state, ar], initial_upper=res.upper[initial_state, ar],
+    lower, upper = res.lower, res.upper
+    if safety:  # res brackets P(reach a bad node); satisfaction is its complement, rounded outward
+        lower, upper = complement_down(res.upper), complement_up(res.lower)
+    return ProductResult(lower=lower, upper=upper, strategy=res.strategy, initial_state=initial_state,
+                         initial_lower=lower[initial_state, ar], initial_upper=upper[initial_state, ar],
                          iterations=res.iterations, precision=res.precision, converged=res.converged)
 
 
+def _reading(semantics) -> bool:
+    """True for the safety reading ("safety"), False for the reach reading ("reach")."""
+    if semantics not in ("reach", "safety"):
+        raise InvalidInputError(f"semantics must be 'reach' or 'safety'; got {semantics!r}")
+    return semantics == "safety"
+
+
+def _safety_nodes(target, zero):
+    """The safety reading's (target, zero) of the engine: the bad nodes -- avoid states, DFA states from which
+    acceptance is impossible: the reach reading's value-0 nodes -- become the target the controller keeps
+    away from; accepting DFA states are no longer absorbing and nothing is fixed to 0."""
+    return zero.copy(), np.zeros_like(zero)
+
+
 def solve_product(imdp: IMDP, letters, dfa, *, avoid=None, adversary="pessimistic", horizon=None,
-                  precision=1e-8, max_iterations=100_000, method="vi", tie_break=None) -> ProductResult:
-    """Maximal probability of reaching an accepting DFA state, on the lazy product.
+                  precision=1e-8, max_iterations=100_000, method="vi", tie_break=None,
+                  semantics="reach") -> ProductResult:
+    """Maximal probability of satisfying the specification, on the lazy product.
+
+    ``semantics="reach"`` (the paper's reading): the probability of reaching an accepting DFA state.
+    ``semantics="safety"``: the probability of never reaching a bad node -- an ``avoid`` state or a DFA
+    state from which acceptance is impossible (a bad prefix) -- within the horizon (or ever), solved as
+    one minus the *minimal* probability of reaching one: the controller minimises, the pessimistic
+    adversary maximises it, and the bracket ``[lower, upper]`` of the reach value becomes
+    ``[1 - upper, 1 - lower]`` rounded outward (README, "Two readings of a formula").
 
     Parameters
     ----------
@@ -169,30 +198,45 @@ def solve_product(imdp: IMDP, letters, dfa, *, avoid=None, adversary="pessimisti
         the lower value are then chosen by their optimistic value, and nodes where every row
         has lower value 0 take the optimistic strategy's row (lexicographic choice, see
         "Strategy extraction" in :mod:`robust_imdp.solvers.engine`).  Without it ties go to the first
-        row.
+        row.  Only with ``semantics="reach"``.
+    semantics : {"reach", "safety"}
+        The reading of the specification (above).
 
     Returns
     -------
     ProductResult
+        Bounds of the satisfaction probability, under either reading.
     """
     check_method(method)
+    safety = _reading(semantics)
     nxt, target, zero, init = _dfa_arrays(imdp, letters, dfa, avoid)
-    adv_max = enum_value(Adversary, adversary, "adversary") is Adversary.OPTIMISTIC
-    res = solve_layered(imdp, nxt, target, zero, ctrl=Control.MAXIMISE, adv_max=adv_max, horizon=horizon,
+    pessimistic = enum_value(Adversary, adversary, "adversary") is Adversary.PESSIMISTIC
+    if safety:
+        if tie_break is not None:
+            raise InvalidInputError("tie_break applies to the reach reading only (semantics='reach')")
+        target, zero = _safety_nodes(target, zero)
+        res = solve_layered(imdp, nxt, target, zero, ctrl=Control.MINIMISE, adv_max=pessimistic, horizon=horizon,
+                            precision=precision, max_iterations=max_iterations, method=method)
+        return _result(res, init, safety=True)
+    res = solve_layered(imdp, nxt, target, zero, ctrl=Control.MAXIMISE, adv_max=not pessimistic, horizon=horizon,
                         precision=precision, max_iterations=max_iterations, method=method, tie_break=tie_break)
     return _result(res, init)
 
 
 def evaluate_product_strategy(imdp: IMDP, letters, dfa, strategy, *, avoid=None, adversary="pessimistic",
-                              horizon=None, precision=1e-8, max_iterations=100_000, method="vi") -> ProductResult:
+                              horizon=None, precision=1e-8, max_iterations=100_000, method="vi",
+                              semantics="reach") -> ProductResult:
     """Bounds of the satisfaction probability of a fixed product strategy.
 
     ``strategy`` is (S, n) (stationary) or (k, S, n) with ``horizon=k``: the choice index within
     base state q used in DFA state s.  ``adversary="pessimistic"`` minimises the probability,
-    ``"optimistic"`` maximises it.  ``method`` as in :func:`solve_product`.
+    ``"optimistic"`` maximises it.  ``method`` and ``semantics`` as in :func:`solve_product`.
     """
     check_method(method)
+    safety = _reading(semantics)
     nxt, target, zero, init = _dfa_arrays(imdp, letters, dfa, avoid)
+    if safety:
+        target, zero = _safety_nodes(target, zero)
     S, n = nxt.shape
     st = np.asarray(strategy)
     if st.ndim not in (2, 3) or st.shape[-2:] != (S, n):
@@ -201,14 +245,20 @@ def evaluate_product_strategy(imdp: IMDP, letters, dfa, strategy, *, avoid=None,
     if st.ndim == 3 and (horizon is None or st.shape[0] != int(horizon)):
         raise DimensionError(f"a time-varying strategy of shape {st.shape} needs horizon={st.shape[0]}; got {horizon}")
     strat = st.astype(np.int64) if st.ndim == 3 else st.astype(np.int64)[None]
-    adv_max = enum_value(Adversary, adversary, "adversary") is Adversary.OPTIMISTIC
+    # the adversary against satisfaction minimises reaching the target under the reach reading, maximises
+    # reaching it (the bad nodes) under the safety reading
+    adv_max = (enum_value(Adversary, adversary, "adversary") is Adversary.OPTIMISTIC) != safety
     res = solve_layered(imdp, nxt, target, zero, ctrl=Control.FIXED, adv_max=adv_max, horizon=horizon,
                         precision=precision, max_iterations=max_iterations, strategy=strat, method=method)
-    return _result(res, init)
+    return _result(res, init, safety=safety)
 
 
-def materialize_product(imdp: IMDP, letters, dfa, *, avoid=None) -> MaterializedProduct:
+def materialize_product(imdp: IMDP, letters, dfa, *, avoid=None, semantics="reach") -> MaterializedProduct:
     """The explicit product IMDP (S * n states); floor mass listed explicitly.
+
+    ``semantics="safety"``: ``target`` marks the bad product states (avoid states, DFA states from which
+    acceptance is impossible) and ``avoid`` is empty; the satisfaction probability is then one minus the
+    probability of reaching ``target``, minimised by the controller (:func:`solve_product`).
 
     Product state ``s * n + q`` has the rows of q; the listed successor q' of a row becomes
     ``delta(s, L(q')) * n + q'``, and, for a floor row, every unlisted base state q' is listed
@@ -216,7 +266,10 @@ def materialize_product(imdp: IMDP, letters, dfa, *, avoid=None) -> Materialized
     floor mass keep their listed entries (sorted by successor), so a model without floors
     costs S x its own memory; each floor row costs O(n).
     """
+    safety = _reading(semantics)
     nxt, target, zero, init = _dfa_arrays(imdp, letters, dfa, avoid)
+    if safety:
+        target, zero = _safety_nodes(target, zero)
     S, n = nxt.shape
     R = imdp.n_choices
     rl = np.diff(imdp.row_ptr)

@@ -15,7 +15,7 @@ from __future__ import annotations
 from typing import Any, Sequence, get_args
 
 from robust_imdp.errors import InvalidInputError
-from robust_imdp.spec.dfa import ltlf_to_dfa
+from robust_imdp.spec.dfa import SEMANTICS, SpecKind, check_reading, classify, ltlf_to_dfa, resolve_semantics
 from robust_imdp.spec.ltlf import Formula
 
 #: The attributes of the DFA duck type.
@@ -39,4 +39,5 @@ def to_dfa(spec: Any, atoms: Sequence[str] | None = None):
                             f"{', '.join(DFA_ATTRIBUTES)}); got {type(spec).__name__}")
 
 
-__all__ = ["to_dfa", "is_dfa", "DFA_ATTRIBUTES"]
+__all__ = ["to_dfa", "is_dfa", "DFA_ATTRIBUTES", "classify", "resolve_semantics", "check_reading", "SpecKind",
+           "SEMANTICS"]

@@ -42,7 +42,8 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from robust_imdp.errors import DimensionError, InvalidInputError, InvalidModelError, UnknownAtomError
+from robust_imdp.errors import (DimensionError, InvalidInputError, InvalidModelError, SpecificationWarning,
+                                 UnknownAtomError, VacuousSpecificationError)
 from robust_imdp.spec.ltlf import (
     And,
     Atom,
@@ -62,7 +63,8 @@ from robust_imdp.spec.ltlf import (
     to_nnf,
 )
 
-__all__ = ["DFA", "ltlf_to_dfa", "minimize"]
+__all__ = ["DFA", "ltlf_to_dfa", "minimize", "SpecKind", "classify", "resolve_semantics", "check_reading",
+           "SEMANTICS", "READINGS"]
 
 #: Largest alphabet (number of atoms) accepted: the transition table has 2**n_atoms columns.
 MAX_ATOMS = 16
@@ -553,3 +555,225 @@ def ltlf_to_dfa(formula: Formula | str, atoms: Sequence[str] | None = None) -> D
         if best is None or md.shape[0] < best[0].shape[0]:
             best = (md, ma)
     return DFA(atoms_t, best[0], 0, best[1], text)
+
+
+# --------------------------------------------------------------------------- readings of a specification
+#: The values of ``[spec].semantics`` (``Problem.semantics``): "auto" picks a reading from the DFA (:func:`classify`).
+SEMANTICS = ("auto", "reach", "safety")
+#: The two readings of a specification over the paths of the system (README, "Two readings of a formula").
+READINGS = ("reach", "safety")
+
+
+@dataclass(frozen=True)
+class SpecKind:
+    """What a specification's DFA says about prefixes, and the reading ``semantics = "auto"`` takes.
+
+    The two readings of a formula over a path ``x_0 x_1 ...`` (of ``horizon + 1`` states, or infinite):
+
+    * **reach** (the paper's): the path satisfies the formula when some prefix is accepted by the DFA;
+    * **safety**: the path satisfies it when no prefix is a *bad prefix*, i.e. the DFA's run never enters a
+      state from which acceptance is impossible (:attr:`DFA.sink_states`) and the path never leaves X.
+
+    Attributes
+    ----------
+    co_safety : bool
+        Every extension of an accepted trace is accepted: the accepting states reachable from the initial
+        state by a non-empty trace only lead to accepting states. Then "some prefix is accepted" is the
+        formula's own meaning (``F goal``, ``a U b``, ``F a & F b``).
+    safety : bool
+        Every violation shows in a finite bad prefix: with every strong next ``X`` outside an eventuality
+        (``F f``, the right of ``f U g``) read as a weak next ``WX`` (they agree on infinite paths), every state reachable by a non-empty trace from which
+        acceptance is still possible is accepting, i.e. every prefix of an accepted trace is accepted
+        (``G safe``, ``G (a -> X b)``, ``safe R ok``). Then "no bad prefix" is the formula's own meaning,
+        with a requirement of a strong next still pending at the last step of a horizon counted as met.
+    reading : {"reach", "safety"}
+        The reading ``semantics = "auto"`` takes: "reach" when ``co_safety``; else "safety" when ``safety``;
+        else "reach", the paper's reading of a formula that is neither (``G !obs & F goal``: reach goal
+        while avoiding obs until then; what happens after the goal is not constrained).
+    reason : str
+        Why, in one sentence (printed with the reading).
+    """
+
+    co_safety: bool
+    safety: bool
+    reading: str
+    reason: str
+
+
+def _reachable_after_letter(dfa) -> np.ndarray:
+    """(S,) bool: states reachable from the initial state by a non-empty trace."""
+    delta = np.asarray(dfa.delta)
+    reach = np.zeros(delta.shape[0], dtype=bool)
+    frontier = np.unique(delta[int(dfa.initial)])
+    reach[frontier] = True
+    while frontier.size:
+        nxt = np.unique(delta[frontier])
+        nxt = nxt[~reach[nxt]]
+        reach[nxt] = True
+        frontier = nxt
+    return reach
+
+
+def _universal(delta: np.ndarray, accepting: np.ndarray) -> np.ndarray:
+    """(S,) bool: states from which every reachable state is accepting (every extension is accepted)."""
+    return ~_coreachable(delta, ~np.asarray(accepting, dtype=bool))
+
+
+def _closed(dfa) -> bool:
+    """Whether every state reachable by a non-empty trace from which acceptance is possible is accepting."""
+    delta, acc = np.asarray(dfa.delta), np.asarray(dfa.accepting, dtype=bool)
+    live = _reachable_after_letter(dfa) & _coreachable(delta, acc)
+    return bool(np.all(acc[live]))
+
+
+def _weak_next_dfa(dfa):
+    """The DFA of the formula with its strong nexts read as weak ones outside eventualities (in negation normal
+    form, where both occur only positively, so the language can only grow), or None for a DFA without a
+    parsable formula."""
+    text = getattr(dfa, "formula", None)
+    if not isinstance(text, str):
+        return None
+    try:
+        f = to_nnf(parse(text))
+    except InvalidInputError:
+        return None
+
+    def weak(g):
+        # an eventuality's operand (F f, the right of f U g) keeps its strong nexts: WX is true at the end of
+        # a finite trace, so weakening there would discharge the eventuality (F (a | X b) would become valid)
+        if isinstance(g, Next):
+            return WeakNext(weak(g.operand))
+        if isinstance(g, (WeakNext, Globally)):
+            return type(g)(weak(g.operand))
+        if isinstance(g, Until):
+            return Until(weak(g.left), g.right)
+        if isinstance(g, (And, Or, Release)):
+            return type(g)(weak(g.left), weak(g.right))
+        return g  # Top, Bottom, Atom, Not(Atom), F f
+
+    return ltlf_to_dfa(weak(f), tuple(dfa.atoms))
+
+
+def classify(dfa) -> SpecKind:
+    """Co-safety, safety, or neither: the DFA-based classification of a specification (:class:`SpecKind`).
+
+    Parameters
+    ----------
+    dfa : DFA (duck type)
+        With ``formula`` (a DFA of :func:`ltlf_to_dfa`), the safety test reads the formula with ``X`` as
+        ``WX`` outside eventualities (:attr:`SpecKind.safety`); a DFA without a formula is tested as it is.
+
+    Returns
+    -------
+    SpecKind
+
+    Examples
+    --------
+    >>> [classify(ltlf_to_dfa(f)).reading for f in ("F goal", "G safe", "G (a -> X b)", "G !obs & F goal")]
+    ['reach', 'safety', 'safety', 'reach']
+    """
+    delta, acc = np.asarray(dfa.delta), np.asarray(dfa.accepting, dtype=bool)
+    reach = _reachable_after_letter(dfa)
+    co_safety = bool(np.all(acc[np.unique(delta[reach & acc])])) if np.any(reach & acc) else True
+    weak = _weak_next_dfa(dfa)
+    safety = _closed(weak if weak is not None else dfa)
+    name = repr(dfa.formula) if isinstance(getattr(dfa, "formula", None), str) else "the specification"
+    if co_safety:
+        reason = (f"{name} is co-safety: every extension of an accepted prefix is accepted, so reaching an "
+                  "accepting prefix decides it")
+        reading = "reach"
+    elif safety:
+        reason = (f"{name} is safety: every violation shows in a finite bad prefix, after which no extension "
+                  "is accepted")
+        reading = "safety"
+    else:
+        reason = (f"{name} is neither safety nor co-safety; the reach reading takes the first accepted prefix "
+                  "(e.g. G !obs & F goal: reach goal, avoiding obs until then)")
+        reading = "reach"
+    return SpecKind(co_safety=co_safety, safety=safety, reading=reading, reason=reason)
+
+
+def resolve_semantics(dfa, semantics: str = "auto") -> tuple:
+    """``(reading, kind)``: the reading ``semantics`` asks for ("auto": :attr:`SpecKind.reading`) and the
+    DFA's :class:`SpecKind`.
+
+    Raises
+    ------
+    InvalidInputError
+        ``semantics`` is not one of :data:`SEMANTICS`.
+    """
+    if semantics not in SEMANTICS:
+        raise InvalidInputError(f"semantics must be one of {', '.join(map(repr, SEMANTICS))}; got {semantics!r}")
+    kind = classify(dfa)
+    return (kind.reading if semantics == "auto" else semantics), kind
+
+
+def check_reading(dfa, letters, reading: str, kind: SpecKind | None = None) -> None:
+    """Refuse a specification that the cells decide by their labels alone under ``reading``; warn where the
+    reading drops part of it.
+
+    Parameters
+    ----------
+    dfa : DFA (duck type)
+    letters : (n_cells,) int array
+        Every cell's letter over ``dfa.atoms``.
+    reading : {"reach", "safety"}
+    kind : SpecKind, optional
+        :func:`classify`'s answer (computed when omitted).
+
+    Raises
+    ------
+    VacuousSpecificationError
+        * reach: every cell's one-state trace is accepted or a bad prefix, and some accepted one has
+          an extension that is not: the result would be ``p_low = 1`` from the label alone, whatever
+          the dynamics (``G safe`` read as reach);
+        * safety: no trace from any cell can reach a bad prefix: only leaving X could violate the
+          formula (``F goal`` read as safety).
+
+    Warns
+    -----
+    SpecificationWarning
+        * reach on a safety formula that some cells satisfy by their own label;
+        * safety on a formula that is not safety (its "eventually" parts are dropped).
+    """
+    import warnings
+
+    kind = classify(dfa) if kind is None else kind
+    delta, acc = np.asarray(dfa.delta), np.asarray(dfa.accepting, dtype=bool)
+    first = delta[int(dfa.initial), np.asarray(letters, dtype=np.int64)]
+    dead = ~_coreachable(delta, acc)
+    name = repr(dfa.formula) if isinstance(getattr(dfa, "formula", None), str) else "the specification"
+    if reading == "reach":
+        decided = acc[first] | dead[first]
+        early = acc[first] & ~_universal(delta, acc)[first]  # accepted now, but a later step could violate it
+        if first.size and np.all(decided) and np.any(early):
+            raise VacuousSpecificationError(
+                f"under the reach reading (some prefix accepted) {name} is satisfied by the one-state trace of "
+                f"{int(np.count_nonzero(acc[first]))} of {first.size} cells and violated by that of the others: "
+                "every cell would get p_low in {0, 1} from its own label, whatever the dynamics. "
+                + ("It is a safety formula: write [spec].semantics = \"safety\" (or \"auto\") to require that no "
+                   "prefix within the horizon (or ever, without one) is a bad prefix" if kind.safety else
+                   "Write a formula that needs the future, e.g. F goal or G !obs & F goal, or "
+                   "[spec].semantics = \"safety\""))
+        if kind.safety and not kind.co_safety and np.any(early):
+            warnings.warn(
+                f"{name} is a safety formula read as reach ([spec].semantics = \"reach\"): "
+                f"{int(np.count_nonzero(early))} of {first.size} cells satisfy it by their own label (p_low = 1 "
+                "whatever happens next); [spec].semantics = \"safety\" requires no bad prefix instead",
+                SpecificationWarning, stacklevel=3)
+        return
+    if reading != "safety":
+        raise InvalidInputError(f"reading must be 'reach' or 'safety'; got {reading!r}")
+    can_fail = _coreachable(delta, dead) & ~dead  # live states from which a bad prefix can follow
+    if first.size and not np.any(dead[first] | can_fail[first]):
+        raise VacuousSpecificationError(
+            f"under the safety reading (no bad prefix) {name} cannot be violated from any cell: it has no bad "
+            "prefix, so only leaving X would count, and every probability would be that of staying in X. "
+            + ("It is co-safety: write [spec].semantics = \"reach\" (or \"auto\"), where a path satisfies it "
+               "when some prefix is accepted" if kind.co_safety else
+               "Write [spec].semantics = \"reach\", or a safety formula such as G safe"))
+    if not kind.safety:
+        warnings.warn(
+            f"{name} is not a safety formula but is read as safety ([spec].semantics = \"safety\"): a path counts "
+            "as satisfying it while no bad prefix occurs, so its eventualities (F, U, X) need not be met; "
+            "[spec].semantics = \"reach\" requires an accepted prefix instead", SpecificationWarning, stacklevel=3)

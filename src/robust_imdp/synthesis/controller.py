@@ -51,6 +51,9 @@ Run: ``s = delta[initial][cell_letters[q0]]``; while ``s`` is neither accepting 
 a sink (violated) and ``t < k``, apply ``strategy[(t,) q, s]``, observe the next state, stop as
 violated if it left X, else ``s = delta[s][cell_letters[q]]``, ``t += 1``. For a k-step
 strategy, reaching time ``k`` without acceptance is a violation of the bounded specification.
+With ``"semantics": "safety"`` in the JSON (the safety reading; absent means reach) accepting
+states decide nothing: the run is violated at a sink or on leaving X, satisfied at time ``k``,
+and without a horizon it runs for ever.
 """
 
 from __future__ import annotations
@@ -198,6 +201,12 @@ class Controller:
         union of such boxes; ``BoxPartition.grid_index``). Default: the boxes are the cells.
     metadata : dict, optional
         JSON-serialisable information (formula, ...).
+    periodic : sequence of d bool, optional
+        Periodic dimensions (states are wrapped into X there).
+    semantics : {"reach", "safety"}
+        The reading the strategy was computed for: "reach", the run is satisfied once the DFA accepts;
+        "safety", it is violated by a bad prefix or by leaving X and satisfied at the horizon (never
+        decided without one: :meth:`act` keeps returning modes).
 
     Attributes
     ----------
@@ -230,7 +239,11 @@ class Controller:
         metadata: dict | None = None,
         cell_map: Any = None,
         periodic: Sequence[bool] | None = None,
+        semantics: str = "reach",
     ):
+        if semantics not in ("reach", "safety"):
+            raise InvalidInputError(f"semantics must be 'reach' or 'safety'; got {semantics!r}")
+        self.semantics = semantics
         self.atoms = tuple(atoms)
         # periodic dimensions (docs/periodic.md): states are wrapped into X there before locating
         self.periodic = None if periodic is None or not any(periodic) else tuple(bool(v) for v in periodic)
@@ -371,6 +384,7 @@ class Controller:
             grid, partition.space.lower, partition.space.upper, cell_map=cell_map,
             modes=mode_names, threshold=result.threshold, p_low=result.p_low, p_up=result.p_up,
             p_up_star=result.p_up_star, metadata=meta, periodic=getattr(partition, "periodic", None),
+            semantics=getattr(result, "semantics", "reach"),
         )
 
     @classmethod
@@ -448,6 +462,14 @@ class Controller:
         return int(self._locate_batch(x)[0])
 
     def _update_status(self) -> None:
+        if self.semantics == "safety":
+            if self.dfa_sink[self.dfa_state]:
+                self.status = VIOLATED  # a bad prefix: acceptance is no longer reachable
+            elif self.horizon is not None and self.time >= self.horizon:
+                self.status = SATISFIED  # k-step safety: no bad prefix within the horizon
+            else:
+                self.status = RUNNING  # an accepting DFA state decides nothing under the safety reading
+            return
         if self.dfa_accepting[self.dfa_state]:
             self.status = SATISFIED  # accepting product states are absorbing targets
         elif self.dfa_sink[self.dfa_state]:
@@ -572,6 +594,8 @@ class Controller:
         }
         if self.periodic is not None:  # only then: files without periodic dimensions are unchanged
             doc["periodic"] = list(self.periodic)
+        if self.semantics == "safety":  # only then: files of the reach reading are unchanged
+            doc["semantics"] = "safety"
         arrays = {
             "strategy": self.strategy,
             "cell_letters": self.cell_letters,
@@ -612,7 +636,7 @@ class Controller:
             doc["dfa"]["initial"], accepting, doc["atoms"], arr["cell_letters"], bps,
             arr["space_lower"], arr["space_upper"], modes=doc["modes"], threshold=doc["threshold"],
             p_low=arr["p_low"], p_up=arr["p_up"], p_up_star=arr["p_up_star"], metadata=doc["metadata"],
-            cell_map=arr.get("cell_map"), periodic=doc.get("periodic"),
+            cell_map=arr.get("cell_map"), periodic=doc.get("periodic"), semantics=doc.get("semantics", "reach"),
         )
 
     def __repr__(self) -> str:

@@ -37,10 +37,30 @@ any other, and it is checked that its ``p_low`` keeps the optimal robust lower v
 cell (``_keeps_optimal_lower``); if it did not, the first-choice strategy would be used.
 ``no_strategy_can`` (``p_up_star < threshold``) marks the Q_no cells where no controller can meet
 the threshold; the other Q_no cells are "no" under the returned controller only.
+
+Two readings (README, "Two readings of a formula"; :func:`robust_imdp.spec.dfa.classify`). Under the
+*reach* reading (the paper's) a path satisfies the formula when some prefix -- within the horizon, if
+one is set -- is accepted: accepting product states are absorbing targets, as above. Under the
+*safety* reading a path satisfies it when no prefix is a bad prefix (the DFA never enters a state
+from which acceptance is impossible) and the path never leaves X. It is solved as one minus a
+reachability value with the objective and the adversaries swapped: the bad nodes (DFA sinks, the
+outside state) are the target, the controller *minimises* the probability of reaching them and the
+pessimistic adversary maximises it, so
+
+* ``pi = argmin_pi max_adv P(reach bad)`` (the minimising controller of
+  :func:`robust_imdp.solvers.engine.solve_layered`),
+* ``p_low = 1 - U`` with U the UPPER end of the bracket of ``max_adv P(reach bad | pi)``,
+* ``p_up = min(1 - L, p_up_star)`` with L the LOWER end of the bracket of ``min_adv P(reach bad | pi)``,
+* ``p_up_star = 1 - L*`` with L* the LOWER end of the bracket of ``min_pi min_adv P(reach bad)``,
+
+each complement rounded outward (``_fp.complement_down`` / ``complement_up``;
+:mod:`robust_imdp.solvers.product` returns the satisfaction brackets). The argument for
+``p_low <= p_up <= p_up_star`` above carries over word for word.
 """
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from numbers import Integral, Real
 from typing import Any, Sequence
@@ -50,8 +70,8 @@ import numpy as np
 from robust_imdp import _fp
 from robust_imdp.solvers import product as _product
 from robust_imdp.synthesis.controller import Controller, remap_letters  # below synthesis: numpy only
-from robust_imdp.spec.api import is_dfa
-from robust_imdp.errors import DimensionError, InvalidInputError, SoundnessError
+from robust_imdp.spec.api import check_reading, is_dfa, resolve_semantics
+from robust_imdp.errors import ConvergenceWarning, DimensionError, InvalidInputError, SoundnessError
 from robust_imdp.models.imdp import IMDP
 
 __all__ = ["SolverRun", "SynthesisResult", "synthesize", "remap_letters"]
@@ -118,7 +138,10 @@ class SynthesisResult:
         ``"lexicographic"``: among actions of (tied) best lower value, the best optimistic value
         (module docstring); ``"first"``: the first such action, used only when the
         lexicographic strategy would have a smaller ``p_low`` somewhere (never seen; kept as a
-        safeguard).
+        safeguard); ``"least"`` (safety reading): at every node an action of least value against
+        the proven upper bound of the probability of a bad prefix.
+    semantics : {"reach", "safety"}
+        The reading the bounds are of (module docstring, "Two readings").
     """
 
     strategy: np.ndarray
@@ -136,6 +159,7 @@ class SynthesisResult:
     runs: tuple
     precision: float
     strategy_choice: str = "lexicographic"
+    semantics: str = "reach"
 
     @property
     def n_cells(self) -> int:
@@ -227,6 +251,7 @@ def synthesize(
     outside_state: int | None = None,
     precision: float = 1e-8,
     method: str = "vi",
+    semantics: str = "auto",
 ) -> SynthesisResult:
     """Robust strategy, bounds ``p_low <= p_up <= p_up_star`` and classes for every cell.
 
@@ -254,6 +279,11 @@ def synthesize(
         Target width of the value brackets of the unbounded solves.
     method : str
         Algorithm of the product solves (a name of :data:`robust_imdp.solvers.engine.METHODS`).
+    semantics : {"auto", "reach", "safety"}
+        The reading of the specification (module docstring, "Two readings"): "reach", a path satisfies
+        it when some prefix is accepted; "safety", when no prefix is a bad prefix and the path stays in X;
+        "auto" (default), the reading :func:`robust_imdp.spec.dfa.classify` gives the DFA (safety for a
+        safety formula such as ``G safe``, reach otherwise).
 
     Returns
     -------
@@ -263,6 +293,9 @@ def synthesize(
     ------
     InvalidInputError, DimensionError, UnknownAtomError
         Bad threshold/horizon, wrong label length, unknown atoms.
+    VacuousSpecificationError
+        Under the reading in use the cells' own labels decide the specification
+        (:func:`robust_imdp.spec.dfa.check_reading`).
     SoundnessError
         If the solver's brackets contradict ``p_low <= p_up`` (a bug, never repaired).
     """
@@ -270,10 +303,13 @@ def synthesize(
                                                           outside_state)
     n_cells = int(lab.shape[0])
     cell_letters = remap_letters(lab, atoms, dfa.atoms)
-    # the outside state's letter is never read: it is absorbing, never accepting (avoid)
+    reading, kind = resolve_semantics(dfa, semantics)
+    check_reading(dfa, cell_letters, reading, kind)
+    # the outside state's letter is never read: it is absorbing, never accepting (avoid; a bad node under
+    # the safety reading)
     letters = np.concatenate([cell_letters, np.zeros(imdp.n_states - n_cells, dtype=np.int64)])
 
-    kw = dict(avoid=avoid, horizon=horizon, precision=precision, method=method)
+    kw = dict(avoid=avoid, horizon=horizon, precision=precision, method=method, semantics=reading)
     optimistic, robust, ev_low, ev_up, pi, choice, extra_runs = _solve(imdp, letters, dfa, n_cells, precision, kw)
     p_low, p_up, p_up_star, error, classes = _bounds(optimistic, ev_low, ev_up, n_cells, threshold)
 
@@ -296,7 +332,7 @@ def synthesize(
         strategy=strategy, p_low=p_low, p_up=p_up, p_up_star=p_up_star, error=error,
         classes=classes, initial_dfa_state=init, labels=cell_letters, dfa=dfa,
         threshold=threshold, horizon=horizon, n_modes=int(imdp.n_choices_of().max()),
-        runs=runs, precision=float(precision), strategy_choice=choice,
+        runs=runs, precision=float(precision), strategy_choice=choice, semantics=reading,
     )
 
 
@@ -335,13 +371,23 @@ def _solve(imdp, letters, dfa, n_cells, precision, kw):
     """The product solves of :func:`synthesize`: (optimistic, robust, ev_low, ev_up, strategy,
     strategy_choice, extra runs)."""
     optimistic = _product.solve_product(imdp, letters, dfa, adversary="optimistic", **kw)
-    # Lexicographic choice: best lower value, then best optimistic value (module docstring).
-    robust = _product.solve_product(imdp, letters, dfa, adversary="pessimistic", tie_break=optimistic, **kw)
+    safety = kw["semantics"] == "safety"
+    # Lexicographic choice: best lower value, then best optimistic value (module docstring). Safety: the
+    # minimising controller's least rows against the proven upper bound (solvers.engine._minimising_strategy).
+    robust = _product.solve_product(imdp, letters, dfa, adversary="pessimistic",
+                                    tie_break=None if safety else optimistic, **kw)
     pi = np.asarray(robust.strategy)
     ev_low = _product.evaluate_product_strategy(imdp, letters, dfa, pi, adversary="pessimistic", **kw)
-    choice = "lexicographic"
+    choice = "least" if safety else "lexicographic"
     extra_runs = ()
-    if not _keeps_optimal_lower(ev_low, robust, n_cells, precision):
+    if safety:
+        if not _keeps_optimal_lower(ev_low, robust, n_cells, precision):
+            # its bounds are still sound (they are its own evaluation), only below the best ones
+            gap = np.asarray(robust.initial_lower)[:n_cells] - np.asarray(ev_low.initial_lower)[:n_cells]
+            warnings.warn(f"the safety strategy's guaranteed value is below the optimal robust lower value by up "
+                          f"to {float(gap.max()):.3g} (more than the brackets' widths); its p_low is sound but not "
+                          "optimal", ConvergenceWarning, stacklevel=3)
+    elif not _keeps_optimal_lower(ev_low, robust, n_cells, precision):
         # the tie-broken strategy lost lower value somewhere (it must not): use the first-choice
         # extraction instead if that one does better anywhere
         first = _product.solve_product(imdp, letters, dfa, adversary="pessimistic", **kw)
