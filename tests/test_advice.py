@@ -571,3 +571,18 @@ def test_advice_with_a_known_component_and_a_periodic_axis():
     real = float(vol[fine.class_names == "yes"].sum() / vol.sum())
     # 0.123 -> about 0.436 estimated, 0.432 real when written
     assert real > adv["baseline_share"] + 0.2 and abs(levers["finer grid"]["q_yes_share"] - real) <= 0.05
+
+
+def test_auto_advice_has_a_budget_of_a_quarter_of_the_run_before_it():
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_pipeline import tiny_problem
+
+    res = synthesize_from_data(tiny_problem(), progress=False)  # advice="auto"
+    t = res.timings
+    # the run's time before the advice: at least its stages before it, at most all but the advice
+    assert 0.25 * sum(t[k] for k in ("check", "bound", "abstract", "synthesize")) <= res.advice["budget_s"]
+    assert res.advice["budget_s"] <= 0.25 * (t["total"] - t["advice"])
+    assert "budget" in res.summary().splitlines()[-2]

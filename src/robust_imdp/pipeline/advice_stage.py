@@ -160,11 +160,12 @@ def _scheduled_solver(problem: Problem, dfa, run: _Run, log: _Log):
         sched = run.scheduler(log)
         tasks, args = [], []
         for j, job in enumerate(jobs):
-            part = sched.share(job.partition)
+            # the partition goes with each task, not scattered: a scattered object's key is its content's hash,
+            # so releasing it here would release the run's own scattered grid under the later stages' tasks
             for s0 in range(0, job.partition.n_cells, ROW_CHUNK):
                 sl = slice(s0, s0 + ROW_CHUNK)
                 tasks.append((j, s0))
-                args.append((part, job.lower[:, sl], job.upper[:, sl], problem.noise))
+                args.append((job.partition, job.lower[:, sl], job.upper[:, sl], problem.noise))
         need = {j: sum(1 for t in tasks if t[0] == j) for j in range(len(jobs))}
         pieces: dict = {j: {} for j in range(len(jobs))}
         finished = set()
@@ -221,13 +222,33 @@ def run_advice(problem: Problem, partition, abstraction, cell_bounds, dfa, class
     Where no lever can be estimated (the method has no pilot bound stage, the boxes are not at hand) the dict
     holds only a ``note`` saying why. See the module docstring for the budget, the cache and the scheduler.
     """
-    from robust_imdp.jsonable import jsonable as _jsonable
-    from robust_imdp.synthesis.advice import ADVICE_SHARE, MAX_CELLS, advice_line, advise
-
     want = getattr(run, "advice", "auto")
     if want is False:
         return {}
     t_run = time.perf_counter() - log.t0  # the run's time before the advice
+    saved: list = []
+    path = None if cache_dir is None else Path(cache_dir) / f"advice-{advice_key(problem)}.json"
+    try:
+        with log.stage("advice"):  # everything the advice does is in its stage's time
+            return _advice(problem, partition, abstraction, cell_bounds, dfa, classes, log, run, cache_dir,
+                           diagnostics, want, t_run, path, saved)
+    except BaseException as exc:
+        if interrupt_in(exc) is not None:  # Ctrl-C: say what of the advice is kept, and where
+            kept = len(saved)
+            where = (f"kept in {cache_dir}: the same command reuses {'it' if kept == 1 else 'them'} and resumes the "
+                     "advice" if path is not None else "not kept (no cache)")
+            log.info(f"advice interrupted after the solve: {kept} estimate{'' if kept == 1 else 's'} {where}; "
+                     "`--advice off` (advice=False) skips the advice")
+        raise
+
+
+def _advice(problem: Problem, partition, abstraction, cell_bounds, dfa, classes, log: _Log, run: _Run, cache_dir,
+            diagnostics: dict, want, t_run: float, path, saved: list) -> dict:
+    """:func:`run_advice` inside its stage; ``saved`` collects the names of the estimates saved (for the interrupt
+    line), including those reused from the cache entry at ``path``."""
+    from robust_imdp.jsonable import jsonable as _jsonable
+    from robust_imdp.synthesis.advice import ADVICE_SHARE, MAX_CELLS, advice_line, advise
+
     premise = _premise(problem, diagnostics)
     if not problem.method.advice_pilot:
         out = _note_only(partition, classes, f"not estimated with error_bound = {problem.error_bound!r} (its image "
@@ -243,18 +264,19 @@ def run_advice(problem: Problem, partition, abstraction, cell_bounds, dfa, class
                          "bounds' cache entry is missing or damaged)", premise)
         log.info(advice_line(out))
         return out
-    path = None if cache_dir is None else Path(cache_dir) / f"advice-{advice_key(problem)}.json"
     done, saved_run_s = _read_entry(path)
+    saved.extend(done)
     run_s = max(t_run, saved_run_s)  # stages loaded from the cache count with the time they took
     doc = {"version": ADVICE_VERSION, "run_s": run_s, "levers": {n: lv.to_dict() | {"seconds": lv.seconds}
                                                                  for n, lv in done.items()}}
-    saved = []
+    written = []
 
     def on_lever(lv):
         doc["levers"][lv.name] = _jsonable(lv.to_dict() | {"seconds": lv.seconds})
-        saved.append(lv.name)
         if path is not None:  # saved as it completes: an interrupted run resumes from here
             _write_json_entry(path, doc)
+            saved.append(lv.name)
+            written.append(lv.name)
 
     data = _residual_data(problem)
     costs = _cost_model(problem, partition, abstraction, log)
@@ -268,28 +290,17 @@ def run_advice(problem: Problem, partition, abstraction, cell_bounds, dfa, class
             bounders[key] = _cell_bounder(p, partition, _Log(False), run, task=_pilot_task)
         return bounders[key](lower, upper)
 
-    try:
-        with log.stage("advice"):
-            adv = advise(partition, cell_bounds, _fitted(problem, data), problem.noise, dfa,
-                         threshold=problem.threshold, horizon=problem.horizon, classes=classes,
-                         noise_floor=_noise_floor(problem, data),
-                         abstraction_options={"eta": problem.eta, "eps_rule": problem.eps_rule,
-                                              "combine": problem.combine},
-                         bound_cells=bound_cells, max_cells=MAX_CELLS if want == "auto" else 2 ** 62,
-                         progress=log.info if log.enabled else None, sub_box_terms=_sub_box_terms(problem),
-                         local_pools=_local_pools(problem, data), semantics=getattr(problem, "semantics", "auto"),
-                         budget_s=ADVICE_SHARE * run_s if want == "auto" else None,
-                         solver=_scheduled_solver(problem, dfa, run, log), done=done, on_lever=on_lever,
-                         premise=premise, **costs)
-    except BaseException as exc:
-        if interrupt_in(exc) is not None:  # Ctrl-C: say what of the advice is kept, and where
-            kept = len(set(saved) | set(done))
-            where = (f"kept in {cache_dir}: the same command reuses {'it' if kept == 1 else 'them'} and resumes the "
-                     "advice" if path is not None else "not kept (no cache)")
-            log.info(f"advice interrupted after the solve: {kept} estimate{'' if kept == 1 else 's'} {where}; "
-                     "`--advice off` (advice=False) skips the advice")
-        raise
-    if path is not None and not saved and saved_run_s < run_s:
+    adv = advise(partition, cell_bounds, _fitted(problem, data), problem.noise, dfa,
+                 threshold=problem.threshold, horizon=problem.horizon, classes=classes,
+                 noise_floor=_noise_floor(problem, data),
+                 abstraction_options={"eta": problem.eta, "eps_rule": problem.eps_rule, "combine": problem.combine},
+                 bound_cells=bound_cells, max_cells=MAX_CELLS if want == "auto" else 2 ** 62,
+                 progress=log.info if log.enabled else None, sub_box_terms=_sub_box_terms(problem),
+                 local_pools=_local_pools(problem, data), semantics=getattr(problem, "semantics", "auto"),
+                 budget_s=ADVICE_SHARE * run_s if want == "auto" else None,
+                 solver=_scheduled_solver(problem, dfa, run, log), done=done, on_lever=on_lever,
+                 premise=premise, **costs)
+    if path is not None and not written and saved_run_s < run_s:
         _write_json_entry(path, doc)  # the run's time, for the budget of a later run from the cache
     out = _jsonable(adv.to_dict())
     if adv.reused:

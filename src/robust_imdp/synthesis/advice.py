@@ -386,11 +386,12 @@ def advise(partition, cell_bounds, fits: FittedModes, noise, dfa, *, threshold: 
 
     M, n = lo.shape[0], lo.shape[2]
     floor = np.broadcast_to(np.asarray(noise_floor, float), (M, n))
-    plans = {"finer grid": _finer_grid(ctx, fits), "more data": _more_data(ctx, floor)}
+    # the plans, made when their round comes (the finer grid's ranges and sampled rows cost something)
+    makers = {"finer grid": lambda: _finer_grid(ctx, fits), "more data": lambda: _more_data(ctx, floor)}
     if sub_box_terms is not None:
-        plans["sub-boxes"] = _sub_boxes(ctx, sub_box_terms)
+        makers["sub-boxes"] = lambda: _sub_boxes(ctx, sub_box_terms)
     if local_pools is not None:
-        plans["larger local pools"] = _larger_pools(ctx, *local_pools)
+        makers["larger local pools"] = lambda: _larger_pools(ctx, *local_pools)
 
     # the cost model: seconds per listed transition of a re-solve, and the run's transitions
     if transitions is None or per_transition is None:
@@ -405,8 +406,20 @@ def advise(partition, cell_bounds, fits: FittedModes, noise, dfa, *, threshold: 
     reused = 0
     for group in _GROUPS:  # the grid's own levers first; the finer grid then, with the cost measured on them
         todo = []
-        for name in [m for m in group if m in plans]:
-            plan, prev = plans[name], (done or {}).get(name)
+        for name in [m for m in group if m in makers]:
+            prev = (done or {}).get(name)
+            if name == "finer grid" and not (prev is not None and prev.setting == _finer_setting(partition)):
+                # at least 2^d times the run's rows, each with at least its parent's successors: when even that
+                # does not fit, the finer grid's boxes are not computed at all
+                least = _finer_cells(partition) / partition.n_cells * cost.transitions * cost.per_transition
+                left = math.inf if deadline is None else deadline - time.perf_counter()
+                if _finer_cells(partition) <= max_cells and least > left:
+                    levers[name] = Lever(name, _finer_setting(partition), None, None, _finer_cells(partition), note=(
+                        f"at least about {_secs(least)}, more than the {_secs(max(left, 0.0))} left of the "
+                        f"advice's {budget_text(budget)}; `--advice on` (advice=True) estimates it anyway"))
+                    say(f"advice: {name} not estimated: {levers[name].note}")
+                    continue
+            plan = makers[name]()
             if plan.skip:
                 levers[name] = Lever(name, plan.setting, None, None, plan.n_cells, note=plan.skip)
             elif prev is not None and prev.setting == plan.setting and prev.gain is not None:
@@ -574,6 +587,15 @@ class _Context:
         return f"{n:,} cells > {self.max_cells:,}" if n > self.max_cells else ""
 
 
+def _finer_setting(partition) -> str:
+    return f"cell_size {np.round(np.asarray(partition.cell_size, float) / 2, 6).tolist()}"
+
+
+def _finer_cells(partition) -> int:
+    """Cells of the 2x finer grid (regions that cut a cell cut its children the same way)."""
+    return partition.n_cells * 2 ** partition.dim
+
+
 def _finer_grid(ctx: _Context, fits) -> _Plan:
     """Lever (a), a finer grid: every cell split in 2^d; the excess scaled by the pilot sub-cells' ratio. Its
     transitions are predicted from :data:`SAMPLE_CELLS` sub-cells abstracted for real."""
@@ -581,8 +603,8 @@ def _finer_grid(ctx: _Context, fits) -> _Plan:
 
     partition = ctx.partition
     h2 = np.asarray(partition.cell_size, float) / 2
-    n_fine = partition.n_cells * 2 ** partition.dim
-    setting = f"cell_size {np.round(h2, 6).tolist()}"
+    n_fine = _finer_cells(partition)
+    setting = _finer_setting(partition)
     if n_fine > ctx.max_cells:
         return _Plan("finer grid", setting, n_fine, f"{n_fine:,} cells > {ctx.max_cells:,}: run it on a sub-box of X")
     fine = Partition(partition.space, h2, partition.regions, periodic=getattr(partition, "periodic", None))
