@@ -107,7 +107,7 @@ def main(argv=None) -> int:
              "largest Taylor term once per axis); *real* = runs with that `split_tol` and with "
              f"`rkhs.SPLIT_TOL = {rkhs.SPLIT_TOL}`; bound seconds of each run, one after the other; advice "
              "seconds of the first run (all four levers).", "",
-             "| problem | cells | now: Q_yes, bound s, advice s | finer grid / more data / smaller B (estimates) | "
+             "| problem | cells | now: Q_yes, bound s, advice s | finer grid / more data (estimates) | "
              "sub-boxes lever: setting | estimate | real at the lever's split_tol: Q_yes, bound s | "
              "real at SPLIT_TOL: Q_yes, bound s | winner |", "|---|---|---|---|---|---|---|---|---|"]
 
@@ -117,7 +117,7 @@ def main(argv=None) -> int:
 
     for w in rows:
         lv = w["levers"]
-        est3 = " / ".join(pct(lv.get(k, {}).get("share")) for k in ("finer grid", "more data", "smaller B"))
+        est3 = " / ".join(pct(lv.get(k, {}).get("share")) for k in ("finer grid", "more data"))
         lines.append(f"| {w['problem']} | {w['cells']} | {pct(w['baseline_share'])} ({w['q_yes']}), "
                      f"{w['bound_seconds']:.1f}, {w['advice_seconds']:.1f} | {est3} | "
                      f"{lv.get('sub-boxes', {}).get('setting', '-')} | {pct(w['sub_estimate'])} | "
