@@ -98,10 +98,11 @@ def test_margin_at_beta_1_is_the_runs_classes(run):
     decided = cls != "maybe"
     assert np.all(res.b_margin[decided] >= 1.0) and np.all(np.isnan(res.b_margin[~decided]))
     assert set(np.unique(res.b_margin[decided])) <= set(MARGIN_SCALES)
-    doc = res.diagnostics["margins"]
+    doc = res.margins
     assert doc["kept_yes"][0] == res.counts["yes"] and doc["kept_no"][0] == res.counts["no"]
     assert doc["kept_yes"][1] < doc["kept_yes"][0] or doc["kept_yes"][-1] < doc["kept_yes"][0]  # not all kept
     assert "margins" in res.timings and "assumption margins" in res.summary()
+    assert "margins" not in res.diagnostics  # formula-dependent: Result.margins (result.json: diagnostics.margins)
 
 
 def test_margins_are_monotone_in_beta(run):
@@ -155,7 +156,8 @@ def test_result_files_carry_b_margin(run, tmp_path):
         np.testing.assert_array_equal(z["b_margin"], res.b_margin)  # NaN where Q_? (assert_array_equal: NaN == NaN)
     back = load_result(tmp_path)
     np.testing.assert_array_equal(back.b_margin, res.b_margin)
-    assert margins_line(doc["diagnostics"]["margins"]) in back.summary()
+    assert doc["diagnostics"]["margins"] == json.loads(json.dumps(res.margins)) == back.margins
+    assert margins_line(back.margins) in back.summary() and margins_line(res.margins) in res.summary()
     # a file without margins reads as None and validates
     del doc["b_margin"]
     assert validate_schema(doc, SCHEMA) == []
@@ -173,7 +175,7 @@ def test_margins_off_and_the_cache(run, tmp_path):
     problem = tiny_problem()
     # margins off: nothing computed, nothing said
     off = synthesize_from_data(problem, progress=False, abstraction_cache=cache, advice=False, margins=False)
-    assert off.b_margin is None and "margins" not in off.diagnostics and "margins" not in off.timings
+    assert off.b_margin is None and off.margins == {} and "margins" not in off.timings
     assert "assumption margins" not in off.summary()
     np.testing.assert_array_equal(off.synthesis.p_low, res.synthesis.p_low)
     # the abstraction and the boxes at larger B reused from the cache: the same margins
@@ -203,7 +205,7 @@ def test_margins_with_the_exact_transitions(tmp_path):
     np.testing.assert_array_equal(p_low, res.synthesis.p_low)
     decided = res.class_names != "maybe"
     assert np.all(res.b_margin[decided] >= 1.0) and np.all(np.isnan(res.b_margin[~decided]))
-    assert res.diagnostics["margins"]["solved"]
+    assert res.margins["solved"]
 
 
 def test_margins_of_a_refined_result(tmp_path):
@@ -216,14 +218,14 @@ def test_margins_of_a_refined_result(tmp_path):
     res = synthesize_from_data(problem, progress=False, abstraction_cache=tmp_path, advice=False)
     P = res.partition
     assert isinstance(P, BoxPartition) and P.depth.max() >= 1 and res.b_margin.shape == (P.n_cells,)
-    doc = res.diagnostics["margins"]
+    doc = res.margins
     assert "refined_from_grid_cell" not in doc and doc["kept_yes"][0] == res.counts["yes"]
     decided = res.class_names != "maybe"
     assert np.all(res.b_margin[decided] >= 1.0) and np.all(np.isnan(res.b_margin[~decided]))
     # the refined abstraction reused from the cache: the refined cells fall back to their grid cell's boxes
     # (sound, looser: never a larger margin)
     again = synthesize_from_data(problem, progress=False, abstraction_cache=tmp_path, advice=False)
-    assert again.diagnostics["margins"]["refined_from_grid_cell"] == int(np.sum(P.depth > 0))
+    assert again.margins["refined_from_grid_cell"] == int(np.sum(P.depth > 0))
     assert np.all(np.nan_to_num(again.b_margin) <= np.nan_to_num(res.b_margin))
 
 

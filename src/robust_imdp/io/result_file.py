@@ -336,7 +336,8 @@ def result_to_dict(result) -> dict[str, Any]:
         **_margin_entry(result),
         "parameters": result.parameters,
         "diagnostics": {**(getattr(result, "diagnostics", {}) or {}),
-                        **({"advice": result.advice} if getattr(result, "advice", None) else {})},
+                        **({"advice": result.advice} if getattr(result, "advice", None) else {}),
+                        **({"margins": result.margins} if getattr(result, "margins", None) else {})},
         "timings": result.timings,
     })
 
@@ -501,6 +502,11 @@ class ResultFile:
     def class_names(self) -> np.ndarray:
         """(n_cells,) ``"yes"`` / ``"no"`` / ``"maybe"`` (``classes``; the name the live ``Result`` uses)."""
         return self.classes
+
+    @property
+    def margins(self) -> dict:
+        """The assumption margins' counts (``diagnostics.margins``; ``b_margin`` has the cells), or an empty dict."""
+        return dict(self.diagnostics.get("margins") or {})
 
     @property
     def advice(self) -> dict:

@@ -136,8 +136,8 @@ def run_margins(problem: Problem, grid, partition, synthesis, classes, dfa, log:
     -------
     b_margin : (n_cells,) float array (NaN for Q_? cells) or None when skipped
     doc : dict
-        ``synthesis.margins.Margins.to_dict()`` plus ``statement`` and, for a refined partition,
-        ``refined_from_grid_cell``; or ``{"skipped": reason}``.
+        ``Result.margins``: ``synthesis.margins.Margins.to_dict()`` plus ``statement`` and, for a refined
+        partition, ``refined_from_grid_cell``; or ``{"skipped": reason}``.
     """
     from robust_imdp.abstraction.cell_bounds import CellBounds
     from robust_imdp.synthesis.margins import assumption_margins, strategy_bounds

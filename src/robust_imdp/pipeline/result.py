@@ -92,13 +92,17 @@ class Result:
     diagnostics : dict
         Why cells are undecided (JSON-able): the stated confidence, the error radius ``eps``
         per mode and output (median, max, against the cell half-width), the mean number of
-        successors per IMDP row and the assumption check (data-implied minimum RKHS norms);
-        ``margins``: the assumption margins' counts per factor of B (or why they were skipped).
+        successors per IMDP row and the assumption check (data-implied minimum RKHS norms).
     b_margin : (n_cells,) float array or None
         Assumption margins (docs/margins.md): per cell the largest factor beta of (1, 1.25, 1.5, 2, 3, 4)
         such that the run's controller keeps the cell's class (Q_yes, Q_no) with every B replaced by
         beta B; NaN for Q_? cells. None when not computed (``margins=False``, known dynamics, the GP route,
         :func:`resynthesize`).
+    margins : dict
+        The margins' counts per factor of B (``synthesis.margins.Margins.to_dict()``: ``scales``, ``kept_yes``,
+        ``kept_no``, ``solved``, ``seconds``, ``statement``) or ``{"skipped": reason}``; ``result.json``'s
+        ``diagnostics.margins``. Empty when not asked for. Kept apart from ``diagnostics`` (which holds what the
+        data and the abstraction say, reused with a cached abstraction): the margins depend on the formula.
     """
 
     problem: Problem
@@ -113,6 +117,7 @@ class Result:
     diagnostics: dict = field(default_factory=dict)
     advice: dict = field(default_factory=dict)
     b_margin: np.ndarray | None = None
+    margins: dict = field(default_factory=dict)
 
     # Convenience views used by io.result_to_dict and plotting.
     def suggest_samples(self, n: int) -> list:
@@ -225,12 +230,17 @@ class Result:
         """(n_cells,) bool: ``p_up_star < threshold``: no controller at all meets the threshold."""
         return np.asarray(self.synthesis.p_up_star) < self.threshold
 
+    @property
+    def _summary_diagnostics(self) -> dict:
+        """``diagnostics`` with the margins, as ``result.json`` writes them (the summary reads both from there)."""
+        return {**self.diagnostics, **({"margins": self.margins} if self.margins else {})}
+
     def summary(self) -> str:
         """Class counts (Q_no split by whether any controller could do better), mean error and
         stage times as text."""
         return summary_text(formula=self.formula, threshold=self.threshold, horizon=self.horizon,
                             classes=self.class_names, p_low=self.synthesis.p_low, error=self.synthesis.error,
-                            p_up_star=self.synthesis.p_up_star, diagnostics=self.diagnostics, advice=self.advice,
+                            p_up_star=self.synthesis.p_up_star, diagnostics=self._summary_diagnostics, advice=self.advice,
                             timings=self.timings,
                             source=f"abstraction {'reused from cache' if self.from_cache else 'built'}")
 

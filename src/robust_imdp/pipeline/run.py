@@ -346,19 +346,17 @@ def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cac
         partition, abstraction, syn, classes, diagnostics, parameters["abstraction_key"] = _refine(
             problem, partition, abstraction, syn, cell_bounds, dfa, log, run, abstraction_cache, diagnostics)
     b_margin, margins_doc = _margins(problem, grid, partition, syn, classes, dfa, log, run, abstraction_cache)
-    if margins_doc:
-        diagnostics = {**diagnostics, "margins": margins_doc}
     log.timings["total"] = time.perf_counter() - log.t0
     result = Result(problem=problem, partition=partition, abstraction=abstraction, dfa=dfa,
                     synthesis=syn, class_names=classes, timings=dict(log.timings),
                     parameters=parameters, from_cache=from_cache,
-                    diagnostics=diagnostics, advice=advice, b_margin=b_margin)
+                    diagnostics=diagnostics, advice=advice, b_margin=b_margin, margins=margins_doc)
     return result
 
 
 def _margins(problem: Problem, grid, partition, syn, classes, dfa, log: _Log, run: _Run, cache_dir):
     """The assumption margins (``pipeline.margins.run_margins``) when the run asks for them: ``(b_margin or None,
-    the diagnostics' dict or {})``; the margins' abstractions go through :func:`_chunked_abstract`, as the run's."""
+    Result.margins' dict or {})``; the margins' abstractions go through :func:`_chunked_abstract`, as the run's."""
     if not getattr(run, "margins", False):
         return None, {}
     from robust_imdp.pipeline.margins import run_margins
