@@ -46,7 +46,8 @@ def _scaled_reference(X, y, ls, lo, up, *, A, b0, B, dbar, tau, method, pools, m
     d = X.shape[1]
     signs = rkhs.vertex_signs(d)
     G = float(rkhs._up(B * rkhs._norm_inflation(d)))  # the certificate's norm bound at B (rkhs.cell_ranges)
-    Gs = [rkhs.scaled_norm_bound(B, s, d) for s in SCALES]
+    # at beta B: beta B times the lengthscale rounding's inflation, exactly (not the code's rounded-up value)
+    Gs = [mp.mpf(s) * mp.mpf(B) * mp.mpf(rkhs._norm_inflation(d)) for s in SCALES]
     nb = dbar + tau
     S, n = len(SCALES), lo.shape[0]
     out = {k: np.empty((S, n)) for k in ("up", "lo")}
@@ -78,7 +79,7 @@ def _scaled_reference(X, y, ls, lo, up, *, A, b0, B, dbar, tau, method, pools, m
             for key, side in (("up", 1), ("lo", -1)):
                 best, tay = None, np.inf
                 for a in (mp.mpf(1), mp.e ** (-t / 2)):
-                    rho = mp.mpf(G_s) * _mp_rho(a, t)
+                    rho = G_s * _mp_rho(a, t)
                     cand = side * max(side * (lin + a * (wy + side * (noise_t + G_s * ne)))
                                       for lin, wy, noise_t, ne in vert[key]) + side * (rho + tau)
                     best = cand if best is None else (min(best, cand) if side > 0 else max(best, cand))
