@@ -219,11 +219,13 @@ def read_data_file(path, mode_names=None, n_dims: int | None = None):
     return _read_data(path, mode_names, n_dims)[:4]
 
 
-def _read_data(path, mode_names=None, n_dims: int | None = None, origin: str | None = None):
+def _read_data(path, mode_names=None, n_dims: int | None = None, origin: str | None = None, inputs=None):
     """:func:`read_data_file` plus the 1-based line of every sample (None for .npz).
 
     ``origin``: where the path was given (e.g. ``[data].path in p.toml``), for the message when
-    it names a directory.
+    it names a directory. ``inputs``: the problem's input grid (``models.inputs.InputGrid``): the file then
+    has input columns ``u_1..u_m`` (CSV) or an ``(m_samples, m)`` array ``u`` (npz) instead of mode names, and
+    every input must be a point of the grid (the sample's mode).
     """
     path = Path(path)
     where = f"data file {path}"
@@ -233,6 +235,8 @@ def _read_data(path, mode_names=None, n_dims: int | None = None, origin: str | N
         raise ProblemFileError(f"{origin or 'the data file'}: {path} is a directory; expected a data file "
                                "(.csv or .npz)")
     rows = None
+    if inputs is not None:
+        return _read_input_data(path, where, inputs, n_dims)
     if path.suffix == ".npz":
         try:
             with np.load(path, allow_pickle=False) as z:
@@ -261,12 +265,55 @@ def _read_data(path, mode_names=None, n_dims: int | None = None, origin: str | N
     return (*_check_data(x, u, x_next, mode_names, where, rows), rows)
 
 
-def _header(n: int) -> list:
+def _read_input_data(path: Path, where: str, grid, n_dims: int | None):
+    """A data file of an input grid: ``(x, mode index, x_next, grid's mode names, lines or None)``."""
+    m = grid.n_inputs
+    rows = None
+    if path.suffix == ".npz":
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                missing = [k for k in ("x", "u", "x_next") if k not in z.files]
+                if missing:
+                    raise ProblemFileError(f"{where}: missing arrays {missing}; expected x, u (the inputs, "
+                                           f"(m, {m})), x_next (got {z.files})")
+                x, u, x_next = (np.asarray(z[k], dtype=float) for k in ("x", "u", "x_next"))
+        except (ValueError, OSError) as exc:
+            if isinstance(exc, ProblemFileError):
+                raise
+            raise ProblemFileError(f"{where}: cannot be read as .npz with numeric x, u, x_next ({exc})") from None
+        u = u.reshape(-1, 1) if u.ndim == 1 and m == 1 else u
+        if u.ndim != 2 or u.shape[1] != m:
+            raise ProblemFileError(f"{where}: u must hold the {m} inputs ({', '.join(grid.names)}) of every sample, "
+                                   f"shape (m, {m}); got {u.shape}")
+    elif path.suffix == ".csv":
+        x, u, x_next, rows = _read_csv(path, where, n_dims, n_inputs=m)
+    else:
+        raise ProblemFileError(f"{where}: expected a .csv or .npz file; got suffix '{path.suffix}'")
+    if n_dims is not None and (x.ndim != 2 or x.shape[1] != n_dims):
+        raise ProblemFileError(f"{where}: x must have {n_dims} columns like [space]; got shape {x.shape}")
+    idx = grid.locate(u)
+    bad = np.flatnonzero(idx < 0)
+    if bad.size:
+        from robust_imdp.models.inputs import input_name
+
+        raise ProblemFileError(
+            f"{where}: {_rows_text(rows, bad)}: the input {input_name(u[bad[0]])} is not a point of the [inputs] grid "
+            f"({grid._values_text()}); every sample's input must be one of the grid's (its mode)")
+    x, u_idx, x_next, modes = _check_data(x, np.asarray(grid.mode_names, dtype=object)[idx].astype(str), x_next,
+                                          list(grid.mode_names), where, rows)
+    return x, u_idx, x_next, modes, rows
+
+
+def _header(n: int, n_inputs: int = 0) -> list:
+    if n_inputs:
+        return [f"x_{i + 1}" for i in range(n)] + [f"u_{j + 1}" for j in range(n_inputs)] + \
+            [f"x_next_{i + 1}" for i in range(n)]
     return [f"x_{i + 1}" for i in range(n)] + ["u"] + [f"x_next_{i + 1}" for i in range(n)]
 
 
-def _read_csv(path: Path, where: str, n_dims: int | None = None):
-    """Arrays of a CSV data file and the 1-based line of every sample."""
+def _read_csv(path: Path, where: str, n_dims: int | None = None, n_inputs: int = 0):
+    """Arrays of a CSV data file and the 1-based line of every sample; with ``n_inputs`` the inputs are
+    ``n_inputs`` numeric columns ``u_1..u_m`` (an input grid's data) and ``u`` is returned as (k, m) floats."""
     from io import StringIO
 
     text = _read_text(path, where, "a data file (.csv or .npz)")
@@ -281,9 +328,9 @@ def _read_csv(path: Path, where: str, n_dims: int | None = None):
             if r:  # blank lines are skipped, but every sample keeps its line number
                 rows.append(r)
                 lines.append(reader.line_num)
-    n = (len(header) - 1) // 2
+    n = (len(header) - max(n_inputs, 1)) // 2
     want = n_dims if n_dims is not None else max(n, 1)
-    expected = _header(want)
+    expected = _header(want, n_inputs)
     if header == expected + [ROUND_COLUMN]:  # the improve rounds' column: read by read_rounds only
         expected = header
     if header != expected:
@@ -304,6 +351,10 @@ def _read_csv(path: Path, where: str, n_dims: int | None = None):
                 f"{where}: line {line} has {len(r)} fields; expected {len(header)} ({','.join(header)})"
             )
     table = np.array(rows, dtype=object)
+    n = want
+    if n_inputs:  # every column numeric: x, the inputs, x_next
+        values = _numeric_columns(table, list(range(2 * n + n_inputs)), header, lines, where)
+        return values[:, :n], values[:, n:n + n_inputs], values[:, n + n_inputs:], lines
     cols = list(range(n)) + list(range(n + 1, 2 * n + 1))
     values = np.empty((len(rows), 2 * n))
     for k, c in enumerate(cols):
@@ -324,6 +375,23 @@ def _read_csv(path: Path, where: str, n_dims: int | None = None):
     if empty.size:
         raise ProblemFileError(f"{where}: line {int(lines[empty[0]])}, column u is empty (a mode name is needed)")
     return values[:, :n], u, values[:, n:], lines
+
+
+def _numeric_columns(table, cols, header, lines, where):
+    """The columns ``cols`` of a CSV table as floats; the first bad field is named by its line and column."""
+    values = np.empty((table.shape[0], len(cols)))
+    for k, c in enumerate(cols):
+        try:
+            values[:, k] = table[:, c].astype(float)
+        except ValueError:
+            for i, text in enumerate(table[:, c].tolist()):
+                try:
+                    float(text)
+                except ValueError:
+                    what = "is empty" if not text.strip() else f"is not a number: {text!r}"
+                    raise ProblemFileError(f"{where}: line {int(lines[i])}, column {header[c]} {what}") from None
+            raise  # pragma: no cover - astype and float() accept the same strings
+    return values
 
 
 def read_rounds(path):

@@ -7,11 +7,17 @@ Problem file contract (keys in ``[brackets]`` are tables; ``?`` marks optional k
     [spec]          formula, threshold, horizon?     (horizon: int for k-step, absent = unbounded),
                     semantics? ("auto" | "reach" | "safety": the reading of the formula, README "Two
                     readings of a formula"; auto: safety for a safety formula such as G safe, else reach)
-    [data]          path                             (.csv or .npz, relative to the problem file)
+    [data]?         path                             (.csv or .npz, relative to the problem file; not for
+                                                      known dynamics)
     [modes.NAME]    A (n x n), b (n)                 (known affine part f_u(x) = A x + b), or
                     f (n expressions in x1..xn)       (known nonlinear part, robust_imdp.models.known)
+    [inputs]        lower, upper, step (m values each: a box quantised by a step) or values (m lists),
+                    names? (m names): an input grid whose points are the modes, named by their values
+                    (u=(17), u=(0.5, -1); robust_imdp.models.inputs), instead of [modes.NAME], with
+    [dynamics]      f (n expressions in x1..xn, u1..um: the dynamics f(x, u) of every point); data
+                    then carry input columns u_1..u_m instead of u (io.data_file)
     [noise]         kind = "truncated_gaussian" (sigma, bound) | "gaussian" (sigma) | "uniform" (bound)
-    [learning]      rkhs_bound, lengthscale?, error_bound? ("optimal" | "ridge" | "chowdhury"),
+    [learning]?     rkhs_bound, lengthscale?, error_bound? ("optimal" | "ridge" | "chowdhury"),
                     misspecification? (0), iid_noise? (false), local_points? (all points up to 1000
                     per mode, else 100), known? (n true/false: components not learned),
                     split_tol? (> 0: sub-box certificates where a cell's Taylor term exceeds it);
@@ -26,6 +32,11 @@ Problem file contract (keys in ``[brackets]`` are tables; ``?`` marks optional k
                     split? ("longest" | "all"), growth? (0.35), focus? ("open" | "undecided"):
                     adaptive refinement of the undecided cells (on when the table is present;
                     see robust_imdp.synthesis.refine)
+
+Known dynamics: when every component of every mode is known (``[learning].rkhs_bound = 0``, a scalar, or
+per component and mode; or no ``[learning]`` table at all), ``[data]`` and ``[learning]`` may be left out:
+nothing is learned, no data are read and no assumption is checked (a ``[data]`` table is then read and
+ignored, with a warning). Otherwise both are required.
 
 ``[learning]`` was called ``[gp]`` (the default route is not a GP, but the table configures it):
 ``[gp]`` is still read, with a ``DeprecationWarning`` saying to rename it, and its messages keep
@@ -47,7 +58,7 @@ from typing import Any
 import numpy as np
 
 from robust_imdp.bounds import methods
-from robust_imdp.errors import InvalidInputError, ProblemFileError
+from robust_imdp.errors import InvalidInputError, ProblemFileError, RobustImdpWarning
 from robust_imdp.io.data_file import (
     _check_samples_possible, _read_data, _read_text, _warn_few_samples, refuse_adaptive_iid,
 )
@@ -82,9 +93,13 @@ _SCHEMA: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
                                        "optimize", "info_gain", "bound_tol", "bound_max_boxes")),
     "abstraction": ((), ("eta", "eps_rule", "combine", "guarantee", "confidence", "transitions")),
     "refine": (("max_cells",), ("max_rounds", "min_cell_size", "time_budget", "split", "growth", "focus")),
+    "inputs": ((), ("names", "lower", "upper", "step", "values")),
+    "dynamics": (("f",), ()),
 }
-_TOP_REQUIRED = ("space", "regions", "spec", "data", "modes", "noise", LEARNING_TABLE)
-_TOP_OPTIONAL = ("abstraction", "refine")
+_TOP_REQUIRED = ("space", "regions", "spec", "noise")
+# [data] and [learning] are required unless every component of every mode is known (_data_and_learning);
+# [modes.NAME] tables, or an [inputs] grid with one [dynamics] f (_parse_modes_or_inputs)
+_TOP_OPTIONAL = ("modes", "inputs", "dynamics", "data", LEARNING_TABLE, "abstraction", "refine")
 _NOISE_KEYS = {
     "truncated_gaussian": ("sigma", "bound"),
     "gaussian": ("sigma",),
@@ -212,12 +227,9 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
     regions = _parse_regions(doc["regions"], lower, upper, where, periodic)
     formula, threshold, horizon = _parse_spec(doc["spec"], where)
     semantics = _parse_semantics(doc["spec"], where)
-    data_path = doc["data"]["path"]
-    if not isinstance(data_path, str) or not data_path:
-        raise ProblemFileError(f"{where}: [data].path must be a file name; got {data_path!r}")
-    modes = _parse_modes(doc["modes"], n, where)
+    modes, inputs = _parse_modes_or_inputs(doc, n, where)
     noise = _parse_noise(doc["noise"], n, where)
-    gp = _parse_learning(doc[LEARNING_TABLE], list(modes), n, f"[{learning}]", where)
+    gp, data_path = _data_and_learning(doc, list(modes), n, learning, where)
     ab = _parse_abstraction(doc.get("abstraction", {}), n, where)
     refine = None
     if "refine" in doc:  # adaptive refinement (robust_imdp.synthesis.refine.RefineOptions)
@@ -226,8 +238,43 @@ def parse_problem_dict(doc: dict, *, where: str = "problem file") -> dict[str, A
         "lower": lower, "upper": upper, "cell_size": cell_size, "names": dim_names, "regions": regions,
         "formula": formula, "threshold": threshold, "horizon": horizon, "semantics": semantics,
         "data_path": data_path, "modes": modes, "noise": noise, "learning": gp, "learning_table": learning,
-        "abstraction": ab, "refine": refine, "periodic": periodic,
+        "abstraction": ab, "refine": refine, "periodic": periodic, "inputs": inputs,
     }
+
+
+def _data_and_learning(doc: dict, mode_names: list, n: int, learning: str, where: str):
+    """``([learning] parsed, [data].path or None)``.
+
+    Known dynamics (every component of every mode known: ``[learning].rkhs_bound = 0``, or no ``[learning]``
+    table and no ``[data]``) need neither table; otherwise both are required."""
+    t = f"[{learning}]"
+    if LEARNING_TABLE not in doc:
+        if "data" in doc:
+            raise ProblemFileError(
+                f"{where}: [data] is given but there is no {t} table; add {t} with rkhs_bound (the assumption on "
+                "the unknown parts the data are for), or remove [data] if every component is known")
+        gp = _parse_learning({"rkhs_bound": 0.0}, mode_names, n, t, where)
+    else:
+        gp = _parse_learning(doc[LEARNING_TABLE], mode_names, n, t, where)
+    if "data" not in doc:
+        if not _all_known(gp, mode_names, n):
+            raise ProblemFileError(
+                f"{where}: missing required table [data] (path = the samples of the unknown components); only a "
+                f"problem whose every component of every mode is known ({t}.rkhs_bound = 0, or no {t} table) "
+                "needs no data")
+        return gp, None
+    data_path = doc["data"]["path"]
+    if not isinstance(data_path, str) or not data_path:
+        raise ProblemFileError(f"{where}: [data].path must be a file name; got {data_path!r}")
+    return gp, data_path
+
+
+def _all_known(gp: dict, mode_names: list, n: int) -> bool:
+    """Whether a parsed [learning] table declares every component of every mode known (B = 0)."""
+    from robust_imdp.bounds.assumptions import resolve
+
+    st = resolve(gp["rkhs_bound"], gp.get("lengthscale"), gp.get("misspecification", 0.0), mode_names, n)
+    return bool(np.all(st.known))
 
 
 def _parse_space(sp: dict, where: str):
@@ -345,6 +392,69 @@ def _parse_semantics(spec: dict, where: str) -> str:
     return value
 
 
+def _parse_modes_or_inputs(doc: dict, n: int, where: str):
+    """``(modes, inputs)``: ``[modes.NAME]`` tables (inputs None), or an ``[inputs]`` grid and one ``[dynamics]``
+    f in ``x1..xn, u1..um`` whose points are the modes (``models.inputs``: ``{name: InputMode}``, the grid)."""
+    has_modes, has_inputs, has_dyn = "modes" in doc, "inputs" in doc, "dynamics" in doc
+    if has_modes and (has_inputs or has_dyn):
+        raise ProblemFileError(f"{where}: give either [modes.NAME] tables or an [inputs] grid with [dynamics] f(x, u), "
+                               "not both")
+    if has_modes:
+        return _parse_modes(doc["modes"], n, where), None
+    if not (has_inputs and has_dyn):
+        missing = "[modes.NAME] tables (one per mode)" if not (has_inputs or has_dyn) else (
+            "[dynamics] (f = n expressions in x1..xn, u1..um)" if has_inputs else "[inputs] (the input grid)")
+        raise ProblemFileError(f"{where}: missing {missing}; the modes are [modes.NAME] tables, or the points of an "
+                               "[inputs] grid with one [dynamics] f(x, u)")
+    grid = _parse_inputs(doc["inputs"], where)
+    f = doc["dynamics"]["f"]
+    m = grid.n_inputs
+    if not isinstance(f, list) or len(f) != n or not all(isinstance(e, str) for e in f):
+        got = f"{len(f)} entries: {f!r}" if isinstance(f, list) else repr(f)
+        raise ProblemFileError(f"{where}: [dynamics].f must be a list of {n} expressions in x1..x{n}, u1..u{m} "
+                               f"(strings, one per component); got {got}")
+    from robust_imdp.models.inputs import input_modes
+
+    try:
+        maps = input_modes(f, grid, name=f"{where}: [dynamics]")
+    except InvalidInputError as exc:
+        raise ProblemFileError(str(exc)) from None
+    return dict(zip(grid.mode_names, maps)), grid
+
+
+def _parse_inputs(t: dict, where: str):
+    """``[inputs]``: a box and a step per input (``lower``, ``upper``, ``step``) or ``values`` (one list per
+    input), optional ``names``: a ``models.inputs.InputGrid``."""
+    from robust_imdp.models.inputs import InputGrid
+
+    box = [k for k in ("lower", "upper", "step") if k in t]
+    if "values" in t and box:
+        raise ProblemFileError(f"{where}: [inputs] takes either values (one list per input) or lower, upper and step, "
+                               f"not both; got keys {sorted(t)}")
+    if "values" not in t and len(box) != 3:
+        missing = [k for k in ("lower", "upper", "step") if k not in t]
+        raise ProblemFileError(f"{where}: [inputs] needs lower, upper and step (one value per input) or values (one "
+                               f"list per input); missing {missing}")
+    names = t.get("names")
+    try:
+        if "values" in t:
+            values = t["values"]
+            if not isinstance(values, list) or not values or not all(isinstance(v, list) for v in values):
+                raise ProblemFileError(f"{where}: [inputs].values must be a list with one list of numbers per input "
+                                       f"(values = [[17, 18, 19, 20]] for one input); got {values!r}")
+            return InputGrid.from_values(values, names)
+        m = len(t["lower"]) if isinstance(t["lower"], list) else None
+        lower = _float_vector(t["lower"], "[inputs].lower", where)
+        upper = _float_vector(t["upper"], "[inputs].upper", where, lower.shape[0])
+        step = (float(t["step"]) if isinstance(t["step"], (int, float)) and not isinstance(t["step"], bool)
+                else _float_vector(t["step"], "[inputs].step", where, m))
+        return InputGrid.from_box(lower, upper, step, names)
+    except InvalidInputError as exc:
+        if isinstance(exc, ProblemFileError):
+            raise
+        raise ProblemFileError(f"{where}: [inputs]: {exc}") from None
+
+
 def _parse_modes(doc_modes, n: int, where: str) -> dict:
     """``[modes.NAME]``: name -> (A, b) or ``known.KnownDynamics``, in file order (mode index = table order)."""
     if not isinstance(doc_modes, dict) or not doc_modes:
@@ -403,8 +513,9 @@ def _parse_learning(gp_in: dict, mode_names: list, n: int, t: str, where: str) -
                                                                             "misspecification")) or "known" in gp_in
     if not per_component:  # one value each: checked and typed as before
         gp["rkhs_bound"] = float(_number(gp_in["rkhs_bound"], f"{t}.rkhs_bound", where))
-        if gp["rkhs_bound"] <= 0:
-            raise ProblemFileError(f"{where}: {t}.rkhs_bound must be > 0 (or 0 per component for a known one); got "
+        if not (gp["rkhs_bound"] >= 0 and np.isfinite(gp["rkhs_bound"])):
+            raise ProblemFileError(f"{where}: {t}.rkhs_bound must be > 0, or 0 for known dynamics (every component "
+                                   f"of every mode known), or 0 per component for a known one; got "
                                    f"{gp_in['rkhs_bound']!r}")
         if "lengthscale" in gp_in:
             gp["lengthscale"] = _positive_vector(gp_in["lengthscale"], f"{t}.lengthscale", where, n)
@@ -582,7 +693,7 @@ def parse_problem_file(path) -> dict[str, Any]:
     except tomllib.TOMLDecodeError as exc:
         raise ProblemFileError(f"{path}: not valid TOML: {exc}") from None
     spec = parse_problem_dict(doc, where=str(path))
-    spec["data_file"] = str((path.parent / spec["data_path"]).resolve())
+    spec["data_file"] = None if spec["data_path"] is None else str((path.parent / spec["data_path"]).resolve())
     return spec
 
 
@@ -627,18 +738,29 @@ def load_problem(path):
     spec = parse_problem_file(path)
     names = list(spec["modes"])
     n = spec["lower"].shape[0]
-    x, u, x_next, _, rows = _read_data(spec["data_file"], names, n, origin=f"[data].path in {path}")
-    refuse_adaptive_iid(spec["data_file"], spec["learning"].get("iid_noise", False))
-    missing = [names[i] for i in range(len(names)) if not np.any(u == i)]
-    if missing:
-        raise ProblemFileError(
-            f"data file {spec['data_file']}: modes {missing} have no samples; every [modes.*] "
-            "table needs data"
-        )
     noise = make_noise(spec["noise"])
+    known = _all_known(spec["learning"], names, n)
+    inputs = spec.get("inputs")
+    data = None
+    if known:  # known dynamics: nothing is learned, so the data are neither read nor checked
+        if spec["data_file"] is not None:
+            warnings.warn(f"{path}: every component of every mode is known ([{spec['learning_table']}].rkhs_bound = "
+                          f"0), so the data file {spec['data_file']} is not used; remove [data] to say so",
+                          RobustImdpWarning, stacklevel=2)
+    else:
+        x, u, x_next, _, rows = _read_data(spec["data_file"], names, n, origin=f"[data].path in {path}", inputs=inputs)
+        refuse_adaptive_iid(spec["data_file"], spec["learning"].get("iid_noise", False))
+        missing = [names[i] for i in range(len(names)) if not np.any(u == i)]
+        if missing:
+            raise ProblemFileError(
+                f"data file {spec['data_file']}: modes {missing} have no samples; every [modes.*] "
+                "table needs data (or rkhs_bound = 0 for a mode whose every component is known)"
+            )
+        data = Dataset(x, u, x_next, modes=tuple(names))
     _check_known_domains(spec, str(path))
-    _check_samples_possible(spec, noise, x, u, x_next, rows)
-    _warn_few_samples(spec, u, rows)
+    if not known:
+        _check_samples_possible(spec, noise, x, u, x_next, rows)
+        _warn_few_samples(spec, u, rows)
     _warn_refined_grid(spec, str(path))
     gp = dict(spec["learning"])
     rkhs_bound = gp.pop("rkhs_bound")
@@ -653,7 +775,7 @@ def load_problem(path):
     return Problem(
         space_lower=spec["lower"], space_upper=spec["upper"], cell_size=spec["cell_size"],
         regions=spec["regions"], formula=spec["formula"], threshold=spec["threshold"],
-        horizon=spec["horizon"], data=Dataset(x, u, x_next, modes=tuple(names)),
+        horizon=spec["horizon"], data=data,
         mode_names=tuple(names), maps=tuple(m if not isinstance(m, tuple) else AffineMap(*m)
                                             for m in spec["modes"].values()),
         noise=noise, rkhs_bound=rkhs_bound, gp_options=gp,
@@ -662,7 +784,7 @@ def load_problem(path):
         error_bound=error_bound,
         misspecification=misspecification, iid_noise=iid_noise, local_points=local_points,
         refine=spec["refine"], dim_names=spec["names"], periodic=spec.get("periodic"), split_tol=split_tol,
-        semantics=spec.get("semantics", "auto"),
+        semantics=spec.get("semantics", "auto"), inputs=inputs,
     )
 
 
@@ -673,9 +795,10 @@ def _check_known_domains(spec, where: str = "the problem file") -> None:
     nonlinear = [m for m in spec["modes"].values() if not isinstance(m, tuple)]
     if not nonlinear:
         return
+    from robust_imdp.pipeline.bound_stage import known_images
+
     part = _file_partition(spec, where, range(spec["lower"].shape[0]))
-    for m in nonlinear:
-        m.image_bounds(part.cells_lower, part.cells_upper, form="natural")
+    known_images(nonlinear, part.cells_lower, part.cells_upper, form="natural")  # an input grid's modes at once
 
 
 

@@ -200,6 +200,26 @@ def staged_outputs(out_dir, owned):
 RESULT_FORMAT = "robust_imdp.result/1"
 
 
+def _inputs_entry(result) -> dict:
+    """``{"inputs": {...}}`` for a problem with an input grid (``models.inputs``), else ``{}`` (files unchanged)."""
+    grid = getattr(getattr(result, "problem", None), "inputs", None)
+    if grid is None:
+        return {}
+    return {"inputs": {"names": list(grid.names), "values": [np.asarray(a, float) for a in grid.values],
+                       "points": np.asarray(grid.points, float)}}
+
+
+def _inputs_of(doc: dict, n_modes: int):
+    """``(points (n_modes, m) or None, names or None)`` of a document's ``inputs``."""
+    entry = doc.get("inputs")
+    if entry is None:
+        return None, None
+    points = np.asarray(entry["points"], dtype=float)
+    if points.ndim != 2 or points.shape[0] != n_modes or len(entry["names"]) != points.shape[1]:
+        raise ValueError(f"inputs.points must be ({n_modes}, m) with m names; got {points.shape} and {entry['names']}")
+    return points, tuple(entry["names"])
+
+
 def _semantics_of(doc: dict) -> str:
     """The reading of a ``result.json`` document: its ``semantics`` ("safety"), "reach" when absent."""
     value = doc.get("semantics", "reach")
@@ -261,6 +281,10 @@ def result_to_dict(result) -> dict[str, Any]:
         refinement of ``"no"``; the other "no" cells are "no" under this controller only).
     formula, threshold, horizon, parameters, timings
         What was solved, with which settings, and stage times in seconds.
+    inputs : {"names", "values", "points"}, only for an input grid
+        The modes are the points of an input grid (``models.inputs``): ``names`` (m), ``values`` (per input,
+        its values), ``points`` (per mode, in ``modes`` order, its input vector; ``modes[k]`` is its name,
+        ``u=(v1, v2)``).
     semantics : str, only for the safety reading
         ``"safety"``: the bounds are of "no prefix is a bad prefix and the path stays in X" (within the
         horizon, or for ever); absent: the reach reading, "some prefix is accepted" (README, "Two readings
@@ -333,6 +357,7 @@ def result_to_dict(result) -> dict[str, Any]:
         "threshold": result.threshold,
         "horizon": result.horizon,
         **({"semantics": "safety"} if getattr(result, "semantics", "reach") == "safety" else {}),
+        **_inputs_entry(result),
         **_margin_entry(result),
         "parameters": result.parameters,
         "diagnostics": {**(getattr(result, "diagnostics", {}) or {}),
@@ -458,6 +483,8 @@ class ResultFile:
         The reading the bounds are of (``semantics``; "reach" when the document has none).
     b_margin : (n_cells,) float array or None
         The assumption margins (``b_margin``; NaN for Q_? cells), None for files without them.
+    inputs : (n_modes, m) float array or None
+        The modes' input vectors (``inputs.points``) of an input grid; ``input_names`` their names.
     """
 
     space_lower: np.ndarray
@@ -487,6 +514,8 @@ class ResultFile:
     periodic: tuple | None = None
     diagnostics: dict = field(default_factory=dict)
     semantics: str = "reach"
+    inputs: np.ndarray | None = None
+    input_names: tuple | None = None
     b_margin: np.ndarray | None = None
 
     @property
@@ -529,7 +558,7 @@ class ResultFile:
         return summary_text(formula=self.formula, threshold=self.threshold, horizon=self.horizon,
                             classes=self.classes, p_low=self.p_low, error=self.error, p_up_star=self.p_up_star,
                             diagnostics=self.diagnostics, advice=self.advice, timings=self.timings,
-                            source="read from result.json")
+                            source="read from result.json", semantics=self.semantics)
 
     def controller(self, mode_names=None):
         """The refined switching controller of this result (``synthesis.controller.Controller``): the same
@@ -605,6 +634,7 @@ class ResultFile:
                 periodic=None if not any(doc["space"].get("periodic") or ()) else tuple(doc["space"]["periodic"]),
                 diagnostics=dict(doc.get("diagnostics") or {}),
                 semantics=_semantics_of(doc),
+                **dict(zip(("inputs", "input_names"), _inputs_of(doc, len(modes)))),
                 b_margin=_margin_of(doc, cl.shape[0]),
             )
         except (KeyError, TypeError, IndexError, ValueError) as exc:

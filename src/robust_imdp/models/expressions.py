@@ -99,11 +99,16 @@ class _Parser:
         term  := unary (('*' | '/') unary)*
         unary := ('-' | '+') unary | power
         power := atom (('^' | '**') unary)?        right-associative, binds tighter than unary minus
-        atom  := number | 'pi' | x<k> | func '(' expr (',' expr)* ')' | '(' expr ')'
+        atom  := number | 'pi' | x<k> | u<k> | func '(' expr (',' expr)* ')' | '(' expr ')'
+
+    ``x<k>`` is state dimension k (1 .. n_dims), ``u<k>`` input k (1 .. n_inputs; none by default): the
+    variables are numbered x1..xn, then u1..um (a known part ``f(x, u)`` of an input grid, ``models.inputs``).
     """
 
-    def __init__(self, text, n_dims, builder, label):
+    def __init__(self, text, n_dims, builder, label, n_inputs=0):
         self.text, self.n, self.b, self.label = text, n_dims, builder, label
+        self.m = int(n_inputs)  # inputs u1..um are the variables n .. n + m - 1 (after x1..xn)
+        self.symbols = "x1..x%d" % n_dims + (", u1..u%d" % self.m if self.m else "")
         self.tokens = []  # (kind, value, position)
         pos = 0
         while True:
@@ -114,7 +119,7 @@ class _Parser:
             m = _TOKEN.match(text, pos)
             if m is None or m.end() == pos:
                 self.fail(pos, f"unexpected character {text[pos]!r}",
-                          "a number, x1..x%d, pi, a function, an operator + - * / ^ ** or parentheses" % n_dims)
+                          f"a number, {self.symbols}, pi, a function, an operator + - * / ^ ** or parentheses")
             kind = m.lastgroup
             self.tokens.append((kind, m.group(kind), m.start(kind)))
             pos = m.end()
@@ -135,7 +140,7 @@ class _Parser:
 
     def parse(self):
         if self.peek()[0] == "end":
-            self.fail(0, "empty expression", "an expression in x1..x%d" % self.n)
+            self.fail(0, "empty expression", f"an expression in {self.symbols}")
         reg = self.expr()
         kind, value, pos = self.peek()
         if kind != "end":
@@ -191,19 +196,25 @@ class _Parser:
             if m:
                 k = int(m.group(1))
                 if k > self.n:
-                    self.fail(pos, f"unknown symbol {value!r} (the state has {self.n} dimensions)",
-                              "x1..x%d" % self.n)
+                    self.fail(pos, f"unknown symbol {value!r} (the state has {self.n} dimensions)", self.symbols)
                 return self.b.emit("var", k - 1)
+            m = re.fullmatch(r"u([1-9][0-9]*)", value)
+            if m:
+                k = int(m.group(1))
+                if k > self.m:
+                    why = (f"there are {self.m} inputs" if self.m else
+                           "no inputs: u1..um come with an [inputs] table and one [dynamics] f")
+                    self.fail(pos, f"unknown symbol {value!r} ({why})", self.symbols)
+                return self.b.emit("var", self.n + k - 1)
             if value in FUNCTIONS:
                 return self.call(value, pos)
-            self.fail(pos, f"unknown symbol {value!r}",
-                      "x1..x%d, pi or a function %s" % (self.n, ", ".join(FUNCTIONS)))
+            self.fail(pos, f"unknown symbol {value!r}", f"{self.symbols}, pi or a function {', '.join(FUNCTIONS)}")
         if kind == "op" and value == "(":
             reg = self.expr()
             self.expect(")", "')' closing the '(' at position %d" % pos)
             return reg
         what = "end of the expression" if kind == "end" else f"{value!r}"
-        self.fail(pos, f"unexpected {what}", "a number, x1..x%d, pi, a function or '('" % self.n)
+        self.fail(pos, f"unexpected {what}", f"a number, {self.symbols}, pi, a function or '('")
 
     def expect(self, symbol, expected):
         kind, value, pos = self.peek()

@@ -104,6 +104,10 @@ class KnownDynamics:
     x : casadi SX/MX symbol of shape (n, 1), only with a casadi ``f``
     name : str, optional
         Prefix of every error message (e.g. the mode: ``mode "left"``).
+    n_inputs : int, optional
+        Inputs ``u1..um`` the expressions may use besides ``x1..xn`` (an input grid's ``f(x, u)``,
+        :mod:`robust_imdp.models.inputs`): the points and boxes of every method then have ``n + m``
+        columns, the state's then the inputs', and the values ``n`` (string expressions only).
 
     Raises
     ------
@@ -112,9 +116,15 @@ class KnownDynamics:
         the component, the position and what was expected.
     """
 
-    def __init__(self, f, x=None, *, name: str | None = None):
+    def __init__(self, f, x=None, *, name: str | None = None, n_inputs: int = 0):
         self.name = name
         self._consts = []
+        if isinstance(n_inputs, bool) or not isinstance(n_inputs, (int, np.integer)) or n_inputs < 0:
+            raise InvalidInputError(self._label(None) + f"n_inputs must be an integer >= 0; got {n_inputs!r}")
+        self.n_inputs = int(n_inputs)
+        if self.n_inputs and (x is not None or _is_casadi(f)):
+            raise InvalidInputError(self._label(None) + "inputs (n_inputs > 0) need f as expression strings in "
+                                    "x1..xn, u1..um; a casadi f has no inputs")
         if isinstance(f, str):
             raise InvalidInputError(self._label(None) + "f must be a sequence of expressions, one per "
                                     f"component; got the single string {f!r} (write [{f!r}])")
@@ -133,10 +143,10 @@ class KnownDynamics:
             self._tapes = []
             for i, e in enumerate(exprs):
                 b = _Builder(self._consts)
-                reg = _Parser(e, self.n_dims, b, self._label(i, colon=False).rstrip()).parse()
+                reg = _Parser(e, self.n_dims, b, self._label(i, colon=False).rstrip(), self.n_inputs).parse()
                 self._tapes.append(_Tape(b.instrs, [(0, reg)]))
         self._jac = None  # built on first use (casadi)
-        self._multi_use = np.array([_multi_use(t, self.n_dims) for t in self._tapes])  # (n_out, n) bool
+        self._multi_use = np.array([_multi_use(t, self.n_vars) for t in self._tapes])  # (n_out, n + m) bool
         self._solvers = {}
 
     # ------------------------------------------------------------------ construction helpers
@@ -182,7 +192,7 @@ class KnownDynamics:
         """(x, p, per-component SX for differentiation, per-component SX with float constants)."""
         import casadi as ca
 
-        x = ca.SX.sym("x", self.n_dims)
+        x = ca.SX.sym("x", self.n_vars)
         p = ca.SX.sym("p", max(len(self._consts), 1))
         diff, plain = [], []
         for t in self._tapes:
@@ -234,9 +244,9 @@ class KnownDynamics:
         return np.concatenate([_point_eval(t, self._consts, x) for t in self._tapes], axis=1)
 
     def jacobian(self, x) -> np.ndarray:
-        """(m, n, n) floating-point Jacobian ``d f_i / d x_j`` at points ``x`` (casadi's exact one)."""
+        """(m, n, n + n_inputs) floating-point Jacobian ``d f_i / d x_j`` at points ``x`` (casadi's exact one)."""
         x = self._points(x, "x")
-        out = np.zeros((x.shape[0], self.n_dims, self.n_dims))
+        out = np.zeros((x.shape[0], self.n_dims, self.n_vars))
         for i, t in enumerate(self._jacobian_tapes()):
             if t.outputs:
                 vals = _point_eval(t, self._consts, x)
@@ -261,8 +271,10 @@ class KnownDynamics:
         """
         x = self._points(x, "x")
         x_next = np.asarray(x_next, dtype=float)
-        if x_next.shape != x.shape:
-            raise DimensionError(f"{self._label(None)}x_next must have shape {x.shape} like x; got {x_next.shape}")
+        if x_next.shape != (x.shape[0], self.n_dims):
+            like = "like x" if not self.n_inputs else f"(the state part of x's {self.n_vars} columns)"
+            raise DimensionError(f"{self._label(None)}x_next must have shape {(x.shape[0], self.n_dims)} {like}; got "
+                                 f"{x_next.shape}")
         v = self.evaluate(x)
         y = x_next - v
         return Residuals(y=y, bound=_up(self.residual_rounding_bound(x) + np.spacing(np.abs(y))))
@@ -409,7 +421,7 @@ class KnownDynamics:
         el, eh = self._natural(L, U)
         sl, sh = self._sampled(L, U)
         excess = (eh - el) - (sh - sl)
-        cb = np.zeros((L.shape[0], self.n_dims, self.n_dims))
+        cb = np.zeros((L.shape[0], self.n_dims, self.n_vars))
         loose = np.max(excess, axis=1) > tol
         if loose.any():
             cl, ch, cb_l = self._centred(L[loose], U[loose])
@@ -420,14 +432,20 @@ class KnownDynamics:
         return el, eh, excess, cb
 
     def _sampled(self, lo, hi):
-        """Min and max of the computed values at the centre and the vertices (face centres if n > 8)."""
+        """Min and max of the computed values at the centre and the vertices (face centres if n > 8).
+
+        Only the dimensions some box of the batch is wide in span the vertices: a column that is a point in
+        every box (an input of an input grid, ``models.inputs``) would only repeat each vertex."""
         k, n = lo.shape
         c = 0.5 * lo + 0.5 * hi
-        if n <= _MAX_VERTEX_DIMS:
-            corners = (np.arange(2 ** n)[:, None] >> np.arange(n)[None, :]) & 1  # (2^n, n)
-            pts = np.where(corners[None].astype(bool), hi[:, None, :], lo[:, None, :])
+        free = np.flatnonzero(np.any(hi > lo, axis=0))  # the other columns are points: lo = hi = c
+        nf = free.size
+        if nf <= _MAX_VERTEX_DIMS:
+            corners = np.zeros((2 ** nf, n), dtype=bool)
+            corners[:, free] = ((np.arange(2 ** nf)[:, None] >> np.arange(nf)[None, :]) & 1).astype(bool)
+            pts = np.where(corners[None], hi[:, None, :], lo[:, None, :])  # (k, 2^nf, n)
         else:
-            eye = np.eye(n, dtype=bool)
+            eye = np.eye(n, dtype=bool)[free]
             pts = np.concatenate([np.where(eye[None], lo[:, None, :], c[:, None, :]),
                                   np.where(eye[None], hi[:, None, :], c[:, None, :])], axis=1)
         pts = np.concatenate([c[:, None, :], pts], axis=1)
@@ -519,16 +537,21 @@ class KnownDynamics:
     # ------------------------------------------------------------------ input checks
     def _points(self, x, what):
         x = np.asarray(x, dtype=float)
-        if x.ndim != 2 or x.shape[1] != self.n_dims:
-            raise DimensionError(f"{self._label(None)}{what} must have shape (m, {self.n_dims}); got {x.shape}")
+        if x.ndim != 2 or x.shape[1] != self.n_vars:
+            raise DimensionError(f"{self._label(None)}{what} must have shape (m, {self.n_vars}){self._columns()}; got "
+                                 f"{x.shape}")
         return x
+
+    def _columns(self) -> str:
+        return f" (x1..x{self.n_dims}, then u1..u{self.n_inputs})" if self.n_inputs else ""
 
     def _boxes(self, lower, upper):
         lower = np.asarray(lower, dtype=float)
         upper = np.asarray(upper, dtype=float)
         for what, a in (("lower", lower), ("upper", upper)):
-            if a.ndim != 2 or a.shape[1] != self.n_dims:
-                raise DimensionError(f"{self._label(None)}{what} must have shape (k, {self.n_dims}); got {a.shape}")
+            if a.ndim != 2 or a.shape[1] != self.n_vars:
+                raise DimensionError(f"{self._label(None)}{what} must have shape (k, {self.n_vars}){self._columns()}; "
+                                     f"got {a.shape}")
         if lower.shape != upper.shape:
             raise DimensionError(f"{self._label(None)}upper must have shape {lower.shape} like lower; got {upper.shape}")
         bad = ~(np.isfinite(lower) & np.isfinite(upper) & (lower <= upper))
@@ -545,6 +568,11 @@ class KnownDynamics:
         """The state dimension n."""
         return int(self.n_dims)
 
+    @property
+    def n_vars(self) -> int:
+        """The variables: the state's n, then the ``n_inputs`` inputs."""
+        return int(self.n_dims) + getattr(self, "n_inputs", 0)
+
     def __call__(self, x) -> np.ndarray:
         """``evaluate(x)``: ``(k, n) -> (k, n)`` floating-point values."""
         return self.evaluate(x)
@@ -554,12 +582,15 @@ class KnownDynamics:
         import hashlib
 
         h = hashlib.sha256(b"KnownDynamics")
+        if self.n_inputs:  # only then: the digests of known parts without inputs are unchanged
+            h.update(f"inputs {self.n_inputs}".encode())
         h.update(repr([(t.instrs, t.outputs) for t in self._tapes]).encode())
         h.update(np.asarray(self._consts, dtype=float).tobytes())
         return h.hexdigest()
 
     def __repr__(self):
-        return f"KnownDynamics({list(self.expressions)!r})"
+        extra = f", n_inputs={self.n_inputs}" if self.n_inputs else ""
+        return f"KnownDynamics({list(self.expressions)!r}{extra})"
 
 
 def _box_text(lo, hi):

@@ -57,7 +57,7 @@ def bounds_key(problem: Problem) -> str:
         robust_imdp.__version__, problem.space_lower, problem.space_upper, problem.cell_size,
         {k: [(np.asarray(lo, float), np.asarray(up, float)) for lo, up in v]
          for k, v in problem.regions.items()},
-        np.asarray(d.x, float), np.asarray(d.u), np.asarray(d.x_next, float),
+        *_data_key(d),
         list(problem.mode_names), [_map_key(m) for m in problem.maps],
         problem.noise, _setting_value(problem.rkhs_bound), problem.gp_options, float(problem.bound_tol),
         int(problem.bound_max_boxes), problem.error_bound, _setting_value(problem.misspecification),
@@ -65,6 +65,13 @@ def bounds_key(problem: Problem) -> str:
         problem.local_points,
     ] + _periodic_key(problem) + _split_key(problem))
     return h.hexdigest()[:20]
+
+
+def _data_key(d) -> list:
+    """The data's arrays (x, u, x_next), or ``["no data"]`` for known dynamics (``Problem.data`` None)."""
+    if d is None:
+        return ["no data"]
+    return [np.asarray(d.x, float), np.asarray(d.u), np.asarray(d.x_next, float)]
 
 
 def _periodic_key(problem: Problem) -> list:
@@ -261,7 +268,7 @@ def check_key(problem: Problem) -> str:
     h = hashlib.sha256(b"assumption-check")
     d = problem.data
     _fingerprint(h, [
-        robust_imdp.__version__, np.asarray(d.x, float), np.asarray(d.u), np.asarray(d.x_next, float),
+        robust_imdp.__version__, *_data_key(d),
         list(problem.mode_names), [_map_key(m) for m in problem.maps],
         problem.noise, problem.gp_options.get("lengthscale", 1.0), _setting_value(problem.rkhs_bound),
         _setting_value(problem.misspecification), CHECK_DELTA,

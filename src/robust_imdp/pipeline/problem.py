@@ -196,15 +196,17 @@ class Problem:
     threshold : float in [0, 1]
     horizon : int or None
         k-step horizon; None for the unbounded problem.
-    data : system.Dataset
-        ``x``, ``u`` (mode indices), ``x_next``.
+    data : system.Dataset or None
+        ``x``, ``u`` (mode indices), ``x_next``. None for known dynamics: every component of every mode known
+        (``rkhs_bound = 0``), see :attr:`known`.
     mode_names : tuple of str
     maps : tuple of system.AffineMap
         Known part ``f_u(x) = A x + b`` per mode, in ``mode_names`` order.
     noise : noise model (``noise.TruncatedGaussianNoise`` etc.)
-    rkhs_bound : float
+    rkhs_bound : float, list per component or dict per mode
         The user's assumption B on the RKHS norm of every unknown component (unit-amplitude SE
-        kernel; see ``gp.RKHSErrorBound``).
+        kernel; see ``gp.RKHSErrorBound``); 0 marks a known component, and ``rkhs_bound = 0`` a known
+        system (:attr:`known`: no data, no learning, no assumption check).
     gp_options : dict
         Passed to ``gp.learn`` (e.g. ``lengthscale``, ``signal_variance``, ``optimize``,
         ``info_gain``).
@@ -250,6 +252,10 @@ class Problem:
         Let only the ``local_points`` data points nearest to each cell carry certificate weight
         (``rkhs.local_pools``): the cost per cell no longer grows with the data, and no m x m
         kernel matrix is built. None: all points up to ``LOCAL_AUTO`` points per mode, else 100.
+    inputs : models.inputs.InputGrid or None
+        The input grid the modes are the points of (``[inputs]`` with one ``[dynamics].f``): then
+        ``mode_names`` are its names (``u=(17)``) and the controller returns input vectors too. None: modes
+        stated one by one.
     semantics : {"auto", "reach", "safety"}
         The reading of the formula (``[spec].semantics``; README, "Two readings of a formula"): "reach", a
         path satisfies it when some prefix (within the horizon) is accepted; "safety", when no prefix is a
@@ -311,6 +317,7 @@ class Problem:
     periodic: tuple | None = None
     split_tol: float | None = None
     semantics: str = "auto"
+    inputs: Any = None
     transitions: str = DEFAULT_TRANSITIONS
 
     def __post_init__(self):
@@ -363,6 +370,13 @@ class Problem:
             raise InvalidInputError(f"transitions must be one of {', '.join(TRANSITIONS)}; got {self.transitions!r}")
         method.check_gp_options(self.gp_options)
         self._check_known_parts()
+        if self.inputs is not None:
+            grid = self.inputs
+            if tuple(getattr(grid, "mode_names", ())) != tuple(self.mode_names):
+                raise InvalidInputError(
+                    f"inputs must be the input grid whose points are the modes (its mode_names equal mode_names); got "
+                    f"{type(grid).__name__} with {len(getattr(grid, 'mode_names', ()))} points for "
+                    f"{len(self.mode_names)} modes")
         if self.refine is not None:
             from robust_imdp.synthesis.refine import RefineOptions
 
@@ -387,6 +401,14 @@ class Problem:
                 raise InvalidInputError(f"maps: the known part of mode {name!r} must act on {n} dimensions like "
                                         f"space_lower; got dimension {m.dim}")
         settings = _settings(self)  # raises on a wrong form, naming rkhs_bound / lengthscale / misspecification
+        if np.all(settings.known):  # known dynamics: nothing is learned, the data (if any) are not used
+            return
+        if self.data is None:
+            raise InvalidInputError(
+                "data are needed for the unknown components (rkhs_bound > 0: mode, component "
+                + ", ".join(f"{self.mode_names[u]!r} {i + 1}" for u, i in np.argwhere(~settings.known)[:3])
+                + (" ..." if np.count_nonzero(~settings.known) > 3 else "")
+                + "); only a problem whose every component is known (rkhs_bound = 0) takes data=None")
         nonlinear = [name for name, m in zip(self.mode_names, maps) if not _is_affine(m)]
         self.method.check_known_parts(nonlinear, settings.uniform, self.rkhs_bound, self.gp_options.get("lengthscale"))
 
@@ -427,13 +449,23 @@ class Problem:
         cells are large against the lengthscale, at several times the bound time
         (benchmarks/results/tight_preset.md on the benchmark family, tight_problems.md on the case studies).
 
-        Raises InvalidInputError for an error-bound method without sub-box certificates (the GP route).
+        Raises InvalidInputError for an error-bound method without sub-box certificates (the GP route). A known
+        system (:attr:`known`) has nothing to tighten: it is returned as it is.
         """
+        if self.known:
+            return self
         self.method.check_split()
         counts = np.bincount(np.asarray(self.data.u, dtype=np.int64), minlength=len(self.mode_names))
         return self.replace(**tight_settings(counts, int(np.size(self.space_lower)), self.local_points,
                                              self.split_tol, n_cells=self.n_grid_cells,
                                              taylor_term=self.grid_taylor_term()))
+
+    @property
+    def known(self) -> bool:
+        """Every component of every mode is known (``rkhs_bound`` 0 everywhere): "known dynamics", nothing is
+        learned, no data are needed and no assumption is checked (the bounds hold with probability 1 under the
+        noise model)."""
+        return bool(np.all(_settings(self).known))
 
     @property
     def n_grid_cells(self) -> int:
@@ -497,9 +529,10 @@ class Problem:
 
         Parameters
         ----------
-        x, x_next : (m, n) float arrays
-            The sampled states and their successors (``[data]``).
-        u : (m,) array of mode names (str), or of mode indices into ``modes``
+        x, x_next : (m, n) float arrays, or None
+            The sampled states and their successors (``[data]``); None (with ``u``) for known dynamics
+            (``rkhs_bound = 0``: every component of every mode known, :attr:`known`).
+        u : (m,) array of mode names (str), or of mode indices into ``modes``; or None
         lower, upper : (n,) float arrays
             The compact set X (``[space]``).
         cell_size : float or (n,) float array
@@ -511,6 +544,9 @@ class Problem:
         modes : dict str -> (A (n, n), b (n,)), system.AffineMap, known.KnownDynamics, a list of n
             expression strings in ``x1..xn`` or a pair (casadi expression (n, 1), casadi symbol (n, 1))
             The known part ``f_u`` of each mode, in mode order (``[modes.NAME]``: ``A``/``b`` or ``f``).
+            With ``inputs`` (an ``InputGrid``, one of the ``**options``): the dynamics ``f(x, u)`` once, a list
+            of n expressions in ``x1..xn, u1..um`` (``[dynamics].f``); the modes are the grid's points, and ``u``
+            of the data may hold input vectors ``(m_samples, m)`` on the grid.
         noise : noise model (``TruncatedGaussianNoise``, ``GaussianNoise``, ``UniformNoise``)
         rkhs_bound : float, list of n floats or dict mode -> either
             The assumption B (``[learning].rkhs_bound``), per mode and component where given so; 0 marks a
@@ -567,16 +603,27 @@ class Problem:
             raise InvalidInputError(f"cell_size must be a number > 0 or {n} numbers > 0 (one per dimension); got "
                                     f"{np.asarray(cell_size).tolist()!r}")
         _check_noise(noise, n)
-        if not isinstance(modes, dict) or not modes:
+        grid = options.get("inputs")
+        if grid is not None:  # one f(x, u) for every point of the grid
+            from robust_imdp.models.inputs import input_modes
+
+            if isinstance(modes, dict) or isinstance(modes, str) or not isinstance(modes, (list, tuple)) \
+                    or len(modes) != n:
+                raise InvalidInputError(f"with inputs, modes must be the dynamics f(x, u): a list of {n} expressions "
+                                        f"in x1..x{n}, u1..u{grid.n_inputs} (one per component); got {modes!r}")
+            maps = list(input_modes(list(modes), grid, name="modes"))
+            modes = dict(zip(grid.mode_names, maps))
+        elif not isinstance(modes, dict) or not modes:
             raise InvalidInputError(f"modes must be a dict name -> (A, b) or AffineMap, with at least one mode; "
                                     f"got {modes!r}")
-        maps = []
-        for name, m in modes.items():
-            m = _known_part(m, name)
-            if m.dim != n:
-                raise DimensionError(f"modes[{name!r}] must act on {n} dimensions like lower; got "
-                                     + (f"A of shape {m.A.shape}" if _is_affine(m) else f"{m.dim} components"))
-            maps.append(m)
+        else:
+            maps = []
+            for name, m in modes.items():
+                m = _known_part(m, name)
+                if m.dim != n:
+                    raise DimensionError(f"modes[{name!r}] must act on {n} dimensions like lower; got "
+                                         + (f"A of shape {m.A.shape}" if _is_affine(m) else f"{m.dim} components"))
+                maps.append(m)
         if not isinstance(regions, dict):
             raise InvalidInputError(f"regions must be a dict name -> box or list of boxes; got {regions!r}")
         boxes = {}
@@ -600,9 +647,17 @@ class Problem:
         gp_options = dict(options.pop("gp_options", None) or {})
         if lengthscale is not None:
             gp_options["lengthscale"] = lengthscale
-        data = Dataset(x, u, x_next, modes=tuple(modes))
-        if data.dim != n:
-            raise DimensionError(f"x must have {n} columns like lower; got shape {np.shape(x)}")
+        given = [a is not None for a in (x, u, x_next)]
+        if any(given) and not all(given):
+            raise InvalidInputError(f"x, u and x_next must all be given (the data) or all be None (known dynamics, "
+                                    f"rkhs_bound = 0); got {['x', 'u', 'x_next'][given.index(False)]} = None")
+        data = None
+        if all(given):
+            if grid is not None and np.asarray(u).dtype.kind not in "UO":  # input vectors: their grid points
+                u = grid.index(np.asarray(u, dtype=float).reshape(len(u), -1), what="u")
+            data = Dataset(x, u, x_next, modes=tuple(modes))
+            if data.dim != n:
+                raise DimensionError(f"x must have {n} columns like lower; got shape {np.shape(x)}")
         return cls(space_lower=lo, space_upper=up, cell_size=h, regions=boxes, formula=formula,
                    threshold=threshold, horizon=horizon, data=data, mode_names=tuple(modes), maps=tuple(maps),
                    noise=noise, rkhs_bound=rkhs_bound, gp_options=gp_options,
@@ -615,11 +670,13 @@ class Problem:
         names = self.dim_names or tuple(f"x_{j + 1}" for j in range(lo.size))
         box = ", ".join(f"{v} in [{a:g}, {b:g}]" for v, a, b in zip(names, lo, up))
         m = int(np.asarray(getattr(self.data, "u", ())).shape[0])
+        samples = "known dynamics (no data)" if self.data is None else f"{m} samples"
         return (f"Problem({lo.size}-D, {int(np.prod(shape))} cells ({' x '.join(map(str, shape))}); {box}\n"
                 f"  formula {self.formula!r}, threshold {float(self.threshold):g}"
                 f"{'' if self.horizon is None else f', horizon {self.horizon}'}"
                 f"{'' if self.semantics == 'auto' else f', semantics {self.semantics!r}'}; regions {list(self.regions)}\n"
-                f"  modes {list(self.mode_names)}, {m} samples, {type(self.noise).__name__}, "
+                f"  modes {_modes_text(self.mode_names) if self.inputs is None else repr(self.inputs)}, {samples}, "
+                f"{type(self.noise).__name__}, "
                 f"rkhs_bound {_setting_text(self.rkhs_bound)}, error_bound {self.error_bound!r})")
 
 
@@ -674,6 +731,14 @@ def _check_formula(formula, boxes: dict) -> None:
     if unknown:
         raise UnknownAtomError(f"formula {formula!r} names regions {unknown} that are not defined; known regions: "
                                f"{sorted(boxes)}")
+
+
+def _modes_text(names) -> str:
+    """The mode names for a one-line summary: all of them up to 8, else the first three, a count and the last."""
+    names = list(names)
+    if len(names) <= 8:
+        return str(names)
+    return f"[{', '.join(map(repr, names[:3]))}, ... ({len(names)} modes), {names[-1]!r}]"
 
 
 def _is_affine(m) -> bool:

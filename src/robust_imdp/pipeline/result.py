@@ -31,19 +31,20 @@ class ClassCounts(dict):
 
 
 def summary_text(*, formula: str, threshold: float, horizon, classes, p_low, error, p_up_star, diagnostics: dict,
-                 advice: dict, timings: dict, source: str) -> str:
+                 advice: dict, timings: dict, source: str, semantics: str | None = None) -> str:
     """The lines of a result's summary (``Result.summary``, ``io.result_file.ResultFile.summary``).
 
     Class counts, Q_no split by whether any controller could meet the threshold (``p_up_star <
     threshold``), mean p_low and error, where the abstraction came from (``source``), the bound
-    diagnostics, the advice and the stage times.
+    diagnostics, the advice and the stage times. ``semantics``: the reading of the formula, named on its line.
     """
     c = ClassCounts.of(classes)
     n = int(np.size(classes))
     no = np.asarray(classes) == "no"
     cannot = int(np.count_nonzero(no & (np.asarray(p_up_star) < threshold)))
     lines = [
-        f"formula {formula!r}, threshold {threshold:g}" + (f", horizon {horizon}" if horizon is not None else ""),
+        f"formula {formula!r}, threshold {threshold:g}" + (f", horizon {horizon}" if horizon is not None else "")
+        + ("" if semantics is None else f" ({semantics} reading)"),
         f"cells: {n}  Q_yes {c['yes']}  Q_no {c['no']}  Q_? {c['maybe']}",
         f"Q_no: {cannot} where no controller can meet the threshold (p_up_star < {threshold:g}), "
         f"{int(np.count_nonzero(no)) - cannot} under this controller only",
@@ -222,8 +223,9 @@ class Result:
         return ClassCounts.of(self.class_names)
 
     def controller(self):
-        """The refined switching controller (``controller.Controller``)."""
-        return self.synthesis.controller(self.partition, self.mode_names)
+        """The refined switching controller (``controller.Controller``; :meth:`~Controller.act_input` gives the
+        input vector of a problem with an input grid)."""
+        return self.synthesis.controller(self.partition, self.mode_names, inputs=getattr(self.problem, "inputs", None))
 
     @property
     def no_strategy_can(self) -> np.ndarray:
@@ -241,12 +243,18 @@ class Result:
         return summary_text(formula=self.formula, threshold=self.threshold, horizon=self.horizon,
                             classes=self.class_names, p_low=self.synthesis.p_low, error=self.synthesis.error,
                             p_up_star=self.synthesis.p_up_star, diagnostics=self._summary_diagnostics, advice=self.advice,
-                            timings=self.timings,
+                            timings=self.timings, semantics=self.semantics,
                             source=f"abstraction {'reused from cache' if self.from_cache else 'built'}")
 
 
 def diagnostics_line(diag: dict) -> str:
-    """One line saying why cells may be undecided (error radius, successors, assumption margin)."""
+    """One line saying why cells may be undecided (error radius, successors, assumption margin); for known
+    dynamics, that they are known."""
+    if diag and diag.get("dynamics") == "known":
+        text = "known dynamics: no data, no learning, no assumption check; the bounds hold with probability 1"
+        if "successors_per_row" in diag:
+            text += f"; {diag['successors_per_row']:.1f} successors per row"
+        return text
     if not diag or "eps" not in diag:
         return ""
     med = max(r["median"] for r in diag["eps"])

@@ -74,7 +74,7 @@ def _parameters(problem: Problem, abstraction) -> dict:
     params = {
         "space": {"lower": problem.space_lower, "upper": problem.space_upper},
         "cell_size": problem.cell_size,
-        "n_data": int(np.asarray(problem.data.u).shape[0]),
+        "n_data": 0 if problem.data is None else int(np.asarray(problem.data.u).shape[0]),
         "rkhs_bound": _setting_value(problem.rkhs_bound),
         "gp_options": {k: v for k, v in problem.gp_options.items()},
         "bound_tol": float(problem.bound_tol),
@@ -338,8 +338,9 @@ def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cac
     if why:
         log.info(why)
     syn, classes = _synthesize(problem, partition, abstraction, dfa, log)
-    advice = run_advice(problem, partition, abstraction, cell_bounds, dfa, classes, log, run, abstraction_cache,
-                        diagnostics)
+    # known dynamics: no data and no assumption, nothing the advice's levers could change
+    advice = {} if problem.known else run_advice(problem, partition, abstraction, cell_bounds, dfa, classes, log, run,
+                                                 abstraction_cache, diagnostics)
     parameters = _parameters(problem, abstraction)
     grid = partition
     if problem.refine is not None:  # adaptive refinement of the undecided cells (see docs/refinement.md)

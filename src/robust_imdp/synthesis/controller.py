@@ -113,6 +113,26 @@ _TABLES = ("cells_lower", "cells_upper", "label_letters", "dfa_atoms", "dfa_delt
            "strategy", "space_lower", "space_upper", "modes")
 
 
+def _input_table(inputs: Any, names: Sequence[str] | None) -> tuple:
+    """``(inputs (M, m) float array or None, names tuple or None)`` from an input grid or an array."""
+    if inputs is None:
+        return None, None
+    if hasattr(inputs, "points"):  # a models.inputs.InputGrid (numpy-only here: read by duck type)
+        names = getattr(inputs, "names", None) if names is None else names
+        inputs = inputs.points
+    table = np.array(inputs, dtype=np.float64)
+    if table.ndim == 1:
+        table = table[:, None]
+    if table.ndim != 2 or table.shape[0] == 0 or not np.all(np.isfinite(table)):
+        raise DimensionError(f"inputs must be a finite (n_modes, m) array of the modes' input vectors; got shape "
+                             f"{np.shape(inputs)}")
+    names = tuple(f"u{j + 1}" for j in range(table.shape[1])) if names is None else tuple(names)
+    if len(names) != table.shape[1]:
+        raise DimensionError(f"input_names must name the {table.shape[1]} inputs; got {list(names)}")
+    table.setflags(write=False)
+    return table, names
+
+
 def grid_of_cells(cells_lower: Any, cells_upper: Any) -> tuple:
     """The breakpoint grid of a set of box cells and the cell of each of its boxes.
 
@@ -207,6 +227,10 @@ class Controller:
         The reading the strategy was computed for: "reach", the run is satisfied once the DFA accepts;
         "safety", it is violated by a bad prefix or by leaving X and satisfied at the horizon (never
         decided without one: :meth:`act` keeps returning modes).
+    inputs : (n_modes, m) float array or models.inputs.InputGrid, optional
+        The input vector of each mode (an input grid's points): :meth:`act_input` returns it.
+    input_names : sequence of m str, optional
+        The inputs' names (default: the grid's, else ``u1..um``).
 
     Attributes
     ----------
@@ -240,10 +264,13 @@ class Controller:
         cell_map: Any = None,
         periodic: Sequence[bool] | None = None,
         semantics: str = "reach",
+        inputs: Any = None,
+        input_names: Sequence[str] | None = None,
     ):
         if semantics not in ("reach", "safety"):
             raise InvalidInputError(f"semantics must be 'reach' or 'safety'; got {semantics!r}")
         self.semantics = semantics
+        self.inputs, self.input_names = _input_table(inputs, input_names)
         self.atoms = tuple(atoms)
         # periodic dimensions (docs/periodic.md): states are wrapped into X there before locating
         self.periodic = None if periodic is None or not any(periodic) else tuple(bool(v) for v in periodic)
@@ -313,6 +340,9 @@ class Controller:
                     f"modes must name at least the {self.n_modes} modes used by the strategy; got {modes!r}"
                 )
             self.n_modes = len(self.modes)
+        if self.inputs is not None and self.inputs.shape[0] < self.n_modes:
+            raise DimensionError(f"inputs must give the input vector of each of the {self.n_modes} modes; got "
+                                 f"{self.inputs.shape[0]} rows")
         self.threshold = None if threshold is None else float(threshold)
         nan = np.full(self.n_cells, np.nan)
         self.p_low = nan.copy() if p_low is None else np.array(p_low, dtype=np.float64)
@@ -331,7 +361,8 @@ class Controller:
 
     # ------------------------------------------------------------------ construction
     @classmethod
-    def from_result(cls, result: Any, partition: Any = None, mode_names: Sequence[str] | None = None) -> "Controller":
+    def from_result(cls, result: Any, partition: Any = None, mode_names: Sequence[str] | None = None,
+                    inputs: Any = None) -> "Controller":
         """The controller of a result.
 
         Parameters
@@ -346,6 +377,8 @@ class Controller:
         partition : geometry.Partition or BoxPartition, optional
         mode_names : sequence of str, optional
             Names :meth:`act` returns (default: the result's mode names where it has them).
+        inputs : models.inputs.InputGrid or (n_modes, m) array, optional
+            The modes' input vectors (:meth:`act_input`; a pipeline Result gives its problem's grid).
 
         Raises
         ------
@@ -355,7 +388,8 @@ class Controller:
         if partition is None:
             if hasattr(result, "synthesis") and hasattr(result, "partition"):  # a pipeline Result
                 return cls.from_result(result.synthesis, result.partition,
-                                       result.mode_names if mode_names is None else mode_names)
+                                       result.mode_names if mode_names is None else mode_names,
+                                       inputs=getattr(result.problem, "inputs", None) if inputs is None else inputs)
             missing = [a for a in _TABLES if not hasattr(result, a)]
             if missing:
                 raise InvalidInputError(
@@ -384,7 +418,7 @@ class Controller:
             grid, partition.space.lower, partition.space.upper, cell_map=cell_map,
             modes=mode_names, threshold=result.threshold, p_low=result.p_low, p_up=result.p_up,
             p_up_star=result.p_up_star, metadata=meta, periodic=getattr(partition, "periodic", None),
-            semantics=getattr(result, "semantics", "reach"),
+            semantics=getattr(result, "semantics", "reach"), inputs=inputs,
         )
 
     @classmethod
@@ -405,7 +439,7 @@ class Controller:
             p_low=getattr(res, "p_low", None), p_up=getattr(res, "p_up", None),
             p_up_star=getattr(res, "p_up_star", None),
             metadata={"formula": getattr(res, "formula", None), "horizon": getattr(res, "horizon", None)},
-            periodic=getattr(res, "periodic", None),
+            periodic=getattr(res, "periodic", None), inputs=getattr(res, "inputs", None),
             # the reading of the bounds, only where it is not the default (reach)
             **({"semantics": res.semantics} if getattr(res, "semantics", "reach") != "reach" else {}),
         )
@@ -523,6 +557,21 @@ class Controller:
         mode = self.act_index(x)
         return mode if mode is None or self.modes is None else self.modes[mode]
 
+    def act_input(self, x: Any) -> np.ndarray | None:
+        """As :meth:`act`, but the mode's input vector ``(m,)`` (a copy), for a controller of an input grid
+        (:attr:`inputs`); ``None`` when done.
+
+        Raises
+        ------
+        InvalidInputError
+            If the controller has no input grid (its modes are named, not input values).
+        """
+        if self.inputs is None:
+            raise InvalidInputError("act_input needs a controller of an input grid (inputs); this one's modes are "
+                                    f"{list(self.modes) if self.modes is not None else self.n_modes}: use act")
+        mode = self.act_index(x)
+        return None if mode is None else self.inputs[mode].copy()
+
     def act_index(self, x: Any) -> int | None:
         """As :meth:`act`, but the mode as an integer index into :attr:`mode_names` (or ``None`` when done)."""
         if not self._started:
@@ -596,6 +645,8 @@ class Controller:
             doc["periodic"] = list(self.periodic)
         if self.semantics == "safety":  # only then: files of the reach reading are unchanged
             doc["semantics"] = "safety"
+        if self.inputs is not None:  # only then: files of named modes are unchanged
+            doc["inputs"] = {"names": list(self.input_names), "values": self.inputs.tolist()}
         arrays = {
             "strategy": self.strategy,
             "cell_letters": self.cell_letters,
@@ -637,6 +688,8 @@ class Controller:
             arr["space_lower"], arr["space_upper"], modes=doc["modes"], threshold=doc["threshold"],
             p_low=arr["p_low"], p_up=arr["p_up"], p_up_star=arr["p_up_star"], metadata=doc["metadata"],
             cell_map=arr.get("cell_map"), periodic=doc.get("periodic"), semantics=doc.get("semantics", "reach"),
+            inputs=None if doc.get("inputs") is None else np.asarray(doc["inputs"]["values"], dtype=float),
+            input_names=None if doc.get("inputs") is None else doc["inputs"]["names"],
         )
 
     def __repr__(self) -> str:

@@ -177,7 +177,7 @@ class SynthesisResult:
         """``{"yes": n, "no": n, "maybe": n}``."""
         return {c: int(np.count_nonzero(self.classes == c)) for c in (CLASS_YES, CLASS_NO, CLASS_MAYBE)}
 
-    def controller(self, partition: Any, mode_names: Sequence[str] | None = None):
+    def controller(self, partition: Any, mode_names: Sequence[str] | None = None, inputs: Any = None):
         """The refined switching controller (paper eq. mapping-strategy) on ``partition``.
 
         Parameters
@@ -186,8 +186,10 @@ class SynthesisResult:
             The partition whose cells are this result's IMDP states (same cell order and labels).
         mode_names : sequence of str, optional
             Names returned by :meth:`Controller.act` instead of mode indices.
+        inputs : models.inputs.InputGrid or (n_modes, m) array, optional
+            The modes' input vectors, returned by :meth:`Controller.act_input`.
         """
-        return Controller.from_result(self, partition, mode_names=mode_names)
+        return Controller.from_result(self, partition, mode_names=mode_names, inputs=inputs)
 
 
 # --------------------------------------------------------------------------- helpers
