@@ -20,8 +20,9 @@ exact bounds lose (``lost``) or gain, entries per IMDP row, abstraction and synt
   ``--quick``'s 4): our certified boxes (no sub-boxes) and the known-dynamics reference boxes,
   abstracted both ways, unbounded horizon.
 * ``eta``: the eta sweep's cliff (``examples/eta_sweep.py``): the three-mode study with eta fixed to
-  0.96 ... 1.0 sigma under Thm 1 against the exact bounds (no eta), and both with the noise scaled by
-  1, 4, 16 and 32 (bound 0.01 ... 0.32 against cells of 0.125).
+  0.96 ... 1.0 sigma under Thm 1 against the exact bounds (no eta), both with the noise scaled by
+  1, 4, 16 and 32 (bound 0.01 ... 0.32 against cells of 0.125), and at noise x16 on cells of 0.25 and
+  0.0625.
 
 Writes ``benchmarks/results/exact_marginals.json`` and ``.md`` after every suite (``--merge`` keeps the
 other suites' rows of the last run).
@@ -57,13 +58,15 @@ def _summary(p_low, p_up, threshold) -> dict:
 
 
 def _compare(row: dict, a: dict, b: dict) -> None:
-    """Cells in Q_yes under Thm 1 and not under exact (lost), and the other way round (gained)."""
+    """Cells in Q_yes under Thm 1 and not under exact (lost), the other way round (gained), and the largest
+    drop of a cell's p_low from Thm 1 to exact."""
     if a["yes_cells"] is None or b["yes_cells"] is None or len(a["yes_cells"]) != len(b["yes_cells"]):
-        row["lost"] = row["gained"] = None  # different partitions (refinement): compare the counts only
+        row["lost"] = row["gained"] = row["p_low_drop"] = None  # different partitions (refinement): counts only
         return
     ya, yb = np.asarray(a["yes_cells"]), np.asarray(b["yes_cells"])
     row["lost"] = int(np.sum(ya & ~yb))
     row["gained"] = int(np.sum(~ya & yb))
+    row["p_low_drop"] = float(np.max(np.asarray(a["p_low"]) - np.asarray(b["p_low"])))
 
 
 def _pipeline_run(problem, cache, **kw) -> dict:
@@ -73,6 +76,7 @@ def _pipeline_run(problem, cache, **kw) -> dict:
     res = synthesize_from_data(problem, progress=False, abstraction_cache=cache, advice=False, **kw)
     out = _summary(res.synthesis.p_low, res.synthesis.p_up, problem.threshold)
     out["yes_cells"] = (np.asarray(res.synthesis.p_low) >= problem.threshold).tolist()
+    out["p_low"] = np.asarray(res.synthesis.p_low, float)
     out["cells"] = int(res.partition.n_cells)
     vol = np.prod(res.partition.cells_upper - res.partition.cells_lower, axis=1)
     out["yes_volume"] = float(vol[np.asarray(res.synthesis.p_low) >= problem.threshold].sum())
@@ -89,7 +93,7 @@ def _row(name: str, runs: dict, **extra) -> dict:
     for k in KINDS:
         r = dict(runs[k])
         r.pop("result", None)
-        row[k] = {key: v for key, v in r.items() if key != "yes_cells"}
+        row[k] = {key: v for key, v in r.items() if key not in ("yes_cells", "p_low")}
     _compare(row, runs["thm1"], runs["exact"])
     return row
 
@@ -193,6 +197,7 @@ def suite_family(args, work: Path) -> list:
                                  outside_state=part.outside_state)
                 r = _summary(syn.p_low, syn.p_up, family.THRESHOLD)
                 r.update(yes_cells=(np.asarray(syn.p_low) >= family.THRESHOLD).tolist(), cells=int(part.n_cells),
+                         p_low=np.asarray(syn.p_low, float),
                          entries_per_row=float(np.mean(ab.nnz_per_row)), abstract_s=t1 - t0,
                          synthesize_s=time.perf_counter() - t1)
                 runs[k] = r
@@ -228,6 +233,15 @@ def suite_eta(args, work: Path) -> list:
         print(f"noise x{scale:g}: Q_yes thm1 {row['thm1']['yes']} exact {row['exact']['yes']}; mean p_low "
               f"{row['thm1']['mean_p_low']:.4f} -> {row['exact']['mean_p_low']:.4f}", flush=True)
         rows.append(row)
+    # the grid at noise x16 (bound 0.16): cells wider and narrower than the noise
+    for cell in (0.25, 0.0625):
+        p = base.replace(noise=TruncatedGaussianNoise(sigma * 16, bound * 16), cell_size=np.full(2, cell))
+        runs = {k: _pipeline_run(p.replace(transitions=k), work / "eta" / f"cache-grid-{cell:g}") for k in KINDS}
+        row = _row(f"noise x16 (bound {bound[0] * 16:g}, cells {cell:g})", runs, suite="eta", noise_scale=16.0,
+                   eta_fraction=None, cell=cell)
+        print(f"grid {cell:g}: Q_yes thm1 {row['thm1']['yes']} exact {row['exact']['yes']}; mean p_low "
+              f"{row['thm1']['mean_p_low']:.4f} -> {row['exact']['mean_p_low']:.4f}", flush=True)
+        rows.append(row)
     return rows
 
 
@@ -245,8 +259,12 @@ def _md(data: dict) -> list:
              "entries per IMDP row; abstraction and synthesis seconds (2 shared cores).", ""]
     rows = data["rows"]
     lost = [r for r in rows if r.get("lost")]
+    drops = [r["p_low_drop"] for r in rows if r.get("p_low_drop") is not None]
     lines += [f"**Q_yes cells lost by exact against thm1 over all rows: {sum(r['lost'] or 0 for r in rows)}** "
-              f"({len(lost)} rows with a loss{': ' + ', '.join(r['name'] for r in lost) if lost else ''}).", ""]
+              f"({len(lost)} rows with a loss{': ' + ', '.join(r['name'] for r in lost) if lost else ''}); largest "
+              f"drop of a cell's p_low from thm1 to exact: "
+              f"{max(drops):.3g} (over {len(drops)} rows that record it).", ""] if drops else \
+        [f"**Q_yes cells lost by exact against thm1 over all rows: {sum(r['lost'] or 0 for r in rows)}**.", ""]
     for suite in SUITES:
         part = [r for r in rows if r["suite"] == suite]
         if not part:
@@ -257,8 +275,8 @@ def _md(data: dict) -> list:
                   "|---|---|---|---|---|---|---|---|---|"]
         for r in part:
             t, e = r["thm1"], r["exact"]
-            lg = (f"- (Q_yes volume {t['yes_volume']:g} / {e['yes_volume']:g})" if r["lost"] is None
-                  else f"{r['lost']} / {r['gained']}")
+            lg = (f"- (Q_yes volume {t.get('yes_volume', float('nan')):g} / {e.get('yes_volume', float('nan')):g})"
+                  if r["lost"] is None else f"{r['lost']} / {r['gained']}")
             lines.append(f"| {r['name']} | {e['cells']} | {t['yes']} / {e['yes']} | {lg} | {t['no']} / {e['no']} | "
                          f"{t['mean_p_low']:.4f} / {e['mean_p_low']:.4f} | {t['entries_per_row']:.1f} / "
                          f"{e['entries_per_row']:.1f} | {t['abstract_s']:.1f} / {e['abstract_s']:.1f} | "
@@ -270,16 +288,19 @@ def _md(data: dict) -> list:
                              f"{t['mean_gap']:.3f} -> {e['mean_gap']:.3f}. Monte Carlo ({r['mc_runs_per_cell']} runs "
                              f"per cell): cells outside their Wilson interval thm1 {t['mc_outside']} (allowed "
                              f"{t['mc_allowed_outside']}), exact {e['mc_outside']} (allowed {e['mc_allowed_outside']}). "
-                             f"Pre-flight estimate of the exact rows' entries: {r['preflight_successors']} + the outside "
-                             f"state against {e['entries_per_row']:.0f} measured.")
+                             + (f"Pre-flight estimate of the exact rows' entries: {r['preflight_successors']} + the "
+                                f"outside state against {e['entries_per_row']:.0f} measured."
+                                if "preflight_successors" in r else ""))
         lines.append("")
     return lines
 
 
-def _write_atomic(data: dict, lines: list) -> None:
-    """``benchmarks/results/NAME.json`` and ``.md``, each written beside the old one and renamed into place."""
+def _write_atomic(data: dict) -> None:
+    """``benchmarks/results/NAME.json`` and ``.md``, each written beside the old one and renamed into place
+    (the json first: a failure of the table leaves the measurements)."""
     out = ROOT / "benchmarks" / "results"
-    for suffix, text in ((".json", json.dumps(data, indent=1)), (".md", "\n".join(lines) + "\n")):
+    for suffix, text in ((".json", lambda: json.dumps(data, indent=1)), (".md", lambda: "\n".join(_md(data)) + "\n")):
+        text = text()
         final = out / f"{NAME}{suffix}"
         tmp = out / f".{NAME}{suffix}.part"
         tmp.write_text(text)
@@ -307,7 +328,7 @@ def main(argv=None) -> int:
                 r["key"] = f"{r['suite']}/{r['name']}"
             rows = merged_rows([r for r in rows if "key" in r], new, "key")
             data = results_record(rows, commands=old.get("commands", [])[-5:] + [command])
-            _write_atomic(data, _md(data))
+            _write_atomic(data)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return 0

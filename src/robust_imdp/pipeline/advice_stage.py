@@ -153,7 +153,7 @@ def _scheduled_solver(problem: Problem, dfa, run: _Run, log: _Log):
     the unfinished jobs are yielded with share None."""
     from robust_imdp.synthesis.advice import ROW_CHUNK, job_share
 
-    opts = {"eta": problem.eta, "eps_rule": problem.eps_rule, "combine": problem.combine}
+    opts = problem.abstraction_options()
     semantics = getattr(problem, "semantics", "auto")
 
     def solve(jobs, deadline):
@@ -293,7 +293,7 @@ def _advice(problem: Problem, partition, abstraction, cell_bounds, dfa, classes,
     adv = advise(partition, cell_bounds, _fitted(problem, data), problem.noise, dfa,
                  threshold=problem.threshold, horizon=problem.horizon, classes=classes,
                  noise_floor=_noise_floor(problem, data),
-                 abstraction_options={"eta": problem.eta, "eps_rule": problem.eps_rule, "combine": problem.combine},
+                 abstraction_options=problem.abstraction_options(),
                  bound_cells=bound_cells, max_cells=MAX_CELLS if want == "auto" else 2 ** 62,
                  progress=log.info if log.enabled else None, sub_box_terms=_sub_box_terms(problem),
                  local_pools=_local_pools(problem, data), semantics=getattr(problem, "semantics", "auto"),
