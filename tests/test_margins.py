@@ -281,3 +281,17 @@ def test_command_line_switch():
     assert p.parse_args(["run", "p.toml", "--out", "o"]).margins == "on"
     assert p.parse_args(["run", "p.toml", "--out", "o", "--margins", "off"]).margins == "off"
     assert "b_margin.png" in RESULT_OUTPUTS
+
+
+def test_margins_of_a_k_step_result(tmp_path):
+    # a time-varying controller (k, n_cells, S): evaluated with its horizon, the run's p_low and p_up at beta = 1
+    from robust_imdp.pipeline.run import synthesize_from_data
+
+    res = synthesize_from_data(tiny_problem(horizon=6), progress=False, abstraction_cache=tmp_path, advice=False)
+    assert np.asarray(res.synthesis.strategy).ndim == 3
+    p_low, p_up = strategy_bounds(res.abstraction.imdp, res.partition.labels, res.partition.atoms, res.dfa,
+                                  res.synthesis, outside_state=res.partition.outside_state)
+    np.testing.assert_array_equal(p_low, res.synthesis.p_low)
+    np.testing.assert_array_equal(p_up, res.synthesis.p_up)
+    decided = res.class_names != "maybe"
+    assert np.all(res.b_margin[decided] >= 1.0) and res.margins["kept_yes"][0] == res.counts["yes"]

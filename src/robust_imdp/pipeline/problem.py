@@ -19,8 +19,9 @@ GUARANTEES = ("confidence", "paper")
 #: ``[abstraction].transitions``: Thm 1's containment bounds or the exact per-axis integrals (the values of
 #: ``abstraction.rows.TRANSITIONS``, kept here so that importing the problem does not load the abstraction).
 TRANSITIONS = ("thm1", "exact")
-#: The default of ``transitions`` (docs/abstraction.md, "When each wins").
-DEFAULT_TRANSITIONS = "thm1"
+#: The default of ``transitions``: the exact bounds, never looser than Thm 1's entry by entry and never a Q_yes
+#: cell lost on any benchmark (docs/abstraction.md, "When each wins"; benchmarks/results/exact_marginals.md).
+DEFAULT_TRANSITIONS = "exact"
 #: How the unknown part is bounded over a cell (see :class:`Problem`): the method registry's names.
 ERROR_BOUNDS = methods.ERROR_BOUNDS
 #: Failure probability allowed to the assumption check's noise bound when the noise is unbounded.
@@ -216,11 +217,12 @@ class Problem:
         Branch-and-bound budget per cell and problem (bounds stay sound, only looser).
     eta : (n,) float array or None
         Noise threshold of Thm 1; None = the noise model's default.
-    transitions : {"thm1", "exact"}
+    transitions : {"exact", "thm1"}
         How the transition bounds are computed (``[abstraction].transitions``; docs/abstraction.md):
-        Thm 1's containment events, or the exact minimum and maximum over each image box of the noise's
-        mass in every target (never looser per entry, and the only ones that certify anything when the
-        noise is wider than a cell; ``eta`` and ``eps_rule`` are Thm 1's and unused there).
+        ``"exact"`` (default), the exact minimum and maximum over each image box of the noise's mass in
+        every target (never looser than Thm 1 per entry, and the only ones that certify anything when the
+        noise is wider than a cell; ``eta`` and ``eps_rule`` are unused there), or ``"thm1"``, the paper's
+        Thm 1 (its containment events; needed to reproduce the paper).
     guarantee : {"confidence", "paper"}
         How the GP error enters the abstraction. ``"confidence"`` (default, sound for the one
         fixed system that produced the data): the error bound of every GP is taken at one
