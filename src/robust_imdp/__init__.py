@@ -10,11 +10,11 @@ Pipeline (one subpackage per part, plain data between stages; layers in docs/ARC
 The flat layout's module paths (``robust_imdp.solve``, ``robust_imdp.rkhs``, ...) still import,
 with a DeprecationWarning naming the new one (``robust_imdp._compat``).
 
-The most used names are re-exported here (``__all__``; ``docs/api.md`` lists every module's).
-Heavy optional back-ends stay out of the import: cvxpy/clarabel (``robust_imdp.solvers.lp``),
-stormpy (``robust_imdp.io.formats``) and matplotlib (``robust_imdp.plotting``) are imported only
-when those modules are used. The default (RKHS) bound route (``robust_imdp.bounds.rkhs``) and the
-validation names (``robust_imdp.validate``, which imports scipy.stats) load on first use.
+The most used names are re-exported here (``__all__``; ``docs/api.md`` lists every module's), each
+imported on first use: ``import robust_imdp`` (and so every ``import robust_imdp.<module>``, e.g. in a
+helper process) loads the package's errors only. Heavy optional back-ends stay out of the import:
+cvxpy/clarabel (``robust_imdp.solvers.lp``), stormpy (``robust_imdp.io.formats``) and matplotlib
+(``robust_imdp.plotting``) are imported only when those modules are used.
 ``robust_imdp.validate`` is the validation module, and calling it calls its ``validate`` function.
 
 Example
@@ -52,42 +52,38 @@ from robust_imdp._compat import OldPaths as _OldPaths
 from robust_imdp._lazy import lazy_names
 from robust_imdp.errors import *  # noqa: F401,F403
 from robust_imdp.errors import __all__ as _errors
-from robust_imdp.models.imdp import IMDP
-from robust_imdp.solvers.api import (
-    Adversary,
-    Objective,
-    ReachabilityResult,
-    evaluate_strategy,
-    solve_reachability,
-)
-from robust_imdp.solvers.product import (
-    ProductResult,
-    evaluate_product_strategy,
-    materialize_product,
-    solve_product,
-)
-from robust_imdp.spec.ltlf import atoms_of, holds, parse
-from robust_imdp.spec.dfa import DFA, ltlf_to_dfa
-from robust_imdp.models.geometry import Box, Partition, Region
-from robust_imdp.models.noise import GaussianNoise, NoiseModel, TruncatedGaussianNoise, UniformNoise
-from robust_imdp.models.system import AffineMap, Dataset, SwitchedSystem, residuals
-from robust_imdp.bounds.gp import GaussianProcess, LearnedModel, RKHSErrorBound, learn
-from robust_imdp.bounds.gp_cells import ImageBounds, PosteriorBounds, bound_image, bound_posterior
-from robust_imdp.abstraction.rows import Abstraction, CellBounds, abstract, confidence_cell_bounds
-from robust_imdp.synthesis.core import SynthesisResult, synthesize
-from robust_imdp.synthesis.controller import Controller
-from robust_imdp.pipeline.problem import Problem
-from robust_imdp.pipeline.result import Result
-from robust_imdp.pipeline.run import resynthesize, synthesize_from_data
-from robust_imdp.io.files import load_problem, load_result, save_problem, save_result
+
+#: The re-exported names and their modules (imported on first use, PEP 562: ``import robust_imdp`` and every
+#: ``import robust_imdp.<module>`` load only the package's errors; a run imports the stages it uses).
+_NAMES = {
+    "robust_imdp.models.imdp": ("IMDP",),
+    "robust_imdp.solvers.api": ("Adversary", "Objective", "ReachabilityResult", "evaluate_strategy",
+                                "solve_reachability"),
+    "robust_imdp.solvers.product": ("ProductResult", "evaluate_product_strategy", "materialize_product",
+                                    "solve_product"),
+    "robust_imdp.spec.ltlf": ("atoms_of", "holds", "parse"),
+    "robust_imdp.spec.dfa": ("DFA", "ltlf_to_dfa"),
+    "robust_imdp.models.geometry": ("Box", "Partition", "Region"),
+    "robust_imdp.models.noise": ("GaussianNoise", "NoiseModel", "TruncatedGaussianNoise", "UniformNoise"),
+    "robust_imdp.models.system": ("AffineMap", "Dataset", "SwitchedSystem", "residuals"),
+    "robust_imdp.bounds.gp": ("GaussianProcess", "LearnedModel", "RKHSErrorBound", "learn"),
+    "robust_imdp.bounds.gp_cells": ("ImageBounds", "PosteriorBounds", "bound_image", "bound_posterior"),
+    "robust_imdp.abstraction.rows": ("Abstraction", "CellBounds", "abstract", "confidence_cell_bounds"),
+    "robust_imdp.synthesis.core": ("SynthesisResult", "synthesize"),
+    "robust_imdp.synthesis.controller": ("Controller",),
+    "robust_imdp.pipeline.problem": ("Problem",),
+    "robust_imdp.pipeline.result": ("Result",),
+    "robust_imdp.pipeline.run": ("resynthesize", "synthesize_from_data"),
+    "robust_imdp.io.files": ("load_problem", "load_result", "save_problem", "save_result"),
+}
 
 __version__ = "0.1.0"
 
 if not any(isinstance(f, _OldPaths) for f in _sys.meta_path):
     _sys.meta_path.append(_OldPaths())  # last: only names no real module has
 
-#: Names imported on first use, with their modules: the default (RKHS) bound route and validation.
-#: ``validate`` is the module ``robust_imdp.validate`` (callable: it runs its ``validate`` function).
+#: Further names, with their modules: the default (RKHS) bound route and validation. ``validate`` is the
+#: module ``robust_imdp.validate`` (callable: it runs its ``validate`` function).
 _LAZY = {
     **{name: "robust_imdp.bounds.rkhs" for name in (
         "KernelModel", "CellRange", "ImageRanges", "NormCheck",
@@ -95,7 +91,8 @@ _LAZY = {
     **{name: "robust_imdp.validate" for name in ("validate", "simulate", "ValidationReport")},
 }
 
-__getattr__, __dir__ = lazy_names(__name__, _LAZY)
+__getattr__, __dir__ = lazy_names(__name__, {**{name: module for module, names in _NAMES.items() for name in names},
+                                              **_LAZY})
 
 __all__ = [
     *_errors,

@@ -337,8 +337,85 @@ def _tightened(problem, args):
     return problem
 
 
+class _Figures:
+    """The figures of ``run`` (``plotting.save_figures``, the same bytes whichever way they are drawn).
+
+    With a side lane (``pipeline.parallel.side_lane``) its helper processes draw them into a temporary folder:
+    those of the result after the solve while the advice and the margins run (:meth:`start`, the run's
+    ``on_solved``), the assumption margins' after the run (:meth:`finish`), each helper a share of the figures;
+    :meth:`collect` moves them into the staged outputs. This process then never imports matplotlib. Without a
+    lane, or when the lane cannot take them (``SideLaneError``), this process draws them all in :meth:`collect`.
+    """
+
+    #: Figures the result has when it is solved (those of 1-D and of 2-D and more; ``save_figures`` draws the
+    #: ones of the result's dimension), and those that wait for the end of the run.
+    EARLY = ("bounds", "partition", "classes", "p_low", "error")
+    LATE = ("b_margin",)
+
+    def __init__(self, lane, args):
+        self.enabled = not args.no_figures
+        self.lane = lane if self.enabled else None
+        self.options = {"slice": args.slice} if args.slice else {}
+        self.tmp, self.futures, self.result = None, [], None
+
+    def __enter__(self) -> "_Figures":
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        if self.tmp is not None:
+            import shutil
+
+            shutil.rmtree(self.tmp, ignore_errors=True)
+        return False
+
+    def _submit(self, result, names) -> None:
+        import dataclasses
+        import tempfile
+
+        if self.tmp is None:
+            self.tmp = Path(tempfile.mkdtemp(prefix="robust-imdp-figures-"))
+        light = dataclasses.replace(result, abstraction=None)  # what the figures read, without the IMDP
+        k = min(len(self.lane.helpers), len(names))
+        for group in (names[i::k] for i in range(k)):  # each helper converts the result once
+            self.futures.append(self.lane.submit("robust_imdp.plotting:save_figures", light, self.tmp,
+                                                 only=tuple(group), **self.options))
+
+    def start(self, result) -> None:
+        """``on_solved``: draw the figures the solved result already has."""
+        if self.lane is not None:
+            self._submit(result, self.EARLY)
+
+    def finish(self, result) -> None:
+        """After the run: draw the rest (all of them when :meth:`start` was not called)."""
+        self.result = result
+        if self.lane is not None:
+            names = self.LATE if self.futures else self.EARLY + self.LATE
+            if getattr(result, "b_margin", None) is not None or not self.futures:
+                self._submit(result, names)
+
+    def collect(self, out: Path) -> list:
+        """The figures' files in ``out`` (moved there, or drawn there in this process)."""
+        if not self.enabled:
+            return []
+        if self.lane is not None:
+            import shutil
+
+            from robust_imdp.pipeline.parallel import SideLaneError
+
+            try:
+                drawn = [Path(p) for f in self.futures for p in f.result()]
+            except SideLaneError:
+                drawn = None  # drawn below, in this process
+            if drawn is not None:
+                return [Path(shutil.move(str(p), str(out / p.name))) for p in drawn]
+        from robust_imdp.plotting import save_figures
+
+        return save_figures(self.result, out, **self.options)
+
+
 def _run_into(args, out: Path, cache: Path) -> int:
     from robust_imdp.io.files import load_problem, save_result
+    from robust_imdp.pipeline.parallel import SIDE_MIN_CELL_MODES, side_lane
     from robust_imdp.pipeline.run import synthesize_from_data
 
     problem = load_problem(args.problem)
@@ -357,22 +434,31 @@ def _run_into(args, out: Path, cache: Path) -> int:
     args.interrupt_note = (f"interrupted; the finished chunks are saved in {cache}: run the same command again "
                            "to resume" + (f" ({out}'s previous result is unchanged)" if (out / "result.json").exists()
                                           else ""))
+    # Side work (the assumption check, the figures) goes to helper processes beside the long stages on several
+    # cores, for problems large enough to hide their start-up (pipeline.parallel, "Side work"); they import
+    # what their tasks need while this process reads the data and starts the stages.
+    beside = args.workers != 1 and problem.n_grid_cells * len(problem.mode_names) >= SIDE_MIN_CELL_MODES
+    preload = ("robust_imdp.bounds.rkhs_check", "cvxpy") + (() if args.no_figures else ("robust_imdp.plotting",))
+    with side_lane(enabled=beside, preload=preload) as lane, _Figures(lane, args) as drawing:
+        return _run_and_write(args, out, cache, problem, drawing, synthesize_from_data, save_result)
+
+
+def _run_and_write(args, out: Path, cache: Path, problem, drawing: _Figures, synthesize_from_data, save_result) -> int:
+    """The run and its outputs (:func:`_run_into` inside its side lane)."""
     result = synthesize_from_data(problem, progress=not args.quiet, abstraction_cache=cache,
                                   workers=args.workers, scheduler=args.scheduler, check_resources=not args.yes,
                                   advice={"auto": "auto", "on": True, "off": False}[args.advice],
-                                  margins=getattr(args, "margins", "on") == "on")
+                                  margins=getattr(args, "margins", "on") == "on",
+                                  on_solved=drawing.start if drawing.lane is not None else None)
     from robust_imdp.io.result_file import staged_outputs
 
     # the new result and figures are written beside the old ones and replace them only when all are complete
     stage = None
     try:
         with staged_outputs(out, RESULT_OUTPUTS) as stage:
-            figures = []
-            if not args.no_figures:
-                from robust_imdp.plotting import save_figures
-
-                figures = save_figures(result, stage.path, **({"slice": args.slice} if args.slice else {}))
+            drawing.finish(result)  # helper processes draw while this one writes the result
             save_result(result, stage.path)
+            figures = drawing.collect(stage.path)
     except KeyboardInterrupt:
         if stage is not None and stage.committed:  # Ctrl-C during the swap: held back until it was over
             args.interrupt_note = f"interrupted after the new result was complete: it is in {out}"

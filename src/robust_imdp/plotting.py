@@ -57,6 +57,7 @@ __all__ = [
     "threshold_segments",
     "seam_segments",
     "save_figures",
+    "figure_names",
     "plot_calibration",
     "save_calibration_figure",
 ]
@@ -799,12 +800,28 @@ def plot_slices(result, kind: str = "classes", *, n_slices: int = 4, axis: int =
     return fig
 
 
-def save_figures(result, out_dir, *, trajectories=None, prefix: str = "", dpi: int = 130, slice=None) -> list:
+def figure_names(result, *, trajectories: bool = False) -> list:
+    """The names (file stems) of the PNGs :func:`save_figures` writes for ``result``, in its order: 1-D
+    ``bounds``; else ``partition``, ``classes``, ``p_low``, ``error``, ``b_margin`` (where the result has
+    assumption margins) and, with ``trajectories`` in 2-D, ``trajectories``."""
+    res = _result(result, dims=None)
+    d = res.cells_lower.shape[1]
+    if d == 1:
+        return ["bounds"]
+    margins = getattr(res, "b_margin", None) is not None  # b_margin.png where the run computed margins
+    return (["partition", "classes", "p_low", "error"] + (["b_margin"] if margins else [])
+            + (["trajectories"] if trajectories and d == 2 else []))
+
+
+def save_figures(result, out_dir, *, trajectories=None, prefix: str = "", dpi: int = 130, slice=None,
+                 only=None) -> list:
     """Write the standard PNGs for a result of any dimension (see the module docstring).
 
     1-D: ``bounds.png``. 2-D: ``partition``, ``classes``, ``p_low``, ``error``, ``b_margin`` (where the
     result has assumption margins; :func:`plot_margins`) and ``trajectories`` (if given). 3-D and more:
     the same but trajectories as panels of slices, where ``slice`` fixes coordinates (:func:`plot_slices`).
+    ``only``: the names (:func:`figure_names`) to write, e.g. one per process to draw them in parallel (each
+    figure's bytes do not depend on the others); None: all.
 
     Returns
     -------
@@ -817,15 +834,18 @@ def save_figures(result, out_dir, *, trajectories=None, prefix: str = "", dpi: i
     out.mkdir(parents=True, exist_ok=True)
     d = res.cells_lower.shape[1]
     written = []
+    wanted = set(figure_names(res, trajectories=trajectories is not None) if only is None else only)
     if d == 1:
-        fig, ax = plt.subplots(figsize=(6.4, 4.6), constrained_layout=True)
-        plot_bounds_1d(res, ax)
-        written.append(_save(fig, out / f"{prefix}bounds.png", dpi))
+        if "bounds" in wanted:
+            fig, ax = plt.subplots(figsize=(6.4, 4.6), constrained_layout=True)
+            plot_bounds_1d(res, ax)
+            written.append(_save(fig, out / f"{prefix}bounds.png", dpi))
         return written
     margins = getattr(res, "b_margin", None) is not None  # b_margin.png where the run computed margins
     if d >= 3:
         for kind in ("partition", "classes", "p_low", "error") + (("b_margin",) if margins else ()):
-            written.append(_save(plot_slices(res, kind, slice=slice), out / f"{prefix}{kind}.png", dpi))
+            if kind in wanted:
+                written.append(_save(plot_slices(res, kind, slice=slice), out / f"{prefix}{kind}.png", dpi))
         return written
     jobs = [("partition", lambda ax: plot_partition(res, ax)),
             ("classes", lambda ax: plot_classes(res, ax)),
@@ -836,6 +856,8 @@ def save_figures(result, out_dir, *, trajectories=None, prefix: str = "", dpi: i
     if trajectories is not None:
         jobs.append(("trajectories", lambda ax: plot_trajectories(res, trajectories, ax)))
     for name, draw in jobs:
+        if name not in wanted:
+            continue
         fig, ax = plt.subplots(figsize=(5.6, 5.2), constrained_layout=True)
         draw(ax)
         written.append(_save(fig, out / f"{prefix}{name}.png", dpi))
@@ -846,6 +868,7 @@ def _save(fig, path: Path, dpi: int) -> Path:
     fig.savefig(path, dpi=dpi)
     plt.close(fig)
     return path
+
 
 # --------------------------------------------------------------------------- calibration
 #: Most components drawn by :func:`plot_calibration` (one row each).
@@ -884,6 +907,8 @@ def plot_calibration(calibration, *, fig=None):
     -------
     matplotlib Figure
     """
+    from matplotlib.ticker import NullFormatter
+
     doc = _calibration_doc(calibration)
     comps = doc.get("components", [])[:CALIBRATION_ROWS]
     if not comps:
@@ -922,7 +947,7 @@ def plot_calibration(calibration, *, fig=None):
         ax.set_xlabel("lengthscale")
         ax.set_ylabel("minimum norm")
         ax.set_title(f"{name}: B below the curve is refuted", fontsize=9)
-        ax.legend(fontsize=7, loc="best")
+        ax.legend(fontsize=7, loc="upper center")
         ax = axes[r, 2]
         k = int(held["evaluated"])
         B = np.asarray(held["rkhs_bounds"], float)
@@ -938,6 +963,7 @@ def plot_calibration(calibration, *, fig=None):
         if held.get("clopper_pearson_upper") is not None:
             ax.plot([], [], " ", label=f"P[new sample outside] <= {held['clopper_pearson_upper']:.3g} "
                                        f"({held['confidence']:g})")
+        ax.xaxis.set_minor_formatter(NullFormatter())  # the grid spans a factor 16: minor labels collide
         ax.set_xlabel("B (rkhs_bound)")
         ax.set_ylabel("violations")
         ax.set_title(f"{name}: held-out evidence", fontsize=9)

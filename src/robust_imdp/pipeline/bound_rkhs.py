@@ -22,7 +22,7 @@ from robust_imdp.pipeline.bound_stage import (
     _known_gap,
     _known_ranges,
     _one_setting,
-    _prepare,
+    _prepare_beside,
     _residual_data,
     _shared_allowance,
 )
@@ -265,8 +265,9 @@ def _preflight(problem: Problem, data, partition, settings, local, extras, run: 
 
 
 def _run_missing(problem: Problem, data, partition, settings, local, extras, tasks, missing, chunk: int,
-                 results: dict, parts_dir, run: _Run, log: _Log) -> None:
-    """Bound the ``missing`` chunks on the run's scheduler into ``results``, each saved as it completes."""
+                 results: dict, parts_dir, run: _Run, log: _Log, check=None) -> None:
+    """Bound the ``missing`` chunks on the run's scheduler into ``results``, each saved as it completes; ``check``:
+    the assumption check running beside them (``bound_stage._PendingCheck``), whose refusal stops the stage."""
     sched = _preflight(problem, data, partition, settings, local, extras, run, len(missing), len(tasks), log)
     shared = _share_data(sched, data)
     args = _task_args(problem, shared, partition.cells_lower, partition.cells_upper, local, extras, missing, chunk)
@@ -280,6 +281,8 @@ def _run_missing(problem: Problem, data, partition, settings, local, extras, tas
             write_cache_entry(parts_dir / f"m{key[0]}-c{key[1]}-{chunk}.npz",
                               lambda tmp, r=res: _savez(tmp, {k: np.asarray(v) for k, v in r.items()}))
         log.progress("bound", len(results), len(tasks), t0, resumed=len(tasks) - len(missing))
+        if check is not None:
+            check.raise_if_refused()
 
 
 def _assemble(results: dict, M: int, N: int, n: int, chunk: int):
@@ -331,7 +334,8 @@ def learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" =
     from robust_imdp.bounds.rkhs import hoeffding_factor
 
     run = run if run is not None else _Run()
-    data, known_ranges, checks, check_noise = _prepare(problem, partition, log, cache_dir, run)
+    # the assumption check runs beside the bound stage where the scheduler can (bound_stage._start_check)
+    data, known_ranges, check = _prepare_beside(problem, partition, log, cache_dir, run)
     data_fail, iid_delta = _failure_budget(problem)
     noise_bound = _data_noise_bound(problem, data, data_fail)
     M, n, N = len(problem.mode_names), len(problem.space_lower), partition.n_cells
@@ -355,7 +359,8 @@ def learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" =
     with log.stage("bound"):
         if missing:
             _run_missing(problem, data, partition, settings, local, extras, tasks, missing, chunk, results,
-                         parts_dir, run, log)
+                         parts_dir, run, log, check)
+    checks, check_noise = check.result()
     lower, upper, support, unconv = _assemble(results, M, N, n, chunk)
     _finish_ranges(lower, upper, known_ranges)
     if scales is not None:  # the margins' boxes: the known part's range added at every scale too

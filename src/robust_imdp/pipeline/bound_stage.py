@@ -210,26 +210,99 @@ def _failure_budget(problem: Problem):
 
 def _scheduled_norms(run: "_Run | None", log: _Log):
     """The check's ``norms`` (``rkhs_check.check_assumption``): one task per mode and component on the run's
-    scheduler, the results in the jobs' order (the same SOCPs as in this process, so the same bits); without
-    a run (None) in this process."""
+    scheduler (``Scheduler.run_beside``), the results in the jobs' order (the same SOCPs as in this process, so
+    the same bits); without a run (None) in this process."""
     if run is None:
         return None
     from robust_imdp.bounds.rkhs_check import norm_task
 
     def norms(jobs):
-        sched = run.scheduler(log)
-        out = [None] * len(jobs)
-        for i, r in sched.run(norm_task, jobs):
-            out[i] = r
-        return out
+        return run.scheduler(log).run_beside(norm_task, jobs)
 
     return norms
 
 
-def _check_assumption(problem: Problem, data, log: _Log, cache_dir=None, run: "_Run | None" = None):
-    """The assumption check (``(checks, noise bound)``), reused from the cache when it passed before; its
-    components run as tasks on ``run``'s scheduler (None: in this process)."""
-    from robust_imdp.bounds.rkhs import check_assumption, noise_bound_at_confidence
+def _compute_checks(problem: Problem, data, nb, norms) -> tuple:
+    """The assumption check's ``NormCheck``s (raises ``AssumptionError`` for a refuted assumption): one setting
+    (``rkhs_check.check_assumption``) or per mode and component with the residuals' rounding in the noise
+    allowance (``assumptions.check_modes``)."""
+    if _one_setting(problem):
+        from robust_imdp.bounds.rkhs import check_assumption
+
+        return check_assumption([(x, y) for x, y, _ in data], lengthscale=problem.gp_options.get("lengthscale", 1.0),
+                                rkhs_bound=problem.rkhs_bound, noise_bound=_shared_allowance(problem, nb),
+                                misspecification=problem.misspecification, mode_names=problem.mode_names,
+                                sample_index=[idx for _, _, idx in data], norms=norms)
+    from robust_imdp.bounds.assumptions import check_modes
+
+    return check_modes([(x, y) for x, y, _ in data], _settings(problem), _noise_allowance(problem, nb),
+                       mode_names=problem.mode_names, sample_index=[idx for _, _, idx in data], norms=norms)
+
+
+class _PendingCheck:
+    """The assumption check of a run, computed at once or in a thread beside the bound stage.
+
+    :meth:`result` gives ``(checks, noise bound)`` (raising the check's ``AssumptionError``), saves a passed
+    check in the cache and logs it; :meth:`raise_if_refused` raises that error as soon as the check has refused,
+    so a run whose assumption the data refute stops within one bound task of the check's end.
+    """
+
+    def __init__(self, problem: Problem, log: _Log, check_file, nb, compute=None, beside: bool = False,
+                 cached=None):
+        import threading
+
+        self.problem, self.log, self.check_file, self.nb = problem, log, check_file, nb
+        self.checks, self.error, self.cached, self._reported = None, None, cached is not None, False
+        self._thread = None
+        if cached is not None:
+            self.checks, self.nb = cached
+        elif beside:
+            self._thread = threading.Thread(target=self._compute, args=(compute,), daemon=True,
+                                            name="robust-imdp assumption check")
+            self._thread.start()
+        else:
+            with log.stage("check"):
+                self._compute(compute)
+
+    def _compute(self, compute) -> None:
+        try:
+            self.checks = compute()
+        except BaseException as exc:  # raised in the caller's thread by result()
+            self.error = exc
+
+    def done(self) -> bool:
+        return self._thread is None or not self._thread.is_alive()
+
+    def raise_if_refused(self) -> None:
+        """Raise the check's error if it has ended with one (never waits)."""
+        if self.done() and self.error is not None:
+            self.result()
+
+    def result(self) -> tuple:
+        if self._thread is not None and self._thread.is_alive():
+            with self.log.stage("check"):  # the time the run waits for it
+                self._thread.join()
+        if self.error is not None:
+            raise self.error
+        if not self._reported:
+            self._reported = True
+            if self.check_file is not None and not self.cached:
+                _write_json_entry(self.check_file, {"checks": [asdict(c) for c in self.checks], "noise_bound": self.nb})
+            worst = max(self.checks, key=lambda c: c.minimum)
+            self.log.info(f"assumption check{' (reused from the cache)' if self.cached else ''}: the data need RKHS "
+                          f"norm >= {worst.minimum:.4g} (mode {self.problem.mode_names[worst.mode]}, component "
+                          f"{worst.output + 1}); rkhs_bound = {_setting_text(self.problem.rkhs_bound)}")
+        return self.checks, self.nb
+
+
+def _start_check(problem: Problem, data, log: _Log, cache_dir=None, run: "_Run | None" = None,
+                 beside_cell_modes: int = 0) -> _PendingCheck:
+    """Start the assumption check (reused from the cache when it passed before); its components run as tasks on
+    ``run``'s scheduler (None: in this process). With ``beside_cell_modes`` >= ``parallel.SIDE_MIN_CELL_MODES``
+    (the bound stage's cells x modes) and a scheduler that runs side work concurrently (a Dask cluster; in
+    process on several cores, its side lane) the check runs beside the bound stage: call the pending check's
+    ``result()`` when its checks are needed."""
+    from robust_imdp.bounds.rkhs import noise_bound_at_confidence
 
     m_total = sum(x.shape[0] for x, _, _ in data)
     nb, _ = noise_bound_at_confidence(problem.noise, m_total, CHECK_DELTA)
@@ -238,29 +311,23 @@ def _check_assumption(problem: Problem, data, log: _Log, cache_dir=None, run: "_
     check_file = None if cache_dir is None else Path(cache_dir) / f"check-{check_key(problem)}.json"
     cached = None if check_file is None else read_cache_entry(check_file, _read_checks)
     if cached is not None:
-        checks, nb = cached
-    else:
-        with log.stage("check"):
-            if _one_setting(problem):
-                checks = check_assumption([(x, y) for x, y, _ in data],
-                                          lengthscale=problem.gp_options.get("lengthscale", 1.0),
-                                          rkhs_bound=problem.rkhs_bound, noise_bound=_shared_allowance(problem, nb),
-                                          misspecification=problem.misspecification, mode_names=problem.mode_names,
-                                          sample_index=[idx for _, _, idx in data],
-                                          norms=_scheduled_norms(run, log))
-            else:  # per mode and component, with the residuals' rounding in the noise allowance
-                from robust_imdp.bounds.assumptions import check_modes
+        return _PendingCheck(problem, log, check_file, nb, cached=cached)
+    norms = _scheduled_norms(run, log)
+    beside = False
+    if run is not None and beside_cell_modes > 0:
+        from robust_imdp.pipeline.parallel import SIDE_MIN_CELL_MODES
 
-                checks = check_modes([(x, y) for x, y, _ in data], _settings(problem), _noise_allowance(problem, nb),
-                                     mode_names=problem.mode_names, sample_index=[idx for _, _, idx in data],
-                                     norms=_scheduled_norms(run, log))
-        if check_file is not None:
-            _write_json_entry(check_file, {"checks": [asdict(c) for c in checks], "noise_bound": nb})
-    worst = max(checks, key=lambda c: c.minimum)
-    log.info(f"assumption check{' (reused from the cache)' if cached is not None else ''}: the data need RKHS "
-             f"norm >= {worst.minimum:.4g} (mode {problem.mode_names[worst.mode]}, component {worst.output + 1}); "
-             f"rkhs_bound = {_setting_text(problem.rkhs_bound)}")
-    return checks, nb
+        if beside_cell_modes >= SIDE_MIN_CELL_MODES:
+            beside = run.scheduler(log).use_side_lane()
+    if beside:
+        log.info("assumption check: beside the bound stage (" + run.scheduler(log).side_description + ")")
+    return _PendingCheck(problem, log, check_file, nb, lambda: _compute_checks(problem, data, nb, norms), beside)
+
+
+def _check_assumption(problem: Problem, data, log: _Log, cache_dir=None, run: "_Run | None" = None):
+    """The assumption check (``(checks, noise bound)``), reused from the cache when it passed before; its
+    components run as tasks on ``run``'s scheduler (None: in this process)."""
+    return _start_check(problem, data, log, cache_dir, run).result()
 
 
 def _fitted(problem: Problem, data):
@@ -334,6 +401,16 @@ def _prepare(problem: Problem, partition, log: _Log, cache_dir=None, run: "_Run 
     known_ranges = _known_ranges(problem, partition.cells_lower, partition.cells_upper)
     checks, check_noise = _check_assumption(problem, data, log, cache_dir, run)
     return data, known_ranges, checks, check_noise
+
+
+def _prepare_beside(problem: Problem, partition, log: _Log, cache_dir=None, run: "_Run | None" = None):
+    """:func:`_prepare` with the assumption check started beside the bound stage where the run's scheduler can
+    (:func:`_start_check`): ``(data, known_ranges, pending check)``; its ``result()`` gives ``(checks,
+    check_noise)``, its ``raise_if_refused()`` stops the bound stage early for a refuted assumption."""
+    data = _residual_data(problem)
+    known_ranges = _known_ranges(problem, partition.cells_lower, partition.cells_upper)
+    check = _start_check(problem, data, log, cache_dir, run, partition.n_cells * len(problem.mode_names))
+    return data, known_ranges, check
 
 
 def _learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" = None, cache_dir=None):

@@ -14,21 +14,33 @@ the scheduler, the number of workers or the order of completion.
 :func:`open_scheduler` picks one: an explicit client or address wins; else ``workers=1`` runs in
 process on one core, ``workers=N`` (N > 1) starts a local cluster of N processes, and
 ``workers=None`` (the default) runs in process with numba threads on all local cores. The default
-never starts processes: a local cluster starts its workers with the ``spawn`` method, which
+never starts a Dask cluster: a local cluster starts its workers with the ``spawn`` method, which
 re-imports the caller's main module, so a user's script without an ``if __name__ ==
 "__main__":`` guard would run again in every worker (the ``robust-imdp`` command is safe; so are
 scripts with the guard).
+
+**Side work.** Work that is serial in itself and does not feed the next stage at once (the assumption
+check's SOCPs, the figures) runs *beside* the stages (:meth:`Scheduler.run_beside`): on a Dask cluster as
+tasks like the others; in process on several cores in a :class:`SideLane`, a few helper processes started
+with ``python -c`` (no ``multiprocessing``: the caller's main module is never imported again), one BLAS and
+numba thread each, fed pickled module-level functions over pipes. The numba stages keep every core busy
+meanwhile, so the side work overlaps them instead of adding to the run (docs/ARCHITECTURE.md, "Where the
+cores go"). One core (``workers=1``) runs everything in this process, in order, as before.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import threading
+from collections import deque
+from concurrent.futures import Future
 from typing import Any, Callable, Iterator, Sequence
 
 from robust_imdp.errors import InvalidInputError
 
-__all__ = ["Scheduler", "InProcess", "DaskScheduler", "open_scheduler", "local_cores"]
+__all__ = ["Scheduler", "InProcess", "DaskScheduler", "SideLane", "SideLaneError", "open_scheduler", "local_cores",
+           "side_lane", "current_lane", "side_helpers", "SIDE_MIN_CELL_MODES"]
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +66,27 @@ class Scheduler:
         """Yield ``(index, fn(*args[index], **kwargs))`` for every task, in order of completion."""
         raise NotImplementedError
 
+    #: Whether :meth:`run_beside`, called from another thread, runs concurrently with this scheduler's own tasks.
+    concurrent_side: bool = False
+    #: Where side work runs (for progress lines).
+    side_description: str = "in this process"
+
+    def run_beside(self, fn: Callable, args: Sequence[tuple], kwargs: dict | None = None) -> list:
+        """``[fn(*args[i], **kwargs) for i]`` in the tasks' order, as side work (see the module docstring).
+
+        Blocks until all are done. Where :attr:`concurrent_side` is true, a thread calling it leaves the
+        caller's thread free to run the stages' tasks meanwhile; otherwise the tasks run here and now.
+        """
+        out = [None] * len(args)
+        for i, r in self.run(fn, args, kwargs):
+            out[i] = r
+        return out
+
+    def use_side_lane(self) -> bool:
+        """Start the side work's helper processes where this scheduler has none and can use them (in process on
+        several cores); returns :attr:`concurrent_side`."""
+        return self.concurrent_side
+
     def close(self) -> None:
         """Release the workers (a no-op for schedulers this object did not start)."""
 
@@ -66,17 +99,57 @@ class Scheduler:
 
 
 class InProcess(Scheduler):
-    """A plain loop in this process; ``threads`` is the number of numba threads of each task."""
+    """A plain loop in this process; ``threads`` is the number of numba threads of each task.
+
+    With more than one thread, side work (:meth:`run_beside`) runs in a :class:`SideLane` once
+    :meth:`use_side_lane` is called: the one of an enclosing :func:`side_lane`, else one it starts (and
+    closes in :meth:`close`).
+    """
 
     def __init__(self, threads: int = 1):
         self.threads = max(1, int(threads))
         self.n_workers = self.threads  # cores in use (numba threads inside each task)
         self.description = f"in process, {self.threads} thread{'s' if self.threads > 1 else ''}"
+        self.lane: "SideLane | None" = None
+        self._own_lane = False
 
     def run(self, fn, args, kwargs=None):
         kw = dict(kwargs or {})
         for i, a in enumerate(args):
             yield i, fn(*a, threads=self.threads, **kw)
+
+    @property
+    def concurrent_side(self) -> bool:
+        return self.lane is not None
+
+    @property
+    def side_description(self) -> str:
+        if self.lane is None:
+            return "in this process"
+        n = len(self.lane.helpers)
+        return f"{n} helper process{'es' if n > 1 else ''}"
+
+    def use_side_lane(self) -> bool:
+        if self.lane is None and self.threads > 1:
+            self.lane = current_lane()
+            if self.lane is None:
+                try:
+                    self.lane, self._own_lane = SideLane(side_helpers(self.threads)), True
+                except OSError as exc:  # no interpreter to start (an embedded Python): side work stays in process
+                    log.info("side work stays in process: %s", exc)
+        return self.concurrent_side
+
+    def run_beside(self, fn, args, kwargs=None):
+        if self.lane is None:
+            return super().run_beside(fn, args, kwargs)
+        kw = dict(kwargs or {})
+        futures = [self.lane.submit(fn, *a, threads=1, **kw) for a in args]
+        return [f.result() for f in futures]
+
+    def close(self):
+        if self._own_lane and self.lane is not None:
+            self.lane.close()
+        self.lane, self._own_lane = None, False
 
 
 class DaskScheduler(Scheduler):
@@ -96,6 +169,10 @@ class DaskScheduler(Scheduler):
         workers = info.get("workers", {})
         self.n_workers = max(1, sum(int(w.get("nthreads", 1)) for w in workers.values()))
         self.description = f"Dask at {client.scheduler.address} ({len(workers)} workers, {self.n_workers} threads)"
+
+    #: side work runs as tasks on the cluster beside the stages' (a thread may call run_beside meanwhile)
+    concurrent_side = True
+    side_description = "tasks on the Dask cluster"
 
     def share(self, obj):
         return self.client.scatter(obj, broadcast=True)
@@ -165,3 +242,297 @@ def open_scheduler(*, workers: int | None = None, scheduler: str | None = None, 
                                silence_logs=logging.ERROR)
     log.info("started a local Dask cluster with %d worker processes", n)
     return DaskScheduler(Client(cluster), owned=True)
+
+
+# ---------------------------------------------------------------------------------------------- side work
+#: Side work goes to helper processes only from this many (cell, mode) pairs on: below it the bound stage is
+#: too short to hide a helper's start-up (an interpreter, numpy, numba and the task's modules: about a second
+#: of CPU), and the check and the figures cost a fraction of a second in process.
+SIDE_MIN_CELL_MODES = 8192
+#: The helpers' environment: one BLAS / OpenMP / numba thread each (the stages' numba threads hold the cores;
+#: the SOCPs' and figures' matrices are small, and several BLAS threads spinning beside them cost more than
+#: they give). The BLAS results do not depend on the thread count for the check's matrices
+#: (tests/test_side_lane.py compares the bits with the in-process check).
+SIDE_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+            "NUMBA_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+_HEADER = 8  # bytes of a message's length
+
+
+class SideLaneError(RuntimeError):
+    """The side lane could not run a task (a helper ended, the lane was closed, the task or its answer could not
+    be pickled): not the task's own failure, so the caller may run it in process instead."""
+
+
+def side_helpers(cores: int) -> int:
+    """Helper processes of a side lane beside ``cores`` busy cores: one up to 4 cores, then one per 4, at most 4."""
+    return max(1, min(4, int(cores) // 4))
+
+
+def _send(stream, obj) -> None:
+    import pickle
+
+    data = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
+    stream.write(len(data).to_bytes(_HEADER, "little") + data)
+    stream.flush()
+
+
+def _receive(stream):
+    """The next message, or raise EOFError when the other side has closed the pipe."""
+    import pickle
+
+    head = stream.read(_HEADER)
+    if len(head) < _HEADER:
+        raise EOFError("the pipe was closed")
+    n = int.from_bytes(head, "little")
+    data = stream.read(n)
+    if len(data) < n:
+        raise EOFError("the pipe was closed in a message")
+    return pickle.loads(data)
+
+
+class _Helper:
+    """One helper process of a :class:`SideLane` and the thread that reads its answers."""
+
+    def __init__(self, lane: "SideLane", index: int, preload: Sequence[str]):
+        import subprocess
+        import sys
+
+        import robust_imdp
+
+        env = dict(os.environ, **SIDE_ENV)
+        # the helper imports the same robust_imdp as this process, whatever sys.path the caller set up
+        root = os.path.dirname(os.path.dirname(os.path.abspath(robust_imdp.__file__)))
+        env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        code = "from robust_imdp.pipeline.parallel import _helper_main; _helper_main()"
+        # a session of its own: Ctrl-C in the terminal reaches this process only, which closes the lane
+        self.proc = subprocess.Popen([sys.executable, "-c", code, *preload], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, env=env, start_new_session=True)
+        self.lane, self.index = lane, index
+        self.current: "tuple | None" = None  # (task id, future) of the task it runs
+        self.reader = threading.Thread(target=self._read, name=f"robust-imdp side helper {index}", daemon=True)
+        self.reader.start()
+
+    def _read(self) -> None:
+        while True:
+            try:
+                tid, ok, value, text = _receive(self.proc.stdout)
+            except BaseException as exc:  # the helper died or the lane closed it
+                self.lane._lost(self, exc)
+                return
+            self.lane._done(self, tid, ok, value, text)
+
+
+class SideLane:
+    """Helper processes for side work (see the module docstring): :meth:`submit` a module-level function
+    and its arguments (picklable), get a ``concurrent.futures.Future``.
+
+    Tasks go to the first idle helper, in the order submitted. A task's exception is raised by its future's
+    ``result()`` (with the helper's traceback as a note). A helper that dies fails its task with
+    ``RuntimeError`` and the lane's queued tasks with it. Use it as a context manager or call :meth:`close`
+    (helpers also exit when this process's end of their pipe closes).
+
+    Parameters
+    ----------
+    n_helpers : int
+    preload : sequence of str
+        Modules every helper imports as it starts (beside this process's work), e.g. ``robust_imdp.plotting``.
+    """
+
+    def __init__(self, n_helpers: int = 1, preload: Sequence[str] = ()):
+        self._lock = threading.Lock()
+        self._queue: deque = deque()
+        self._closed = False
+        self._next = 0
+        self.helpers: list = []
+        self._idle: list = []
+        try:
+            for i in range(max(1, int(n_helpers))):
+                helper = _Helper(self, i, tuple(preload))
+                with self._lock:
+                    self.helpers.append(helper)
+                    if helper.proc.returncode is None and not getattr(helper, "lost", False):
+                        self._idle.append(helper)
+        except BaseException:
+            self.close()
+            raise
+
+    def submit(self, fn: "Callable | str", *args, **kwargs) -> Future:
+        """Run ``fn(*args, **kwargs)`` in a helper; its future. ``fn``: a module-level function, or its name
+        ``"module:function"`` (imported by the helper only: e.g. a plotting function, so that this process does
+        not import matplotlib)."""
+        fut: Future = Future()
+        with self._lock:
+            if self._closed or all(getattr(h, "lost", False) for h in self.helpers):
+                raise SideLaneError("the side lane is closed" if self._closed else "every side-work helper ended")
+            self._next += 1
+            self._queue.append((self._next, fut, fn, args, kwargs))
+            self._dispatch()
+        return fut
+
+    def _dispatch(self) -> None:
+        """Send queued tasks to idle helpers (with the lock held)."""
+        while self._queue and self._idle:
+            helper = self._idle.pop(0)
+            tid, fut, fn, args, kwargs = self._queue.popleft()
+            if not fut.set_running_or_notify_cancel():
+                self._idle.insert(0, helper)
+                continue
+            helper.current = (tid, fut)
+            try:
+                _send(helper.proc.stdin, (tid, fn, args, kwargs))
+            except Exception as exc:  # pickling failed or the helper is gone
+                helper.current = None
+                self._idle.insert(0, helper)
+                err = SideLaneError(f"the side lane could not send the task: {type(exc).__name__}: {exc}")
+                err.__cause__ = exc
+                fut.set_exception(err)
+
+    def _done(self, helper: _Helper, tid: int, ok: bool, value, text: str) -> None:
+        with self._lock:
+            current, helper.current = helper.current, None
+            if not self._closed:
+                self._idle.append(helper)
+                self._dispatch()
+        if current is None or current[0] != tid:
+            return
+        fut = current[1]
+        if ok:
+            fut.set_result(value)
+        else:
+            if text and hasattr(value, "add_note"):
+                value.add_note(f"in the side-work helper process:\n{text}")
+            fut.set_exception(value)
+
+    def _lost(self, helper: _Helper, exc: BaseException) -> None:
+        with self._lock:
+            helper.lost = True
+            current, helper.current = helper.current, None
+            closed = self._closed
+            if helper in self._idle:
+                self._idle.remove(helper)
+            # the queue waits for a helper still alive; with none left it fails
+            orphans = [] if any(not getattr(h, "lost", False) for h in self.helpers) else list(self._queue)
+            if orphans:
+                self._queue.clear()
+        why = SideLaneError("the side lane was closed" if closed else
+                            f"a side-work helper process ended (exit status {helper.proc.poll()}): {exc}")
+        for item in ([current] if current else []) + [(o[0], o[1]) for o in orphans]:
+            if not item[1].done():
+                item[1].set_exception(why)
+
+    def close(self, timeout: float = 5.0) -> None:
+        """Stop the helpers (their running tasks are abandoned, queued ones cancelled)."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            queued, self._queue = list(self._queue), deque()
+        for _, fut, *_ in queued:
+            fut.cancel()
+        for h in self.helpers:
+            try:
+                h.proc.stdin.close()  # the helper's loop ends at the end of its input
+            except OSError:
+                pass
+        for h in self.helpers:
+            try:
+                h.proc.wait(timeout=timeout if h.current is None else 0.5)
+            except Exception:
+                h.proc.kill()
+                h.proc.wait()
+            h.reader.join(timeout=timeout)
+            h.proc.stdout.close()
+
+    def __enter__(self) -> "SideLane":
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        self.close()
+        return False
+
+    def __del__(self):
+        try:
+            self.close(timeout=0.5)
+        except Exception:
+            pass
+
+
+_LANES: list = []
+
+
+class side_lane:  # noqa: N801 - used as a function: ``with side_lane(...) as lane``
+    """A :class:`SideLane` that the runs inside the ``with`` block use for their side work (see
+    :func:`current_lane`), closed at the end of the block; ``None`` when there is no use for one (one core, or
+    ``enabled`` false).
+
+    Parameters
+    ----------
+    enabled : bool
+    n_helpers : int, optional
+        Default :func:`side_helpers` of the local cores.
+    preload : sequence of str
+    """
+
+    def __init__(self, enabled: bool = True, n_helpers: int | None = None, preload: Sequence[str] = ()):
+        self.lane = None
+        cores = local_cores()
+        if enabled and cores > 1:
+            try:
+                self.lane = SideLane(side_helpers(cores) if n_helpers is None else n_helpers, preload)
+            except OSError as exc:
+                log.info("side work stays in process: %s", exc)
+
+    def __enter__(self) -> "SideLane | None":
+        if self.lane is not None:
+            _LANES.append(self.lane)
+        return self.lane
+
+    def __exit__(self, *exc) -> bool:
+        if self.lane is not None:
+            if self.lane in _LANES:
+                _LANES.remove(self.lane)
+            self.lane.close()
+        return False
+
+
+def current_lane() -> "SideLane | None":
+    """The side lane of the innermost :func:`side_lane` block, or None."""
+    return _LANES[-1] if _LANES else None
+
+
+def _helper_main() -> None:
+    """The loop of a side-work helper process: import the modules named on its command line, then run each
+    task it reads (``(id, fn, args, kwargs)``) and send back ``(id, ok, value or exception, traceback text)``,
+    until its input ends."""
+    import importlib
+    import signal
+    import sys
+    import traceback
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # this process's parent decides when to stop
+    proto = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)  # a task's prints go to stderr, not into the answers
+    sys.stdout = sys.stderr
+    for name in sys.argv[1:]:
+        try:
+            importlib.import_module(name)
+        except Exception:  # the task that needs it will say why
+            pass
+    source = sys.stdin.buffer
+    while True:
+        try:
+            tid, fn, args, kwargs = _receive(source)
+        except EOFError:
+            return
+        try:
+            if isinstance(fn, str):  # "module:function"
+                module, _, name = fn.partition(":")
+                fn = getattr(importlib.import_module(module), name)
+            answer = (tid, True, fn(*args, **kwargs), "")
+        except BaseException as exc:  # noqa: BLE001 - every failure goes back to the caller
+            answer = (tid, False, exc, traceback.format_exc())
+        try:
+            _send(proto, answer)
+        except Exception as exc:  # an unpicklable result or exception: its text instead
+            _send(proto, (tid, False, SideLaneError(f"the answer could not be sent back: {type(exc).__name__}: "
+                                                    f"{exc}"), answer[3]))

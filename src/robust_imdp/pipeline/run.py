@@ -236,7 +236,8 @@ def _class_names(classes, syn, threshold) -> np.ndarray:
 
 def synthesize_from_data(problem: Problem, *, progress: bool = True, abstraction_cache=None, client=None,
                          workers: int | None = None, scheduler: str | None = None, chunk_cells: int | None = None,
-                         check_resources: bool = True, advice="auto", margins: bool = True) -> Result:
+                         check_resources: bool = True, advice="auto", margins: bool = True,
+                         on_solved=None) -> Result:
     """Learn, bound, abstract and synthesize: data and formula in, guarantees out.
 
     Parameters
@@ -275,6 +276,11 @@ def synthesize_from_data(problem: Problem, *, progress: bool = True, abstraction
         every B scaled by it (``result.b_margin``, the summary's ``assumption margins:`` line). The bound stage
         certifies the larger-B boxes with the same weights (no new optimisation); each factor costs one
         abstraction and one evaluation of the controller. Not computed for known dynamics and the GP route.
+    on_solved : callable, optional
+        Called with the :class:`Result` as it stands right after the solve, when its cells, classes and
+        bounds are final (not with ``[refine]``, whose rounds change them): no advice, no margins (the stages
+        that follow). It runs in the run's thread; the command line starts drawing the figures there, in
+        helper processes, while the advice and the margins run (``pipeline.parallel.SideLane``).
 
     Returns
     -------
@@ -290,6 +296,9 @@ def synthesize_from_data(problem: Problem, *, progress: bool = True, abstraction
     run = _Run(client=client, workers=workers, scheduler=scheduler, chunk_cells=chunk_cells,
                check_resources=check_resources)
     run.advice = advice
+    if on_solved is not None and not callable(on_solved):
+        raise InvalidInputError(f"on_solved must be callable or None; got {type(on_solved).__name__}")
+    run.on_solved = on_solved
     run.margins = margins
     if margins:  # the bound stage certifies the boxes at the larger factors of B too (pipeline/margins.py)
         from robust_imdp.pipeline.margins import bound_scales, skip_reason
@@ -338,6 +347,7 @@ def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cac
     if why:
         log.info(why)
     syn, classes = _synthesize(problem, partition, abstraction, dfa, log)
+    _notify_solved(problem, partition, abstraction, dfa, syn, classes, run, from_cache, diagnostics)
     # known dynamics: no data and no assumption, nothing the advice's levers could change
     advice = {} if problem.known else run_advice(problem, partition, abstraction, cell_bounds, dfa, classes, log, run,
                                                  abstraction_cache, diagnostics)
@@ -353,6 +363,18 @@ def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cac
                     parameters=parameters, from_cache=from_cache,
                     diagnostics=diagnostics, advice=advice, b_margin=b_margin, margins=margins_doc)
     return result
+
+
+def _notify_solved(problem: Problem, partition, abstraction, dfa, syn, classes, run: _Run, from_cache: bool,
+                   diagnostics: dict) -> None:
+    """``on_solved`` of :func:`synthesize_from_data` with the result after the solve, when no refinement
+    follows (the advice and the margins add to the result; they change none of its cells, classes or bounds)."""
+    callback = getattr(run, "on_solved", None)
+    if callback is None or problem.refine is not None:
+        return
+    callback(Result(problem=problem, partition=partition, abstraction=abstraction, dfa=dfa, synthesis=syn,
+                    class_names=classes, timings={}, parameters=_parameters(problem, abstraction),
+                    from_cache=from_cache, diagnostics=diagnostics))
 
 
 def _margins(problem: Problem, grid, partition, syn, classes, dfa, log: _Log, run: _Run, cache_dir):
