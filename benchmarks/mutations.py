@@ -670,6 +670,23 @@ MUTATIONS = [
          replacement="    return np.minimum(up(upp * pg), 1.0)",
          description="exact rows, GP route: the upper bound P_g upper + (1 - P_g) without the failure branch",
          tests=_MT),
+    # ------------------------------------------------------------------ the safety reading, known dynamics
+    dict(name="safety-complement-down-off", file="src/robust_imdp/_fp.py",
+         original="    return np.where(e < 0, np.nextafter(s, -np.inf), s)",
+         replacement="    return s",
+         description="_fp.complement_down (p_low = 1 - P(bad prefix)) keeps fl(1 - x) where it rounded up",
+         tests=["tests/test_semantics.py"]),
+    dict(name="safety-evaluation-adversary-not-swapped", file="src/robust_imdp/solvers/product.py",
+         original='    adv_max = (enum_value(Adversary, adversary, "adversary") is Adversary.OPTIMISTIC) != safety',
+         replacement='    adv_max = enum_value(Adversary, adversary, "adversary") is Adversary.OPTIMISTIC',
+         description="safety reading: a strategy's pessimistic evaluation lets the adversary minimise the probability "
+                     "of a bad prefix (p_low = 1 - that, too high)",
+         tests=["tests/test_semantics.py"]),
+    dict(name="known-tau-shrink-1e-3", file="src/robust_imdp/pipeline/bound_stage.py",
+         original="        t = np.broadcast_to(tau[u], (k, n))",
+         replacement="        t = np.broadcast_to(tau[u] * (1 - 1e-3), (k, n))",
+         description="known dynamics: the misspecification allowance tau of every known component x (1 - 1e-3)",
+         tests=["tests/test_known_systems.py"]),
 ]
 
 

@@ -360,5 +360,6 @@ def test_run_prints_the_reading_and_refuses_a_vacuous_one(tmp_path, capsys):
     assert "semantics: safety (a path satisfies it when no prefix is a bad prefix and it stays in X, within 3 " \
            "steps; auto: 'G des' is safety" in err
     assert res.semantics == "safety" and np.all(res.p_low < 1.0)  # the edges leave X with positive probability
+    assert "horizon 3 (safety reading)" in res.summary().splitlines()[0]
     with pytest.raises(VacuousSpecificationError, match="every cell would get p_low in"):
         synthesize_from_data(load_problem(p).replace(semantics="reach"), advice=False, progress=False)

@@ -122,6 +122,9 @@ def known_cell_bounds(problem: Problem, cells_lower, cells_upper):
     M, n, k = len(problem.maps), int(np.size(problem.space_lower)), np.shape(cells_lower)[0]
     lower, upper = np.empty((M, k, n)), np.empty((M, k, n))
     for u, r in enumerate(known_images(problem.maps, cells_lower, cells_upper)):
+        if not np.any(tau[u] > 0):  # exactly known: the certified range as it is
+            lower[u], upper[u] = r.lower, r.upper
+            continue
         t = np.broadcast_to(tau[u], (k, n))
         lower[u], upper[u] = add_ranges(r.lower, r.upper, -t, t)
     return lower, upper
