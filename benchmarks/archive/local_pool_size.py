@@ -1,6 +1,6 @@
 """Local pool size against data density on the family's 3-D systems (issue 20: when do local pools lose cells?).
 
-    python benchmarks/local_pool_size.py [--ratios 0.03 0.06] [--densities 2 4 8] [--pools 100 200 400]
+    python benchmarks/archive/local_pool_size.py [--ratios 0.03 0.06] [--densities 2 4 8] [--pools 100 200 400]
 
 For each r/l and data density (points per cell; 8^3 cells, so 1,024 / 2,048 / 4,096 points per mode),
 the bound time of all modes and outputs and Q_yes with local pools of each size and with all points,
@@ -21,7 +21,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: the shared helpers
 import family as F  # noqa: E402
 from reference import results_record, write_results  # noqa: E402
 

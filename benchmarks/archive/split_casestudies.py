@@ -6,7 +6,7 @@ value given (the problem file has no such key, so the setting is injected by wra
 ``rkhs.bound_chunk``, which the bound stage imports at call time). Repeats ``--reps`` times and
 reports the median bound time. ``PYTHONPATH=<other tree>/src`` measures another tree the same way.
 
-Usage: ``python benchmarks/split_casestudies.py [--tol none 0.0015 ...] [--reps 2] [--out NAME]``;
+Usage: ``python benchmarks/archive/split_casestudies.py [--tol none 0.0015 ...] [--reps 2] [--out NAME]``;
 prints one JSON line per (problem, tol) and writes ``benchmarks/results/NAME.json`` if ``--out``.
 """
 
@@ -22,7 +22,7 @@ from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-HERE = Path(__file__).resolve().parent
+HERE = Path(__file__).resolve().parents[1]  # benchmarks/
 PROBLEMS = ("three_mode_linear", "four_mode_nonlinear")
 
 

@@ -1,6 +1,6 @@
 """Q_yes against split_tol on the family's worst 2-D configuration (issue 20): can finer sub-boxes reach the optimal boxes?
 
-    python benchmarks/split_tol_sweep.py [--key d2-rl0.5-nz0.15-dn2] [--tols 0.0015 0.00075 0.0004]
+    python benchmarks/archive/split_tol_sweep.py [--key d2-rl0.5-nz0.15-dn2] [--tols 0.0015 0.00075 0.0004]
 
 Our cell bounds (``family.our_boxes``) at several ``split_tol`` against the per-cell optimal boxes
 (``family.optimal_boxes``, the Q_yes ceiling of the family table): Q_yes, the slack of the sampled cells
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import family  # noqa: E402
 from reference import results_record, write_results  # noqa: E402

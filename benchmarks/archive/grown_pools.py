@@ -1,6 +1,6 @@
 """Local pools grown by kernel weight, family 3-D (issue 20: can pools keep the far-but-correlated points cheaply?).
 
-    python benchmarks/grown_pools.py [--ratios 0.03 0.06 0.125 0.25] [--kappas 0.9 0.7 0.5]
+    python benchmarks/archive/grown_pools.py [--ratios 0.03 0.06 0.125 0.25] [--kappas 0.9 0.7 0.5]
 
 Today a local pool is the 100 nearest points of every cell. Here a cell's pool is its k nearest points
 with k the number of points whose kernel value at the cell centre is at least kappa, clipped to
@@ -25,7 +25,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: the shared helpers
 import family as F  # noqa: E402
 from reference import results_record, write_results  # noqa: E402
 

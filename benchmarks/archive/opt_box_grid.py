@@ -1,6 +1,6 @@
 """How much of the family's Q_yes gap to the per-cell optimal boxes is the boxes' own grid? (issue 20)
 
-    python benchmarks/opt_box_grid.py [--only KEY ...]
+    python benchmarks/archive/opt_box_grid.py [--only KEY ...]
 
 The family's *optimal boxes* are the max / min of the pointwise optimal bound over a grid of points in
 every cell (``family.optimal_boxes``, ``OPT_BOX_GRID`` per axis): an inner approximation of each cell's
@@ -15,7 +15,7 @@ import argparse
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import family  # noqa: E402
 from reference import results_record, write_results  # noqa: E402

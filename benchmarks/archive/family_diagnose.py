@@ -12,7 +12,7 @@ For each configuration of ``benchmarks/family.py`` (same seeded system and data)
 * ``ours`` with ``split_tol`` None and ``rkhs.SPLIT_TOL`` (and, where the family uses local pools,
   the same with all points, ``local_points=None``).
 
-Usage: ``python benchmarks/family_diagnose.py KEY [KEY ...] [--grid N]``; writes
+Usage: ``python benchmarks/archive/family_diagnose.py KEY [KEY ...] [--grid N]``; writes
 ``benchmarks/results/family_diagnose.json`` (merged per key) and prints one line per configuration.
 """
 
@@ -28,7 +28,7 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: the shared helpers
 import family as F  # noqa: E402
 
 from robust_imdp.bounds import rkhs  # noqa: E402

@@ -1,6 +1,6 @@
 """What closes the 3-D local pools' slack? Pointwise bounds of three pool variants against the optimum (issue 20).
 
-    python benchmarks/pool_variants.py [--ratios 0.03 0.125 0.25]
+    python benchmarks/archive/pool_variants.py [--ratios 0.03 0.125 0.25]
 
 On the family's 3-D middle configuration (1,024 points per mode, first mode and output), at the grid points
 of the sampled cells (``family.slack_cells``, ``OPT_GRID`` per axis; degenerate cells, so no Taylor term),
@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import family  # noqa: E402
 from reference import results_record, write_results  # noqa: E402

@@ -5,7 +5,7 @@ configurations, ``benchmarks/family.py``): per r/l, both without and with sub-bo
 the bound time of all modes and outputs, the slack over the optimal range (median per side over
 the family's sampled cells, first mode and output) and Q_yes. Ratios are measured in one run.
 
-    python benchmarks/local_auto.py [--ratios 0.03 0.06 ...] [--split-ratios ...]
+    python benchmarks/archive/local_auto.py [--ratios 0.03 0.06 ...] [--split-ratios ...]
 
 Writes ``benchmarks/results/local_auto.json`` and ``.md`` (``--name`` another name).
 """
@@ -21,7 +21,7 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: the shared helpers
 import family as F  # noqa: E402
 from reference import results_record, write_results  # noqa: E402
 

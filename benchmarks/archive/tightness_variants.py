@@ -12,7 +12,7 @@ yardstick; the variants change one setting of the shipped problem at a time:
 * a sweep of the RKHS bound B on the two-goal problem (the price of a larger safety margin).
 
 Writes ``benchmarks/results/tightness_variants.json`` and ``.md``. Usage:
-``python benchmarks/tightness_variants.py [--no-sweep]``
+``python benchmarks/archive/tightness_variants.py [--no-sweep]``
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: the shared helpers
 from reference import CASES, OUT, PROBLEMS, _counts, _git_commit, reference  # noqa: E402
 
 from robust_imdp.io.files import load_problem  # noqa: E402

@@ -6,7 +6,7 @@ points or all points, this bounds the family's sampled cells (first mode, all ou
 ``split_tol = rkhs.SPLIT_TOL`` and reports the bound time of those cells and the slack over the optimal
 range (median per side, first output). Times of one row are comparable within the run only.
 
-    python benchmarks/sub_cap.py [--ratios 0.25 0.5] [--caps 4 5 6 8]
+    python benchmarks/archive/sub_cap.py [--ratios 0.25 0.5] [--caps 4 5 6 8]
 
 Writes ``benchmarks/results/sub_cap.json`` and ``.md``.
 """
@@ -22,7 +22,7 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/: the shared helpers
 import family as F  # noqa: E402
 from reference import results_record, write_results  # noqa: E402
 
