@@ -33,15 +33,9 @@ demo: venv
 test: venv
 	$(PY) -m pytest -q
 
+# The README's Performance table; other suites: $(PY) benchmarks/run.py --list
 bench: venv
-	$(PY) benchmarks/solver.py
-	$(PY) benchmarks/parallel_sweep.py
-	$(PY) benchmarks/abstraction.py
-	$(PY) benchmarks/bounds.py
-	$(PY) benchmarks/reference.py
-	$(PY) benchmarks/tightness_variants.py
-	$(PY) benchmarks/scale.py
-	$(PY) benchmarks/refinement.py
+	$(PY) benchmarks/run.py perf
 
 clean:
 	rm -rf $(VENV) results
