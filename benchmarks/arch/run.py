@@ -343,7 +343,8 @@ def child(name: str, quick: bool, out: Path, mc_cells: int, mc_runs: int, seed: 
     row["monte_carlo"] = {"cells": int(len(rep.cells)), "runs_per_cell": int(rep.n_per_cell),
                           "flagged": int(len(rep.outside)), "allowed": int(rep.allowed_outside),
                           "expected": float(rep.expected_outside), "passed": bool(rep.passed),
-                          "seconds": time.perf_counter() - t1,
+                          "seconds": time.perf_counter() - t1, "empirical": _stats(rep.empirical),
+                          "p_low_of_cells": _stats(rep.p_low), "p_up_of_cells": _stats(rep.p_up),
                           "max_excess_below": float(np.max(np.asarray(rep.p_low) - np.asarray(rep.wilson_up),
                                                            initial=-1.0)),
                           "max_excess_above": float(np.max(np.asarray(rep.wilson_low) - np.asarray(rep.p_up),
@@ -444,6 +445,9 @@ def render(data: dict) -> str:
             ref = f"{rr['label']}: max p_low {rr['p_low']['max']:.4f} ({rr['cells']} cells); published {rr['published']}"
         mc = r["monte_carlo"]
         mc_txt = f"{'passed' if mc['passed'] else '**FAILED**'} {mc['flagged']} / {mc['allowed']} ({mc['cells']} cells)"
+        if "empirical" in mc:  # mean over the tested cells: p_low <= empirical <= p_up
+            mc_txt += (f"; mean {mc['p_low_of_cells']['mean']:.3f} <= {mc['empirical']['mean']:.3f} <= "
+                       f"{mc['p_up_of_cells']['mean']:.3f}")
         lines.append(f"| {r['name']} | {r['cells']:,} x {r['modes']} | {spec} | {r['form']} | {_fmt_stats(r['p_low'])} | "
                      f"{_fmt_stats(r['p_up'])} | {r['q_yes']} / {r['q_no']} / {r['q_maybe']} | {ref} | "
                      f"{r['wall_seconds']:.1f} s ({stages}) | {r['peak_mb']:.0f} MB | "
