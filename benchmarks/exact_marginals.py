@@ -69,6 +69,15 @@ def _compare(row: dict, a: dict, b: dict) -> None:
     row["p_low_drop"] = float(np.max(np.asarray(a["p_low"]) - np.asarray(b["p_low"])))
 
 
+def _as(problem, kind: str):
+    """``problem`` with ``transitions = kind`` and, where the pipeline has a factored form, the joint IMDP (this
+    benchmark measures the joint rows; the factored form has its own, benchmarks/factored_pipeline.py)."""
+    from dataclasses import fields
+
+    extra = {"form": "joint"} if "form" in {f.name for f in fields(problem)} else {}
+    return problem.replace(transitions=kind, **extra)
+
+
 def _pipeline_run(problem, cache, **kw) -> dict:
     from robust_imdp.pipeline.run import synthesize_from_data
 
@@ -133,10 +142,10 @@ def suite_car(args, work: Path) -> list:
     from robust_imdp.validate import validate
 
     problem, true_system = car_problem()
-    estimate = exact_successors(problem.replace(transitions="exact"))
+    estimate = exact_successors(_as(problem, "exact"))
     runs = {}
     for k in KINDS:
-        r = _pipeline_run(problem.replace(transitions=k), work / "car-cache")
+        r = _pipeline_run(_as(problem, k), work / "car-cache")
         rep = validate(r["result"], true_system, n_per_cell=args.mc, rng=1)
         r["mc_outside"] = int(len(rep.outside))
         r["mc_allowed_outside"] = int(rep.allowed_outside)
@@ -161,7 +170,7 @@ def suite_problems(args, work: Path) -> list:
         if args.only and name not in args.only:
             continue
         problem = load_problem(file)
-        runs = {k: _pipeline_run(problem.replace(transitions=k), work / f"cache-{name}") for k in KINDS}
+        runs = {k: _pipeline_run(_as(problem, k), work / f"cache-{name}") for k in KINDS}
         row = _row(name, runs, suite="problems", threshold=float(problem.threshold), horizon=problem.horizon)
         print(f"{name}: Q_yes thm1 {row['thm1']['yes']} exact {row['exact']['yes']} (lost {row['lost']}, gained "
               f"{row['gained']}) of {row['exact']['cells']}; entries/row {row['thm1']['entries_per_row']:.1f} -> "
@@ -219,15 +228,16 @@ def suite_eta(args, work: Path) -> list:
     bound = np.asarray(base.noise.bound, float)
     rows = []
     cache = work / "eta" / "cache"
-    exact = _pipeline_run(base.replace(transitions="exact"), cache)
+    exact = _pipeline_run(_as(base, "exact"), cache)
     for frac in (0.96, 0.97, 0.985, 0.995, 1.0):
-        runs = {"thm1": _pipeline_run(base.replace(eta=frac * sigma, eps_rule="optimized"), cache), "exact": exact}
+        runs = {"thm1": _pipeline_run(_as(base.replace(eta=frac * sigma, eps_rule="optimized"), "thm1"), cache),
+                "exact": exact}
         row = _row(f"eta {frac} sigma", runs, suite="eta", noise_scale=1.0, eta_fraction=frac)
         print(f"eta {frac}: Q_yes thm1 {row['thm1']['yes']} exact {row['exact']['yes']}", flush=True)
         rows.append(row)
     for scale in (4.0, 16.0, 32.0):
         p = base.replace(noise=TruncatedGaussianNoise(sigma * scale, bound * scale))
-        runs = {k: _pipeline_run(p.replace(transitions=k), work / "eta" / f"cache-{scale:g}") for k in KINDS}
+        runs = {k: _pipeline_run(_as(p, k), work / "eta" / f"cache-{scale:g}") for k in KINDS}
         row = _row(f"noise x{scale:g} (bound {bound[0] * scale:g}, cells 0.125)", runs, suite="eta",
                    noise_scale=scale, eta_fraction=None)
         print(f"noise x{scale:g}: Q_yes thm1 {row['thm1']['yes']} exact {row['exact']['yes']}; mean p_low "
@@ -236,7 +246,7 @@ def suite_eta(args, work: Path) -> list:
     # the grid at noise x16 (bound 0.16): cells wider and narrower than the noise
     for cell in (0.25, 0.0625):
         p = base.replace(noise=TruncatedGaussianNoise(sigma * 16, bound * 16), cell_size=np.full(2, cell))
-        runs = {k: _pipeline_run(p.replace(transitions=k), work / "eta" / f"cache-grid-{cell:g}") for k in KINDS}
+        runs = {k: _pipeline_run(_as(p, k), work / "eta" / f"cache-grid-{cell:g}") for k in KINDS}
         row = _row(f"noise x16 (bound {bound[0] * 16:g}, cells {cell:g})", runs, suite="eta", noise_scale=16.0,
                    eta_fraction=None, cell=cell)
         print(f"grid {cell:g}: Q_yes thm1 {row['thm1']['yes']} exact {row['exact']['yes']}; mean p_low "
