@@ -312,9 +312,9 @@ def child(name: str, quick: bool, out: Path, mc_cells: int, mc_runs: int, seed: 
         path = Path(tmp) / bench.file
         path.write_text(problem_text(bench, quick))
         problem = load_problem(path)
-    form = problem.form_choice()[0] if hasattr(problem, "form_choice") else "joint"
+    form, why = problem.form_choice() if hasattr(problem, "form_choice") else ("joint", "no factored form")
     row.update(grid_cells=int(problem.n_grid_cells), modes=len(problem.mode_names), formula=problem.formula,
-               horizon=problem.horizon, threshold=float(problem.threshold), form=form)
+               horizon=problem.horizon, threshold=float(problem.threshold), form=form, form_reason=why)
     result = synthesize_from_data(problem, progress=False, advice=False, margins=False)
     row["seconds"] = time.perf_counter() - t0
     row["peak_mb"] = _peak_mb()
