@@ -93,16 +93,62 @@ def _write_problems(work: Path, names, reach_cells: int, unicycle_cells: int, en
 
 
 # ---------------------------------------------------------------------------------------------- the child
+class _CPU:
+    """CPU seconds of every thread of this process and of the side lane's helper processes, attributed to the
+    part of the run in progress (``bucket``): per part the total and the estimate of its wall time on ``p``
+    idle cores, ``max(the busiest thread's CPU, total CPU / p)`` summed over the intervals between samples (a
+    thread's work cannot be shared, and ``p`` cores do at most ``p`` seconds of work per second). Read from
+    ``/proc`` (clock ticks, 10 ms); the helpers' last seconds are sampled just before their lane closes."""
+
+    def __init__(self, p: int):
+        self.p, self.bucket, self.last, self.parts = p, "startup", {}, {}
+        self.tick = os.sysconf("SC_CLK_TCK")
+
+    def _read(self) -> dict:
+        out = {}
+        for tid in os.listdir("/proc/self/task"):
+            try:
+                with open(f"/proc/self/task/{tid}/stat") as fh:
+                    f = fh.read().rsplit(")", 1)[1].split()
+                out[("t", tid)] = (int(f[11]) + int(f[12])) / self.tick
+            except OSError:  # the thread ended
+                pass
+        from robust_imdp.pipeline import parallel
+
+        for lane in list(getattr(parallel, "_LANES", [])):
+            for h in lane.helpers:
+                try:
+                    with open(f"/proc/{h.proc.pid}/stat") as fh:
+                        f = fh.read().rsplit(")", 1)[1].split()
+                    out[("h", h.proc.pid)] = (int(f[11]) + int(f[12])) / self.tick
+                except OSError:
+                    pass
+        return out
+
+    def switch(self, bucket: str) -> None:
+        now = self._read()
+        deltas = [max(0.0, v - self.last.get(k, 0.0)) for k, v in now.items()]
+        self.last.update(now)
+        part = self.parts.setdefault(self.bucket, {"cpu": 0.0, "cpu_main_process": 0.0, "wall_estimate": 0.0})
+        total = sum(deltas)
+        part["cpu"] += total
+        part["cpu_main_process"] += sum(max(0.0, d) for (k, d) in zip(now, deltas) if k[0] == "t")
+        part["wall_estimate"] += max(max(deltas, default=0.0), total / self.p)
+        self.bucket = bucket
+
+
 def child(args) -> int:
     """One ``robust-imdp run`` in this process, timed; writes the timings under ``args.child``."""
     t_enter = time.time()
     c_enter = time.process_time()
     marks: dict = {}
+    cpu = _CPU(len(os.sched_getaffinity(0)))
     import robust_imdp.cli as cli
-    from robust_imdp.pipeline import runtime
+    from robust_imdp.pipeline import parallel, runtime
 
     stage_cpu: dict = {}
     original_stage = runtime._Log.stage
+    depth = [0]
 
     def stage(self, name):
         inner = original_stage(self, name)
@@ -110,32 +156,48 @@ def child(args) -> int:
         class _Timed:
             def __enter__(self_):
                 self_.c = time.process_time()
+                depth[0] += 1
+                if depth[0] == 1:  # a stage inside a stage (the advice's solves) belongs to the outer one
+                    cpu.switch(name)
                 return inner.__enter__()
 
             def __exit__(self_, *exc):
                 stage_cpu[name] = stage_cpu.get(name, 0.0) + time.process_time() - self_.c
+                depth[0] -= 1
+                if depth[0] == 0:
+                    cpu.switch("outside_stages")
                 return inner.__exit__(*exc)
 
         return _Timed()
 
     runtime._Log.stage = stage
+    if hasattr(parallel, "SideLane"):
+        original_close = parallel.SideLane.close
+
+        def close(self, *a, **kw):
+            cpu.switch(cpu.bucket)  # the helpers' last CPU seconds, before they exit
+            return original_close(self, *a, **kw)
+
+        parallel.SideLane.close = close
     import robust_imdp.io.files as files
     import robust_imdp.pipeline.run as run_module
 
-    def timed(module, attr, key):
+    def timed(module, attr, key, bucket, after):
         fn = getattr(module, attr)
 
         def wrapper(*a, **kw):
             t0, c0 = time.time(), time.process_time()
+            cpu.switch(bucket)
             try:
                 return fn(*a, **kw)
             finally:
+                cpu.switch(after)
                 marks.setdefault(key, []).append((t0, time.time(), time.process_time() - c0))
 
         setattr(module, attr, wrapper)
 
-    timed(run_module, "synthesize_from_data", "run")
-    timed(files, "save_result", "save_result")
+    timed(run_module, "synthesize_from_data", "run", "outside_stages", "figures")
+    timed(files, "save_result", "save_result", "writing", "figures")
     results = {}
 
     def keep(fn):
@@ -150,6 +212,7 @@ def child(args) -> int:
     argv = ["run", str(args.problem), "--out", str(args.out), "--quiet"] + (["--workers", "1"] if args.config == "one" else [])
     rc = cli.main(argv)
     t_exit = time.time()
+    cpu.switch("end")
     import resource
 
     (r0, r1, c_run), = marks["run"]
@@ -160,7 +223,7 @@ def child(args) -> int:
            "startup_in_process_s": r0 - t_enter, "run_s": r1 - r0, "after_run_s": t_exit - r1,
            "writing_s": w1 - w0, "figures_and_rest_s": (t_exit - r1) - (w1 - w0),
            "stages": stages, "stage_cpu": stage_cpu, "cpu_s": time.process_time() - c_enter, "cpu_run_s": c_run,
-           "cpu_writing_s": c_write,
+           "cpu_writing_s": c_write, "cpu_parts": cpu.parts, "cores": cpu.p,
            "children_cpu_s": sum(getattr(resource.getrusage(resource.RUSAGE_CHILDREN), f) for f in ("ru_utime", "ru_stime"))}
     Path(args.child).write_text(json.dumps(doc, indent=1))
     return int(rc)
@@ -202,7 +265,28 @@ def _run_one(config: str, problem: Path, run_dir: Path, env: dict, cores: list) 
     import hashlib
 
     doc["digest_without_advice"] = hashlib.sha256(json.dumps(kept, sort_keys=True).encode()).hexdigest()
+    doc["result_json"] = str(run_dir / "out" / "result.json")
     return doc
+
+
+def _first_difference(docs: list) -> str | None:
+    """The first result.json key (without run fields and the advice) where a run differs from the first one."""
+    sys.path.insert(0, str(HERE))
+    from identical import _drop, _first_difference as first, _strip
+
+    def load(d):
+        j = _strip(json.loads(Path(d["result_json"]).read_text()), "", [])
+        _drop(j, "diagnostics.advice")
+        return j
+
+    try:
+        ref = load(docs[0])
+        for d in docs[1:]:
+            if d["digest_without_advice"] != docs[0]["digest_without_advice"]:
+                return first(ref, load(d))
+    except (OSError, KeyError):  # a run's output is gone (another work folder)
+        return "unknown (outputs removed)"
+    return None
 
 
 # ---------------------------------------------------------------------------------------------- summary
@@ -224,6 +308,24 @@ def _parts(doc: dict) -> dict:
     return out
 
 
+def _estimate(pairs, p: int) -> dict:
+    """From the CPU seconds (``_CPU``): per part the one-core run's CPU (its wall time on an idle core) and the
+    all-cores run's wall estimate on ``p`` idle cores; medians over the pairs, and the per-pair speed-up and
+    serial share (``(p T_p - T_1) / (p - 1)`` per part, summed, over the one-core total)."""
+    pairs = [(a, b) for a, b in pairs if "cpu_parts" in a and "cpu_parts" in b]
+    if not pairs:
+        return {}
+    keys = [k for k, _ in ROWS if any(k in a["cpu_parts"] or k in b["cpu_parts"] for a, b in pairs)]
+    one = [{k: a["cpu_parts"].get(k, {}).get("cpu", 0.0) for k in keys} for a, _ in pairs]
+    all_ = [{k: b["cpu_parts"].get(k, {}).get("wall_estimate", 0.0) for k in keys} for _, b in pairs]
+    ratio = [sum(x.values()) / sum(y.values()) for x, y in zip(one, all_)]
+    serial = [sum(max(0.0, (p * y[k] - x[k]) / (p - 1)) for k in keys) / sum(x.values()) for x, y in zip(one, all_)]
+    return {"rows": {k: {"one": _median([x[k] for x in one]), "all": _median([y[k] for y in all_])} for k in keys},
+            "total": {"one": _median([sum(x.values()) for x in one]), "all": _median([sum(y.values()) for y in all_])},
+            "ratio_per_pair": ratio, "ratio": _median(ratio), "serial_share_per_pair": serial,
+            "serial_share": _median(serial), "n_pairs": len(pairs)}
+
+
 def summarise(runs: dict, p: int) -> dict:
     """Per problem: median wall per row and configuration, per-pair ratios, serial parts, identity."""
     out = {}
@@ -241,10 +343,12 @@ def summarise(runs: dict, p: int) -> dict:
                    for pair in pairs for d in pair]
         without = [d["digest_without_advice"] + json.dumps(d["digest"]["npz"], sort_keys=True)
                    for pair in pairs for d in pair]
-        out[name] = {"rows": med, "ratio_per_pair": ratio, "ratio": _median(ratio),
+        est = _estimate(pairs, p)
+        out[name] = {"estimate": est, "rows": med, "ratio_per_pair": ratio, "ratio": _median(ratio),
                      "serial_share_per_pair": serial, "serial_share": _median(serial),
                      "amdahl_share_per_pair": amdahl, "amdahl_share": _median(amdahl),
                      "identical": len(set(digests)) == 1, "identical_without_advice": len(set(without)) == 1,
+                     "first_difference_without_advice": _first_difference([d for pair in pairs for d in pair]),
                      "n_pairs": len(pairs),
                      "cpu": {"one": _median([a["cpu_s"] + a["children_cpu_s"] for a, _ in pairs]),
                              "all": _median([b["cpu_s"] + b["children_cpu_s"] for _, b in pairs]),
@@ -255,42 +359,58 @@ def summarise(runs: dict, p: int) -> dict:
     return out
 
 
+def _table(rows: dict, total: dict, p: int) -> list:
+    lines = ["| part | one core s | all cores s | speed-up | serial part s |", "|---|---|---|---|---|"]
+    for k, label in ROWS:
+        if k in rows:
+            a, b = rows[k]["one"], rows[k]["all"]
+            ser = max(0.0, (p * b - a) / (p - 1)) if p > 1 else float("nan")
+            lines.append(f"| {label} | {a:.2f} | {b:.2f} | {a / b if b > 0 else float('nan'):.2f} | {ser:.2f} |")
+    a, b = total["one"], total["all"]
+    return lines + [f"| **end to end** | {a:.2f} | {b:.2f} | {a / b if b > 0 else float('nan'):.2f} | |"]
+
+
 def write_md(doc: dict, path: Path) -> None:
     p = doc["machine"]["cores_used"]
     lines = [f"# Serial parts of a run (`benchmarks/serial_parts.py`)", "",
              f"{doc['machine']['date']}; {doc['machine']['cores']} cores, {p} used; python {doc['machine']['python']}; "
              f"source `{doc['src']}`. {doc['note']}", "",
-             f"one core: `taskset -c 0`, `NUMBA_NUM_THREADS=1`, `--workers 1`; all cores: the default "
-             f"`robust-imdp run` on {p} cores. Medians of alternating pairs of runs (one core, then all cores); a stage's serial part "
-             f"is `(p T_p - T_1) / (p - 1)` (what did not run in parallel), summed over the rows as a share of the "
-             f"one-core time. Wall seconds; the 1-minute load average of the machine before / after each pair is "
-             f"listed (the machine is shared: a load above {p} means the runs did not have the cores to themselves)."]
+             f"One core: `taskset -c 0`, `NUMBA_NUM_THREADS=1`, `--workers 1`; all cores: the default `robust-imdp "
+             f"run` on {p} cores; each a fresh process, output and cache, alternating (one core, then all cores). A "
+             f"part's serial part is `(p T_p - T_1) / (p - 1)`, what did not run in parallel; their sum over the "
+             f"one-core time is the run's serial share.", "",
+             f"Two tables per problem. **Estimated for {p} idle cores** (load-independent): every thread's and "
+             f"helper's CPU seconds are sampled at each stage boundary; one core = the one-core run's CPU seconds; "
+             f"all cores = per interval between samples max(the busiest thread or helper, CPU / {p}), summed (a "
+             f"lower bound of the wall time on idle cores, reached when nothing waits). **Measured** wall seconds on "
+             f"the shared machine, with its 1-minute load average: above {p}, and with the kernel's per-session "
+             f"fair share (autogroup), a run's threads do not get the cores, so its wall times say little about "
+             f"cores."]
     for name, s in doc["summary"].items():
-        desc = doc["problems"][name]
-        lines += ["", f"## {name}: {desc}", "",
-                  "| part | one core s | all cores s | speed-up | serial part s |", "|---|---|---|---|---|"]
-        for k, label in ROWS + [("total", "**end to end**")]:
-            if k not in s["rows"]:
-                continue
-            a, b = s["rows"][k]["one"], s["rows"][k]["all"]
-            ser = max(0.0, (p * b - a) / (p - 1)) if p > 1 else float("nan")
-            lines.append(f"| {label} | {a:.2f} | {b:.2f} | {a / b if b > 0 else float('nan'):.2f} | "
-                         f"{'' if k == 'total' else f'{ser:.2f}'} |")
+        lines += ["", f"## {name}: {doc['problems'][name]}", ""]
+        est = s.get("estimate") or {}
+        if est:
+            lines += [f"**Estimated for {p} idle cores** (medians of {est['n_pairs']} pairs):", ""]
+            lines += _table(est["rows"], est["total"], p)
+            lines += ["", f"Estimated speed-up **{est['ratio']:.2f}x** (per pair "
+                          f"{', '.join(f'{r:.2f}' for r in est['ratio_per_pair'])}; target >= {TARGET_SPEEDUP}x on 2 "
+                          f"cores); serial part **{100 * est['serial_share']:.1f} %** of the one-core time (per pair "
+                          f"{', '.join(f'{100 * v:.1f}' for v in est['serial_share_per_pair'])} %; target <= "
+                          f"{100 * TARGET_SERIAL:.0f} %).", ""]
+        lines += [f"**Measured** wall seconds (medians of {s['n_pairs']} pairs):", ""]
+        lines += _table({k: v for k, v in s["rows"].items() if k != "total"}, s["rows"]["total"], p)
         lines += ["",
-                  f"Speed-up end to end: **{s['ratio']:.2f}x** (median of per-pair ratios "
-                  f"{', '.join(f'{r:.2f}' for r in s['ratio_per_pair'])}; target >= {TARGET_SPEEDUP}x on 2 cores). "
-                  f"Serial part (sum of the rows): **{100 * s['serial_share']:.1f} %** of the one-core time "
-                  f"(per pair {', '.join(f'{100 * v:.1f}' for v in s['serial_share_per_pair'])} %; end to end by "
-                  f"Amdahl {100 * s['amdahl_share']:.1f} %; target <= {100 * TARGET_SERIAL:.0f} %). Identical results "
-                  f"(result.json without run fields, every result.npz array) in all {2 * s['n_pairs']} runs: "
-                  f"**{s['identical']}**; without `diagnostics.advice` (which levers the advice estimates within its "
-                  f"time budget depends on the machine's speed): **{s['identical_without_advice']}**.",
-                  f"CPU seconds (this process + helper processes): one core {s['cpu']['one']:.1f}, all cores "
-                  f"{s['cpu']['all']:.1f} (helpers {s['cpu']['all_helpers']:.1f}). Load average before / after each "
-                  f"pair: {'; '.join(f'{a:.1f} / {b:.1f}' for a, b in s['loads'])}.",
-                  "Stage CPU seconds (this process, one core / all cores): " + ", ".join(
-                      f"{k} {s['stage_cpu']['one'].get(k, 0.0):.1f} / {s['stage_cpu']['all'].get(k, 0.0):.1f}"
-                      for k in s["stage_cpu"]["one"])]
+                  f"Measured speed-up {s['ratio']:.2f}x (per pair {', '.join(f'{r:.2f}' for r in s['ratio_per_pair'])}); "
+                  f"serial part {100 * s['serial_share']:.1f} % (per pair "
+                  f"{', '.join(f'{100 * v:.1f}' for v in s['serial_share_per_pair'])} %). Load average before / after "
+                  f"each pair: {'; '.join(f'{a:.1f} / {b:.1f}' for a, b in s['loads'])}.", "",
+                  f"Identical results (result.json without run fields, every result.npz array) in all "
+                  f"{2 * s['n_pairs']} runs: **{s['identical']}**; without `diagnostics.advice` (which levers the "
+                  f"advice estimates within its time budget depends on the machine's speed): "
+                  f"**{s['identical_without_advice']}**"
+                  + (f" (first difference: `{s['first_difference_without_advice']}`)"
+                     if s.get("first_difference_without_advice") else "") + ". CPU seconds (this process + helpers): one core "
+                  f"{s['cpu']['one']:.1f}, all cores {s['cpu']['all']:.1f} (helpers {s['cpu']['all_helpers']:.1f})."]
     path.write_text("\n".join(lines) + "\n")
 
 
@@ -305,6 +425,7 @@ def main(argv=None) -> int:
     ap.add_argument("--name", default="serial_parts", help="results file name (benchmarks/results/NAME.json, .md)")
     ap.add_argument("--note", default="", help="a line for the table (what the tree is)")
     ap.add_argument("--work", default=None, help="where the runs' outputs go (default: a temporary folder)")
+    ap.add_argument("--append", action="store_true", help="add the pairs to those of benchmarks/results/NAME.json")
     ap.add_argument("--render", nargs=2, metavar=("JSON", "MD"), help="write the md of a saved json only")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     ap.add_argument("--config", help=argparse.SUPPRESS)
@@ -329,18 +450,22 @@ def main(argv=None) -> int:
             "unicycle_3d": f"`robust-imdp example unicycle_3d` at {args.unicycle_cells}^3 = {args.unicycle_cells ** 3:,} "
                            "cells x 3 modes, 10,000 points per mode, local weights (50 points)"}
     runs: dict = {name: [] for name in probs}
+    if args.append and (OUT / f"{args.name}.json").exists():  # more pairs for an earlier record (same tree)
+        for name, pairs in json.loads((OUT / f"{args.name}.json").read_text())["runs"].items():
+            runs.setdefault(name, [])[:0] = pairs
     doc = {}
     for r in range(args.repeat):
         for name, prob in probs.items():
             pair = []
             for config in ("one", "all"):
-                d = _run_one(config, prob, work / "runs" / f"{name}-{config}-{r}", env, cores)
+                d = _run_one(config, prob, work / "runs" / f"{name}-{config}-{len(runs[name])}", env, cores)
                 pair.append(d)
-                print(f"{name} {config} #{r}: {d['wall_s']:.1f} s (load {d['load_before'][0]:.1f} -> "
+                print(f"{name} {config} #{len(runs[name])}: {d['wall_s']:.1f} s (load {d['load_before'][0]:.1f} -> "
                       f"{d['load_after'][0]:.1f}) stages {json.dumps({k: round(v, 1) for k, v in d['stages'].items()})}",
                       flush=True)
             runs[name].append(pair)
-            doc = {"src": args.src or str(ROOT / "src"), "note": args.note, "problems": {n: desc[n] for n in probs},
+            doc = {"src": args.src or str(ROOT / "src"), "note": args.note,
+                   "problems": {n: desc[n] for n in runs if runs[n]},
                    "machine": {"python": platform.python_version(), "cores": os.cpu_count(), "cores_used": len(cores),
                                "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())},
                    "summary": summarise({n: v for n, v in runs.items() if v}, len(cores)), "runs": runs}
