@@ -62,6 +62,41 @@ ROWS = [("startup", "start-up (interpreter, imports, reading the problem)"), ("s
 
 
 # ---------------------------------------------------------------------------------------------- problems
+#: ``build_problem``'s assumption (not refuted by its data at lengthscale 1, with a margin) and samples per mode.
+RKHS_BOUND = 6.0
+N_PER_MODE = 300
+
+
+def build_problem(cell: float):
+    """The three-mode linear system on [-2, 2]^2 with cells of ``cell``, 300 seeded samples per mode, truncated
+    Gaussian noise (sigma 0.01, bound 0.02), lengthscale 1, B = 6 (this benchmark's problem before the
+    ``robust-imdp run`` problems above; ``advice_sub_boxes.py`` and ``tight_problems.py`` use it)."""
+    import numpy as np
+
+    from robust_imdp.casestudies.systems import get_case_study
+    from robust_imdp.models.noise import TruncatedGaussianNoise
+    from robust_imdp.models.system import AffineMap, Dataset
+    from robust_imdp.pipeline.problem import Problem
+
+    case = get_case_study("three_mode_linear")
+    sysm = case.system
+    sigma, bound = np.array([0.01, 0.01]), np.array([0.02, 0.02])
+    rng = np.random.default_rng(7)
+    u = np.repeat(np.arange(3), N_PER_MODE)
+    lo, hi = np.array(case.lower), np.array(case.upper)
+    x = lo + rng.random((u.size, 2)) * (hi - lo)
+    from scipy.stats import truncnorm
+
+    noise = truncnorm.rvs(-2.0, 2.0, size=(u.size, 2), random_state=rng) * sigma
+    xn = np.einsum("kij,kj->ki", sysm.known_A[u], x) + sysm.known_b[u] + sysm.g(x, u) + noise
+    return Problem(
+        space_lower=lo, space_upper=hi, cell_size=np.array([cell, cell]), regions=case.regions,
+        formula="G !obs & F des", threshold=0.95, horizon=None,
+        data=Dataset(x, u, xn, modes=sysm.mode_names), mode_names=sysm.mode_names,
+        maps=tuple(AffineMap.zero(2) for _ in range(3)), noise=TruncatedGaussianNoise(sigma, bound),
+        rkhs_bound=RKHS_BOUND, gp_options={"lengthscale": 1.0}, misspecification=0.001)
+
+
 def _write_problems(work: Path, names, reach_cells: int, unicycle_cells: int, env: dict) -> dict:
     """``{name: problem file}`` under ``work``."""
     out = {}
