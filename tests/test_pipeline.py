@@ -187,12 +187,15 @@ def test_result_reports_the_synthesis_of_its_own_abstraction(run):
     abstraction gives bit-identical p_low / p_up / p_up_star and strategy. (The numbers of
     synthesize() itself are checked against brute force and Monte Carlo in test_synthesis.py,
     test_sensitivity.py and test_tight_monte_carlo.py; together this catches, e.g., a p_low
-    scaled by 1.01 between synthesis and the result.)"""
+    scaled by 1.01 between synthesis and the result.) The run's nominal model, which ranks the modes of equal
+    robust value, is built again from the problem (synthesis.ties)."""
+    from robust_imdp.pipeline.nominal_stage import nominal_model
     from robust_imdp.synthesis.core import synthesize
 
     res, _ = run
     part = res.partition
     again = synthesize(res.abstraction.imdp, part.labels, part.atoms, res.dfa, threshold=res.problem.threshold,
-                       horizon=res.problem.horizon, outside_state=part.outside_state)
+                       horizon=res.problem.horizon, outside_state=part.outside_state,
+                       nominal=nominal_model(res.problem, part))
     for name in ("p_low", "p_up", "p_up_star", "strategy"):
         np.testing.assert_array_equal(getattr(res.synthesis, name), getattr(again, name), err_msg=name)

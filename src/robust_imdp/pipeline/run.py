@@ -186,12 +186,14 @@ def _build_abstraction(problem: Problem, partition, log: _Log, cache_dir=None, r
 
 
 def _synthesize(problem: Problem, partition, abstraction, dfa, log: _Log):
+    from robust_imdp.pipeline.nominal_stage import run_nominal
     from robust_imdp.synthesis.core import synthesize
 
+    nominal = run_nominal(problem, partition, log)  # ranks modes of equal robust value (synthesis.ties)
     with log.stage("synthesize"):
         syn = synthesize(abstraction.imdp, partition.labels, partition.atoms, dfa,
                          threshold=problem.threshold, horizon=problem.horizon,
-                         outside_state=partition.outside_state, semantics=problem.semantics)
+                         outside_state=partition.outside_state, semantics=problem.semantics, nominal=nominal)
     classes = _class_names(syn.classes, syn, problem.threshold)
     return syn, classes
 
@@ -434,11 +436,17 @@ def _refine(problem: Problem, partition, abstraction, syn, cell_bounds, dfa, log
 
 def _refine_solver(problem: Problem, dfa):
     """``(abstraction, partition) -> SynthesisResult`` of the refinement rounds: the run's solve, with its reading."""
+    from robust_imdp.pipeline.nominal_stage import nominal_dynamics, nominal_model
     from robust_imdp.synthesis.core import synthesize
 
+    dynamics = []  # the nominal model's dynamics, computed once for every round
+
     def solve(ab, part):
+        if not dynamics:
+            dynamics.append(nominal_dynamics(problem))
         return synthesize(ab.imdp, part.labels, part.atoms, dfa, threshold=problem.threshold, horizon=problem.horizon,
-                          outside_state=part.outside_state, semantics=problem.semantics)
+                          outside_state=part.outside_state, semantics=problem.semantics,
+                          nominal=nominal_model(problem, part, dynamics[0]))
 
     return solve
 

@@ -112,6 +112,20 @@ nodes Z, induction gives ``x_k >= y_k`` (``y_k = 0`` on Z, B monotone elsewhere)
 fixed points are the limits.  The strategy's bounds are always re-evaluated by the caller
 (:func:`robust_imdp.synthesis.core.synthesize` checks they keep the optimal lower value).
 
+More keys (:class:`EngineTies`).  ``tie_break`` may also be a sequence of keys, most significant
+first, each the row values of a model with the same states and choices (the solved IMDP itself, or
+another one: the nominal model of :mod:`robust_imdp.abstraction.nominal`) against a value vector of
+its own, with a fallback strategy for the nodes the attractor never reaches.  The keys are merged
+into one score by their lexicographic rank (:func:`_key_rank`; every key but the last is compared
+on a grid of ``_KEY_TOL``), so the attractor and the fallback above are unchanged.  A minimising
+controller with keys takes, among the rows of *exactly* least value against the proven upper vector
+(so that ``B_pi(u) = B(u) <= u`` still holds and the value stays at most u), the one of least rank.
+k steps: each key's model is iterated alongside the lower values (its k-step values under a
+controller of the same direction), and the decision with t steps to go is, among the rows within
+``_TIE_TOL`` of the best lower row value (exactly least for a minimising controller), the best by
+the keys' rows against their (t - 1)-step values.  Keys only choose among rows that are optimal
+for the value being solved; they never change a bound.
+
 Where the pieces live: the kernels of the Bellman operator and of the per-component iteration
 in :mod:`robust_imdp.solvers.kernels` (with the rounding-error bound ``ROW_ERR`` of one row), the
 graph pre-computations and end components in :mod:`robust_imdp.solvers.graph`, the sweeps over
@@ -123,6 +137,7 @@ strategy.
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -148,12 +163,13 @@ def solve_layered(imdp, nxt, target, zero, *, ctrl, adv_max, horizon=None, preci
         MAXIMISE, MINIMISE, or FIXED: the rows of ``strategy`` ((1 or k, L, n) choice indices).
     adv_max : bool
         The adversary maximises the value (else minimises).
-    tie_break : result of the optimistic solve, optional
-        Only for ``ctrl=MAXIMISE``: an object with ``upper`` (L, n) and ``strategy`` (L, n), the
-        (max, max) solve of the same model (``ctrl=MAXIMISE, adv_max=True``).  Rows tied in the lower
-        value are then chosen by their optimistic value (see "Strategy extraction" in the module
+    tie_break : result of the optimistic solve, or :class:`EngineTies`, optional
+        A result: only for ``ctrl=MAXIMISE``, an object with ``upper`` (L, n) and ``strategy`` (L, n),
+        the (max, max) solve of the same model (``ctrl=MAXIMISE, adv_max=True``).  Rows tied in the
+        lower value are then chosen by their optimistic value (see "Strategy extraction" in the module
         docstring).  k-step: only its presence matters; the optimistic values of every step are
-        recomputed alongside the lower ones (one more sweep per step).
+        recomputed alongside the lower ones (one more sweep per step).  An :class:`EngineTies`
+        (``ctrl=MAXIMISE`` or ``MINIMISE``): the keys of "More keys" in the module docstring.
     method : a name of :data:`METHODS`
         The algorithm of the unbounded values (checked by the callers,
         :func:`robust_imdp.solvers.api.check_method`).
@@ -182,15 +198,43 @@ def solve_layered(imdp, nxt, target, zero, *, ctrl, adv_max, horizon=None, preci
                       method, tie_break)
 
 
-def _check_tie_break(tie_break, imdp, L, n, ctrl, horizon):
-    """``(upper (L, n) float, strategy (L, n) int)`` of an optimistic result, checked; k-step: ``()``."""
+@dataclass(frozen=True, eq=False)
+class EngineTies:
+    """Keys of the lexicographic strategy choice of :func:`solve_layered`, most significant first
+    (module docstring, "More keys"); :func:`robust_imdp.solvers.product.solve_product` builds it from its
+    :class:`~robust_imdp.solvers.product.Ties`.
+
+    Attributes
+    ----------
+    models : tuple of IMDP
+        Per key, the model whose rows are valued: the same states and choices (``state_ptr``) as the
+        solved IMDP.
+    values : tuple of (L, n) float arrays, or of None with a horizon
+        Per key, the vector its rows are valued against (k steps: iterated alongside from the target's
+        indicator, so None).
+    adv_max : tuple of bool
+        Per key, whether its adversary maximises the row value.
+    strategy : (L, n) int array or None
+        The row of every node the attractor never reaches (-1 or None: none given); unbounded only.
+    """
+
+    models: tuple
+    values: tuple
+    adv_max: tuple
+    strategy: np.ndarray | None = None
+
+
+def _check_tie_break(tie_break, imdp, L, n, ctrl, horizon) -> EngineTies:
+    """The checked keys: an optimistic result as the one key of the same model, or an :class:`EngineTies`."""
+    if isinstance(tie_break, EngineTies):
+        return _check_ties(tie_break, imdp, L, n, ctrl, horizon)
     if ctrl != Control.MAXIMISE:
         raise InvalidInputError(f"tie_break applies to a maximising controller only (ctrl=0); got ctrl={ctrl}")
     if not (hasattr(tie_break, "upper") and hasattr(tie_break, "strategy")):
         raise InvalidInputError("tie_break must be the result of the optimistic solve of the same model (with "
                                 f"'upper' and 'strategy'); got {type(tie_break).__name__}")
     if horizon is not None:
-        return ()
+        return EngineTies(models=(imdp,), values=(None,), adv_max=(True,))
     up = np.asarray(tie_break.upper, dtype=np.float64)
     st = np.asarray(tie_break.strategy)
     if L == 1 and up.shape == (n,):  # a single-layer ReachabilityResult
@@ -199,29 +243,97 @@ def _check_tie_break(tie_break, imdp, L, n, ctrl, horizon):
         raise DimensionError(f"tie_break must come from a solve of the same model: upper ({L}, {n}) and an "
                              f"({L}, {n}) stationary strategy; got upper {np.shape(tie_break.upper)}, "
                              f"strategy {st.shape}")
-    return np.ascontiguousarray(up), np.ascontiguousarray(st.reshape(L, n), dtype=np.int64)
+    return EngineTies(models=(imdp,), values=(np.ascontiguousarray(up),), adv_max=(True,),
+                      strategy=np.ascontiguousarray(st.reshape(L, n), dtype=np.int64))
 
 
-def _optimistic_rows(imdp, nxt, mask, U):
-    """Per row (index ``l*R + r``) its value under the maximising adversary against ``U`` (L, n),
-    rounded up; -inf for the rows of nodes outside ``mask``.  Only used to order tied rows."""
-    sw = Sweeper(imdp, nxt, mask, Control.MAXIMISE, True, None)
-    _, _, rows = sw.sweep(U, +1, want_rows=True)
+def _check_ties(ties: EngineTies, imdp, L, n, ctrl, horizon) -> EngineTies:
+    """An :class:`EngineTies`, checked against the solved model (shapes, the keys' states and choices)."""
+    if ctrl not in (Control.MAXIMISE, Control.MINIMISE):
+        raise InvalidInputError(f"tie_break applies to a maximising or minimising controller (ctrl=0 or 1); got "
+                                f"ctrl={ctrl}")
+    k = len(ties.models)
+    if k == 0 or len(ties.values) != k or len(ties.adv_max) != k:
+        raise InvalidInputError(f"tie_break must give models, values and adv_max for each of at least one key; got "
+                                f"{len(ties.models)}, {len(ties.values)} and {len(ties.adv_max)}")
+    values = []
+    for i, (m, v) in enumerate(zip(ties.models, ties.values)):
+        if not hasattr(m, "state_ptr") or m.n_states != n or not np.array_equal(m.state_ptr, imdp.state_ptr):
+            raise DimensionError(f"tie_break key {i}: its model must have the solved IMDP's {n} states and choices "
+                                 f"(the same state_ptr); got {type(m).__name__} with "
+                                 f"{getattr(m, 'n_states', '?')} states")
+        if horizon is not None:
+            values.append(None)
+            continue
+        v = np.asarray(v, dtype=np.float64)
+        if v.shape != (L, n):
+            raise DimensionError(f"tie_break key {i}: values must have shape ({L}, {n}); got {v.shape}")
+        values.append(np.ascontiguousarray(v))
+    st = ties.strategy
+    if st is not None:
+        st = np.asarray(st)
+        if st.shape != (L, n) or not np.issubdtype(st.dtype, np.integer):
+            raise DimensionError(f"tie_break strategy must be an ({L}, {n}) int array; got {st.dtype} {st.shape}")
+        st = np.ascontiguousarray(st, dtype=np.int64)
+    return EngineTies(models=tuple(ties.models), values=tuple(values), adv_max=tuple(bool(a) for a in ties.adv_max),
+                      strategy=st)
+
+
+def _key_rows(model, nxt, mask, values, adv_max, ctrl=Control.MAXIMISE):
+    """Per row (index ``l*R + r``) of ``model`` its value against ``values`` (L, n) under the adversary
+    ``adv_max``, rounded up; -inf for the rows of nodes outside ``mask``.  Only used to order tied rows."""
+    sw = Sweeper(model, nxt, mask, ctrl, adv_max, None)
+    _, _, rows = sw.sweep(values, +1, want_rows=True)
     return rows
 
 
-def _lex_choice(rows_lo, rows_up, state_ptr, arg):
-    """Per node, among the rows within ``_TIE_TOL`` of its best lower row value ``rows_lo``
-    (L, R), the first one with the largest ``rows_up``; ``arg`` where no row was evaluated."""
+def _key_rank(rows, maximise=True):
+    """One score per row from the keys' row values ``rows`` (a list of (N,) arrays, most significant
+    first): higher is better (the keys' larger values for a maximising controller, smaller ones for a
+    minimising one); -inf where the first key is not finite (rows of nodes not evaluated).
+
+    One key of a maximising controller is its own score (compared exactly, as before keys existed);
+    otherwise the score is the rank of the row in the lexicographic order of the keys, every key but
+    the last compared on a grid of ``_KEY_TOL`` (``floor(v / _KEY_TOL)``): values closer than that may
+    tie, and then the next key decides.
+    """
+    if len(rows) == 1 and maximise:
+        return rows[0]
+    sign = 1.0 if maximise else -1.0
+    fin = np.isfinite(rows[0])
+    cols = []
+    for i, r in enumerate(rows):
+        r = np.asarray(r, dtype=np.float64)
+        v = np.where(fin & np.isfinite(r), sign * r, -np.inf)
+        cols.append(np.floor(v / _KEY_TOL) if i < len(rows) - 1 else v)
+    order = np.lexsort(cols[::-1])  # np.lexsort sorts by its last key first
+    srt = np.stack([c[order] for c in cols])
+    new = np.ones(order.size, dtype=bool)
+    new[1:] = np.any(srt[:, 1:] != srt[:, :-1], axis=0)
+    rank = np.empty(order.size)
+    rank[order] = np.cumsum(new)
+    return np.where(fin, rank, -np.inf)
+
+
+def _lex_choice(rows_lo, score, state_ptr, arg, maximise=True):
+    """Per node, among its optimal rows by the lower row values ``rows_lo`` (L, R) -- within
+    ``_TIE_TOL`` of the best for a maximising controller, exactly least for a minimising one -- the
+    first one with the largest ``score`` (L, R); ``arg`` where no row was evaluated."""
     L = rows_lo.shape[0]
     nch = np.diff(state_ptr)
     has = nch > 0
     starts = state_ptr[:-1][has]
     out = arg.copy()
-    lo = np.where(np.isfinite(rows_lo), rows_lo, -1.0)
-    best_lo = np.maximum.reduceat(lo, starts, axis=1)
-    optimal = (lo >= np.repeat(best_lo, nch[has], axis=1) - _TIE_TOL) & np.isfinite(rows_lo)
-    sc = np.where(optimal, rows_up, -np.inf)
+    fin = np.isfinite(rows_lo)
+    if maximise:
+        lo = np.where(fin, rows_lo, -1.0)
+        best_lo = np.maximum.reduceat(lo, starts, axis=1)
+        optimal = (lo >= np.repeat(best_lo, nch[has], axis=1) - _TIE_TOL) & fin
+    else:
+        lo = np.where(fin, rows_lo, np.inf)
+        best_lo = np.minimum.reduceat(lo, starts, axis=1)
+        optimal = (lo <= np.repeat(best_lo, nch[has], axis=1)) & fin
+    sc = np.where(optimal, score, -np.inf)
     best = np.maximum.reduceat(sc, starts, axis=1)
     is_best = optimal & (sc >= np.repeat(best, nch[has], axis=1))
     pos = np.where(is_best, np.arange(rows_lo.shape[1])[None, :], rows_lo.shape[1])
@@ -237,26 +349,31 @@ def _lex_choice(rows_lo, rows_up, state_ptr, arg):
 def _bounded(sw, V0, k, ctrl, strategy, tie_break=None):
     """k-step values by k exact Bellman steps, rounded down (lower) and up (upper).
 
-    With ``tie_break`` the optimistic (max, max) k-step values ``U_t`` are iterated alongside and
-    the decision with t steps to go is, among the rows within ``_TIE_TOL`` of the best lower row
-    value, the one of largest optimistic value ``B_row(U_{t-1})`` (no cycles to fear: the
+    With ``tie_break`` (:class:`EngineTies`) the keys' k-step values are iterated alongside (the
+    optimistic (max, max) values ``U_t`` for an optimistic result) and the decision with t steps to
+    go is, among the rows within ``_TIE_TOL`` of the best lower row value (exactly least for a
+    minimising controller), the best by the keys' rows ``B_row(U_{t-1})`` (no cycles to fear: the
     strategy is time-varying and every chosen row is optimal for the lower recursion).
     """
     lo = V0.copy()
     up = V0.copy()
-    opt = V0.copy()
-    opt_sw = None if tie_break is None else Sweeper(sw.m, sw.nxt, sw.active, Control.MAXIMISE, True, None)
+    keys = [] if tie_break is None else [Sweeper(m, sw.nxt, sw.active, ctrl, a, None)
+                                         for m, a in zip(tie_break.models, tie_break.adv_max)]
+    key_values = [V0.copy() for _ in keys]
     R = sw.m.n_choices
     strat = np.zeros((k,) + V0.shape, dtype=np.int64)
     for t in range(1, k + 1):
         # with t steps to go the decision is the one taken at time k - t
         sl = None if strategy is None else (k - t if strategy.shape[0] == k else 0)
-        lo_rows = opt_sw is not None
-        new_lo, arg, rows_lo = sw.sweep(lo, -1, strat_layer=sl, want_rows=lo_rows)
+        new_lo, arg, rows_lo = sw.sweep(lo, -1, strat_layer=sl, want_rows=bool(keys))
         up, _, _ = sw.sweep(up, +1, strat_layer=sl)
-        if opt_sw is not None:
-            opt, _, rows_up = opt_sw.sweep(opt, +1, want_rows=True)
-            arg = _lex_choice(rows_lo.reshape(-1, R), rows_up.reshape(-1, R), sw.m.state_ptr, arg)
+        if keys:
+            rows_k = []
+            for i, ks in enumerate(keys):
+                key_values[i], _, rows = ks.sweep(key_values[i], +1, want_rows=True)
+                rows_k.append(rows)
+            score = _key_rank(rows_k, ctrl == Control.MAXIMISE).reshape(-1, R)
+            arg = _lex_choice(rows_lo.reshape(-1, R), score, sw.m.state_ptr, arg, ctrl == Control.MAXIMISE)
         lo = new_lo
         strat[k - t] = arg
     if ctrl == Control.FIXED:
@@ -283,7 +400,7 @@ def _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, pre
                       f"precision {precision:g}; the returned bounds are sound but loose", ConvergenceWarning,
                       stacklevel=3)
     if ctrl == Control.MINIMISE:
-        strat = _minimising_strategy(sw, nxt, up, active)
+        strat = _minimising_strategy(sw, nxt, up, active, tie_break)
     else:
         strat = _extract_strategy(sw, imdp, nxt, lo, target, active, active2 | one, ctrl, adv_max, strategy,
                                   tie_break)
@@ -349,9 +466,10 @@ def _interval_iteration(sw, imdp, nxt, lo, up, active, ctrl, adv_max, flat_strat
 METHODS = {"vi": _value_iteration, "interval": _interval_iteration}
 
 
-def _minimising_strategy(sw, nxt, up, active):
+def _minimising_strategy(sw, nxt, up, active, tie_break=None):
     """A minimising controller's strategy: on every non-target node, a row of least value against the proven
-    upper vector ``up`` (module docstring, "Strategy extraction").
+    upper vector ``up`` (module docstring, "Strategy extraction"); with ``tie_break`` (:class:`EngineTies`), of
+    the rows of exactly least value the one the keys rank best ("More keys").
 
     Why ``up`` and not the lower vector: where ``B(up) <= up`` (what the upper iteration keeps and the
     guesses are checked against), a strategy pi taking such rows has ``B_pi(up) = B(up) <= up``, so its value
@@ -362,8 +480,13 @@ def _minimising_strategy(sw, nxt, up, active):
     """
     sw.active = active
     sw.layers = [l for l in range(nxt.shape[0]) if active[l].any()]
-    _, arg, _ = sw.sweep(up, +1)
-    return arg
+    _, arg, rows = sw.sweep(up, +1, want_rows=tie_break is not None)
+    if tie_break is None:
+        return arg
+    R = sw.m.n_choices
+    score = _key_rank([_key_rows(m, nxt, active, v, a, Control.MINIMISE)
+                       for m, v, a in zip(tie_break.models, tie_break.values, tie_break.adv_max)], maximise=False)
+    return _lex_choice(rows.reshape(-1, R), score.reshape(-1, R), sw.m.state_ptr, arg, maximise=False)
 
 
 def _extract_strategy(sw, imdp, nxt, lo, target, active, swept, ctrl, adv_max, strategy, tie_break):
@@ -388,10 +511,13 @@ def _extract_strategy(sw, imdp, nxt, lo, target, active, swept, ctrl, adv_max, s
     optimal |= np.repeat(proven0, np.diff(imdp.state_ptr), axis=1)
     if tie_break is None:
         score = np.full(L * R, -np.inf)
+    else:
+        score = _key_rank([_key_rows(m, nxt, active, v, a)
+                           for m, v, a in zip(tie_break.models, tie_break.values, tie_break.adv_max)])
+    if tie_break is None or tie_break.strategy is None:
         tie_strat = np.full(L * n, -1, dtype=np.int64)
     else:
-        score = _optimistic_rows(imdp, nxt, active, tie_break[0])
-        tie_strat = tie_break[1].reshape(-1)
+        tie_strat = tie_break.strategy.reshape(-1)
     strat = progress_strategy(imdp.state_ptr, imdp.row_ptr, imdp.col, imdp.lower, imdp.upper, imdp.floor,
                               nxt, target.reshape(-1), optimal.reshape(-1), adv_max, arg.reshape(-1),
                               score, tie_strat)
@@ -406,5 +532,10 @@ def _extract_strategy(sw, imdp, nxt, lo, target, active, swept, ctrl, adv_max, s
 #: need no tolerance at all.
 _TIE_TOL = 1e-12
 
+#: Grid on which every key but the last of an :class:`EngineTies` is compared (``floor(v / _KEY_TOL)``):
+#: key values closer than this may tie and the next key decides.  The keys are values of other solves,
+#: brackets of width up to their precision (1e-8 by default): differences below 1e-7 say little.
+_KEY_TOL = 1e-7
 
-__all__ = ["solve_layered", "METHODS"]
+
+__all__ = ["solve_layered", "METHODS", "EngineTies"]

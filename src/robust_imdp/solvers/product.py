@@ -38,7 +38,7 @@ from robust_imdp.errors import DimensionError, InvalidInputError, InvalidModelEr
 from robust_imdp.models.imdp import IMDP
 from robust_imdp.solvers.api import check_method
 from robust_imdp.solvers.common import Adversary, Control, as_mask, check_strategy, enum_value
-from robust_imdp.solvers.engine import solve_layered
+from robust_imdp.solvers.engine import EngineTies, solve_layered
 
 
 @dataclass(frozen=True)
@@ -93,6 +93,78 @@ class MaterializedProduct:
     avoid: np.ndarray
     index: np.ndarray
     initial: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class TieKey:
+    """One key of the lexicographic strategy choice (:class:`Ties`): the rows of ``model`` valued against
+    the values of ``result``, a product solve of ``model`` (same letters, DFA, avoid states, reading and
+    horizon) with ``adversary``.
+
+    ``model`` has the same states and choices as the IMDP being solved: the IMDP itself (its optimistic
+    solve: the best a controller can still hope for after the step) or another model of the same system,
+    e.g. the nominal model of :mod:`robust_imdp.abstraction.nominal`. Unbounded: the rows are valued
+    against ``result.upper`` (optimistic) or ``result.lower`` (pessimistic) of the reach value, and under
+    the safety reading against the probability of a bad node, one minus them. k steps: the model's k-step
+    values are iterated alongside (``result`` is not read).
+    """
+
+    model: IMDP
+    result: ProductResult
+    adversary: str = "optimistic"
+
+
+@dataclass(frozen=True, eq=False)
+class Ties:
+    """The keys of the lexicographic strategy choice of :func:`solve_product`, most significant first.
+
+    Among the rows of best value (the value being solved: within the engine's tie tolerance for a
+    maximising controller, exactly least for a minimising one) the keys decide in turn, each one's ties
+    (values within ``robust_imdp.solvers.engine._KEY_TOL``) going to the next; a node the progress
+    attractor never reaches (reach reading, unbounded: every row's value 0) takes the row of ``strategy``,
+    by default the first key's strategy (module :mod:`robust_imdp.solvers.engine`, "More keys").
+
+    Attributes
+    ----------
+    keys : tuple of TieKey
+    strategy : (S, n) int array, optional
+    """
+
+    keys: tuple
+    strategy: np.ndarray | None = None
+
+
+def _engine_ties(ties, imdp, nxt, safety, horizon):
+    """The engine's :class:`~robust_imdp.solvers.engine.EngineTies` of a :class:`Ties` (values in the engine's
+    terms: the reach value, or under the safety reading the probability of reaching a bad node)."""
+    if not isinstance(ties, Ties):
+        return ties  # an optimistic ProductResult: the engine's own single key
+    keys = tuple(ties.keys)
+    if not keys or not all(isinstance(k, TieKey) for k in keys):
+        raise InvalidInputError(f"tie_break.keys must be a non-empty sequence of TieKey; got {ties.keys!r}")
+    S, n = nxt.shape
+    models, values, adv_max = [], [], []
+    for i, k in enumerate(keys):
+        if not isinstance(k.model, IMDP):
+            raise InvalidInputError(f"tie_break key {i}: model must be an IMDP; got {type(k.model).__name__}")
+        optimistic = enum_value(Adversary, k.adversary, "adversary") is Adversary.OPTIMISTIC
+        models.append(k.model)
+        # the adversary of the key's rows in the engine's terms (as evaluate_product_strategy reads it)
+        adv_max.append(optimistic != safety)
+        if horizon is not None:
+            values.append(None)
+            continue
+        v = np.asarray(k.result.upper if optimistic else k.result.lower, dtype=np.float64)
+        if v.shape != (S, n):
+            raise DimensionError(f"tie_break key {i}: its result must be a solve of the same product, values "
+                                 f"({S}, {n}); got {v.shape}")
+        values.append(1.0 - v if safety else v)  # only ranks rows: no rounding direction needed
+    st = ties.strategy
+    if st is None and horizon is None:
+        st = np.asarray(keys[0].result.strategy)
+        st = st if st.shape == (S, n) else None
+    return EngineTies(models=tuple(models), values=tuple(values), adv_max=tuple(adv_max),
+                      strategy=None if st is None or horizon is not None else np.asarray(st))
 
 
 def _dfa_arrays(imdp: IMDP, letters, dfa, avoid):
@@ -193,12 +265,13 @@ def solve_product(imdp: IMDP, letters, dfa, *, avoid=None, adversary="pessimisti
     method : {"vi", "interval"}
         As in :func:`robust_imdp.solvers.api.solve_reachability` (the product's components across
         DFA layers are solved in reverse topological order by default).
-    tie_break : ProductResult, optional
+    tie_break : ProductResult or Ties, optional
         The ``adversary="optimistic"`` solve of the same product (same horizon).  Rows tied in
         the lower value are then chosen by their optimistic value, and nodes where every row
         has lower value 0 take the optimistic strategy's row (lexicographic choice, see
-        "Strategy extraction" in :mod:`robust_imdp.solvers.engine`).  Without it ties go to the first
-        row.  Only with ``semantics="reach"``.
+        "Strategy extraction" in :mod:`robust_imdp.solvers.engine`); only with ``semantics="reach"``.
+        :class:`Ties`: several keys in turn (e.g. the nominal model's value, then the optimistic
+        value), under either reading.  Without it ties go to the first row.
     semantics : {"reach", "safety"}
         The reading of the specification (above).
 
@@ -212,14 +285,17 @@ def solve_product(imdp: IMDP, letters, dfa, *, avoid=None, adversary="pessimisti
     nxt, target, zero, init = _dfa_arrays(imdp, letters, dfa, avoid)
     pessimistic = enum_value(Adversary, adversary, "adversary") is Adversary.PESSIMISTIC
     if safety:
-        if tie_break is not None:
-            raise InvalidInputError("tie_break applies to the reach reading only (semantics='reach')")
+        if tie_break is not None and not isinstance(tie_break, Ties):
+            raise InvalidInputError("tie_break applies to the reach reading only (semantics='reach'), unless it is "
+                                    f"a Ties; got {type(tie_break).__name__}")
         target, zero = _safety_nodes(target, zero)
         res = solve_layered(imdp, nxt, target, zero, ctrl=Control.MINIMISE, adv_max=pessimistic, horizon=horizon,
-                            precision=precision, max_iterations=max_iterations, method=method)
+                            precision=precision, max_iterations=max_iterations, method=method,
+                            tie_break=None if tie_break is None else _engine_ties(tie_break, imdp, nxt, True, horizon))
         return _result(res, init, safety=True)
     res = solve_layered(imdp, nxt, target, zero, ctrl=Control.MAXIMISE, adv_max=not pessimistic, horizon=horizon,
-                        precision=precision, max_iterations=max_iterations, method=method, tie_break=tie_break)
+                        precision=precision, max_iterations=max_iterations, method=method,
+                        tie_break=None if tie_break is None else _engine_ties(tie_break, imdp, nxt, False, horizon))
     return _result(res, init)
 
 
@@ -305,5 +381,5 @@ def materialize_product(imdp: IMDP, letters, dfa, *, avoid=None, semantics="reac
                                initial=index[init, np.arange(n)])
 
 
-__all__ = ["ProductResult", "MaterializedProduct", "solve_product", "evaluate_product_strategy",
+__all__ = ["ProductResult", "MaterializedProduct", "TieKey", "Ties", "solve_product", "evaluate_product_strategy",
            "materialize_product"]

@@ -26,13 +26,19 @@ be both "yes" and "no". ``p_low`` is computed by *evaluating* the returned strat
 the max-min iteration, whose lower bracket belongs to the optimal value, not to ``pi``).
 
 Which action among equals. Where several actions reach the best lower value (all of them where
-the lower value is 0) the choice is lexicographic: best lower value, then best optimistic value
+the lower value is 0) the choice is lexicographic: best lower value, then -- with a ``nominal``
+model (:mod:`robust_imdp.abstraction.nominal`: the fitted or known dynamics at a few points of
+each cell and the noise) -- the best value under the nominal model, then the best optimistic value
 ``max_p p.U`` with U the upper bound of the max-max value (the vector whose initial states give
-``p_up_star``): it is the best any controller can still hope for after the step, and it is what
-separates "into the obstacle" from "round it" when no action has a guaranteed positive value.
-Where the lower value is 0 for every action the optimistic solve's own action is used (it makes
-progress towards acceptance; a choice by U alone can circle, see :mod:`robust_imdp.solvers.engine`).
-The tie tolerance is ``robust_imdp.solvers.engine._TIE_TOL`` (1e-12, absolute). The strategy is then evaluated as
+``p_up_star``): it is the best any controller can still hope for after the step. The nominal
+value is what separates "into the obstacle" from "round it" when no action has a guaranteed
+positive value; the optimistic value alone is 1 for several actions there (the adversary of the
+optimistic solve may always steer round). Where the lower value is 0 for every action the
+nominal solve's own action is used, else the optimistic solve's (each makes progress towards
+acceptance in its model; a choice by values alone can circle, see :mod:`robust_imdp.solvers.engine`).
+Under the safety reading the same keys choose among the actions of exactly least upper bound of the
+bad-prefix probability (:mod:`robust_imdp.synthesis.ties`). The tie tolerance is
+``robust_imdp.solvers.engine._TIE_TOL`` (1e-12, absolute). The strategy is then evaluated as
 any other, and it is checked that its ``p_low`` keeps the optimal robust lower value at every
 cell (``_keeps_optimal_lower``); if it did not, the first-choice strategy would be used.
 ``no_strategy_can`` (``p_up_star < threshold``) marks the Q_no cells where no controller can meet
@@ -70,6 +76,7 @@ import numpy as np
 from robust_imdp import _fp
 from robust_imdp.solvers import product as _product
 from robust_imdp.synthesis.controller import Controller, remap_letters  # below synthesis: numpy only
+from robust_imdp.synthesis import ties as _ties
 from robust_imdp.spec.api import check_reading, is_dfa, resolve_semantics
 from robust_imdp.errors import ConvergenceWarning, DimensionError, InvalidInputError, SoundnessError
 from robust_imdp.models.imdp import IMDP
@@ -91,7 +98,8 @@ class SolverRun:
     ----------
     name : str
         ``"robust"`` (max-min, gives the strategy), ``"optimistic"`` (max-max, gives p_up_star),
-        ``"evaluate_pessimistic"`` / ``"evaluate_optimistic"`` (the strategy against both adversaries).
+        ``"evaluate_pessimistic"`` / ``"evaluate_optimistic"`` (the strategy against both adversaries),
+        ``"nominal"`` (the nominal model's solve that ranks actions of equal robust value).
     iterations : int
     converged : bool
     max_gap : float
@@ -142,6 +150,9 @@ class SynthesisResult:
         the proven upper bound of the probability of a bad prefix.
     semantics : {"reach", "safety"}
         The reading the bounds are of (module docstring, "Two readings").
+    tie_keys : tuple of str
+        The keys that chose among actions of equal robust value, in order: ``("nominal", "optimistic")``
+        with a nominal model, else ``("optimistic",)`` (module docstring, "Which action among equals").
     """
 
     strategy: np.ndarray
@@ -160,6 +171,7 @@ class SynthesisResult:
     precision: float
     strategy_choice: str = "lexicographic"
     semantics: str = "reach"
+    tie_keys: tuple = ("optimistic",)
 
     @property
     def n_cells(self) -> int:
@@ -254,6 +266,7 @@ def synthesize(
     precision: float = 1e-8,
     method: str = "vi",
     semantics: str = "auto",
+    nominal: Any = None,
 ) -> SynthesisResult:
     """Robust strategy, bounds ``p_low <= p_up <= p_up_star`` and classes for every cell.
 
@@ -286,6 +299,10 @@ def synthesize(
         it when some prefix is accepted; "safety", when no prefix is a bad prefix and the path stays in X;
         "auto" (default), the reading :func:`robust_imdp.spec.dfa.classify` gives the DFA (safety for a
         safety formula such as ``G safe``, reach otherwise).
+    nominal : IMDP or FactoredIMDP, optional
+        A nominal model of the same states and modes (:func:`robust_imdp.abstraction.nominal.nominal_abstraction`):
+        among actions of equal robust value, the one of best value under it is chosen (module docstring,
+        "Which action among equals"). It changes the strategy only, never how its bounds are computed.
 
     Returns
     -------
@@ -312,7 +329,9 @@ def synthesize(
     letters = np.concatenate([cell_letters, np.zeros(imdp.n_states - n_cells, dtype=np.int64)])
 
     kw = dict(avoid=avoid, horizon=horizon, precision=precision, method=method, semantics=reading)
-    optimistic, robust, ev_low, ev_up, pi, choice, extra_runs = _solve(imdp, letters, dfa, n_cells, precision, kw)
+    nominal = _ties.check_nominal(nominal, imdp)
+    optimistic, robust, ev_low, ev_up, pi, choice, extra_runs = _solve(imdp, letters, dfa, n_cells, precision, kw,
+                                                                       nominal)
     p_low, p_up, p_up_star, error, classes = _bounds(optimistic, ev_low, ev_up, n_cells, threshold)
 
     if horizon is None:
@@ -335,6 +354,7 @@ def synthesize(
         classes=classes, initial_dfa_state=init, labels=cell_letters, dfa=dfa,
         threshold=threshold, horizon=horizon, n_modes=int(imdp.n_choices_of().max()),
         runs=runs, precision=float(precision), strategy_choice=choice, semantics=reading,
+        tie_keys=_ties.TIE_KEYS[nominal is not None],
     )
 
 
@@ -369,19 +389,20 @@ def _check_inputs(imdp, labels, atoms, dfa, threshold, horizon, outside_state):
     return threshold, horizon, atoms, lab, avoid
 
 
-def _solve(imdp, letters, dfa, n_cells, precision, kw):
+def _solve(imdp, letters, dfa, n_cells, precision, kw, nominal=None):
     """The product solves of :func:`synthesize`: (optimistic, robust, ev_low, ev_up, strategy,
     strategy_choice, extra runs)."""
     optimistic = _product.solve_product(imdp, letters, dfa, adversary="optimistic", **kw)
     safety = kw["semantics"] == "safety"
-    # Lexicographic choice: best lower value, then best optimistic value (module docstring). Safety: the
-    # minimising controller's least rows against the proven upper bound (solvers.engine._minimising_strategy).
-    robust = _product.solve_product(imdp, letters, dfa, adversary="pessimistic",
-                                    tie_break=None if safety else optimistic, **kw)
+    # Lexicographic choice: best lower value, then the nominal model's value, then the best optimistic value
+    # (module docstring; synthesis.ties). Safety: the minimising controller's least rows against the proven upper
+    # bound (solvers.engine._minimising_strategy), then the same keys.
+    ties, nom = _ties.tie_break(imdp, nominal, letters, dfa, optimistic, kw)
+    robust = _product.solve_product(imdp, letters, dfa, adversary="pessimistic", tie_break=ties, **kw)
     pi = np.asarray(robust.strategy)
     ev_low = _product.evaluate_product_strategy(imdp, letters, dfa, pi, adversary="pessimistic", **kw)
     choice = "least" if safety else "lexicographic"
-    extra_runs = ()
+    extra_runs = () if nom is None else (_run("nominal", nom, n_cells),)
     if safety:
         if not _keeps_optimal_lower(ev_low, robust, n_cells, precision):
             # its bounds are still sound (they are its own evaluation), only below the best ones
@@ -395,8 +416,8 @@ def _solve(imdp, letters, dfa, n_cells, precision, kw):
         first = _product.solve_product(imdp, letters, dfa, adversary="pessimistic", **kw)
         ev_first = _product.evaluate_product_strategy(imdp, letters, dfa, first.strategy, adversary="pessimistic",
                                                       **kw)
-        extra_runs = (_run("robust_first_choice", first, n_cells),
-                      _run("evaluate_first_choice", ev_first, n_cells))
+        extra_runs += (_run("robust_first_choice", first, n_cells),
+                       _run("evaluate_first_choice", ev_first, n_cells))
         tol = ev_low.precision + ev_first.precision + precision
         if np.any(np.asarray(ev_first.initial_lower)[:n_cells] > np.asarray(ev_low.initial_lower)[:n_cells] + tol):
             robust, ev_low, pi, choice = first, ev_first, np.asarray(first.strategy), "first"
