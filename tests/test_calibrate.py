@@ -346,3 +346,19 @@ def test_plot_calibration_draws_one_row_per_component(one_d, tmp_path):
     assert save_calibration_figure(path, tmp_path / "c.png").stat().st_size > 0
     with pytest.raises(InvalidInputError, match="calibration"):
         plot_calibration(3)
+
+
+def test_keep_lengthscale_calibrates_b_at_the_problem_s_lengthscale(one_d):
+    from robust_imdp.bounds.rkhs_check import min_rkhs_norm
+    from robust_imdp.io.files import load_problem
+
+    problem = load_problem(one_d)
+    problem = problem.replace(gp_options={**problem.gp_options, "lengthscale": 0.7})
+    res = problem.calibrate(workers=1, keep_lengthscale=True)
+    c = res.components[0]
+    assert res.suggested["lengthscale"] == 0.7 and c.lengthscale_rule == "kept from the problem"
+    # the minimum norm is the assumption check's at that lengthscale (same points, same allowance)
+    x, xn = problem.data.by_mode(0)
+    y = (xn - problem.maps[0](x))[:, 0]
+    assert c.min_norm == min_rkhs_norm(x, y, 0.7, c.noise_bound, 0.0)["minimum"]
+    assert c.rkhs_bound >= cal.B_MARGIN * c.min_norm
