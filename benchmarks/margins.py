@@ -282,8 +282,14 @@ def family_rows(seeds) -> list:
 
 # --------------------------------------------------------------------------- report
 def write_md(path: Path, data: dict) -> None:
-    lines = ["# Assumption margins (benchmarks/margins.py)", "",
-             f"Command: `{data['command']}`; commit {data['commit']}, {data['date']}, {data['machine']}.", ""]
+    lines = ["# Assumption margins (benchmarks/margins.py)", ""]
+    metas = {p: data.get(f"{p}_meta") for p in ("cost", "tightness", "family") if data.get(p) is not None}
+    if all(metas.values()):
+        for p, m in metas.items():
+            lines.append(f"* ({p}) `{m['command']}`; commit {m['commit']}, {m['date']}, {m['machine']}.")
+        lines.append("")
+    else:
+        lines += [f"Command: `{data['command']}`; commit {data['commit']}, {data['date']}, {data['machine']}.", ""]
     if data.get("cost"):
         lines += ["## (a) Cost on the case studies (target: with margins <= 2 x a plain run)", "",
                   "Wall times of each run (fresh cache, alternating order) and the ratio of their medians; CPU "
@@ -388,12 +394,13 @@ def main(argv=None) -> int:
                  "commit": _git_commit(), "version": robust_imdp.__version__,
                  "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                  "machine": f"{platform.machine()}, {os.cpu_count()} cores, load {_load()} at the start"})
+    meta = {k: data[k] for k in ("command", "commit", "date", "machine")}  # each part says how it was run
     if "cost" in parts:
-        data["cost"] = cost(args.reps)
+        data["cost"], data["cost_meta"] = cost(args.reps), meta
     if "tightness" in parts:
-        data["tightness"] = tightness()
+        data["tightness"], data["tightness_meta"] = tightness(), meta
     if "family" in parts:
-        data["family"] = family_rows(args.seeds)
+        data["family"], data["family_meta"] = family_rows(args.seeds), meta
     OUT.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".json.part")
     tmp.write_text(json.dumps(data, indent=1))
