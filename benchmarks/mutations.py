@@ -687,6 +687,22 @@ MUTATIONS = [
          replacement="        t = np.broadcast_to(tau[u] * (1 - 1e-3), (k, n))",
          description="known dynamics: the misspecification allowance tau of every known component x (1 - 1e-3)",
          tests=["tests/test_known_systems.py"]),
+    # ------------------------------------------------------------------ the factored form in the pipeline (abstraction/factored.py, synthesis/core.py)
+    dict(name="factored-pipeline-chunk-listed-short", file="src/robust_imdp/abstraction/factored.py",
+         original="                                                 np.full(start[:, sl].shape, kj), kj)):",
+         replacement="                                                 np.full(start[:, sl].shape, kj) - 1, kj)):",
+         description="factored abstraction: each row's last listed interval stored as [0, 0] (its mass only in the "
+                     "rest): an upper bound of 0 for an interval the noise reaches", tests=["tests/test_factored_pipeline.py"]),
+    dict(name="factored-one-mode-optimistic-as-robust", file="src/robust_imdp/synthesis/core.py",
+         original="        return optimistic, robust, robust, optimistic, np.asarray(robust.strategy), \\",
+         replacement="        return optimistic, robust, optimistic, optimistic, np.asarray(robust.strategy), \\",
+         description="synthesis of a one-mode factored model: p_low read from the optimistic evaluation",
+         tests=["tests/test_factored_pipeline.py"]),
+    dict(name="factored-evaluate-adversary-flipped", file="src/robust_imdp/synthesis/core.py",
+         original="        return solve_factored_product(m, letters, dfa, adversary=adversary, strategy=strategy, control=\"maximize\",",
+         replacement="        return solve_factored_product(m, letters, dfa, adversary=\"optimistic\", strategy=strategy, control=\"maximize\",",
+         description="synthesis on a factored model: the strategy evaluated against the optimistic adversary for p_low",
+         tests=["tests/test_factored_pipeline.py"]),
 ]
 
 

@@ -609,13 +609,13 @@ def _cmd_export(args) -> int:
         raise InvalidInputError(
             f"export needs the abstraction of this result, abstraction-{key}.npz in the run's cache {cache}; "
             f"it is not there: pass the run's --cache, or run `robust-imdp run PROBLEM --out {args.result}` again")
-    from robust_imdp.abstraction.rows import Abstraction
-    from robust_imdp.pipeline.cache import cache_entry_problem
+    from robust_imdp.abstraction.factored import is_factored
+    from robust_imdp.pipeline.cache import cache_entry_problem, load_abstraction_file
 
     why = cache_entry_problem(file)
     if why is None:
         try:
-            imdp = Abstraction.load(file).imdp
+            abstraction = load_abstraction_file(file)
         except Exception as exc:  # a damaged file that still matches its checksum, or a foreign one
             if interrupt_in(exc) is not None:
                 raise
@@ -624,13 +624,28 @@ def _cmd_export(args) -> int:
         raise InvalidInputError(
             f"export needs the abstraction of this result; the cache entry {file} {why}: run `robust-imdp run "
             f"PROBLEM --out {args.result}` again to rebuild it")
+    form = None
+    if is_factored(abstraction):  # DRN and PRISM hold joint models: the joint expansion (docs/factored.md)
+        from robust_imdp.models.factored import MAX_JOINT_ENTRIES
+
+        entries = abstraction.joint_entries()
+        if entries > MAX_JOINT_ENTRIES:
+            raise InvalidInputError(
+                f"this result's abstraction is factored (per-axis interval vectors, docs/factored.md); DRN and PRISM "
+                f"hold joint models, and its joint expansion has {entries:,} entries, more than the "
+                f"{MAX_JOINT_ENTRIES:,} export limit: export a coarser grid, or run with [abstraction].form = 'joint'")
+        imdp = abstraction.to_joint()
+        form = ("factored: the joint expansion of the per-axis marginals (FactoredIMDP.to_joint: its rows contain "
+                "every product law; p_low / p_up of result.json come from the factored solver, at least as tight)")
+    else:
+        imdp = abstraction.imdp
     n = res.n_cells
     if imdp.n_states != n + 1:
         raise InvalidInputError(f"{file}: the abstraction has {imdp.n_states} states; result.json has {n} cells "
                                 "(+ 1 outside state)")
     states = {"format": "robust_imdp.export/1", "kind": "product" if args.product else "abstraction",
               "n_cells": n, "outside_state": n, "actions": list(res.modes),
-              "action_meaning": "action a applies mode actions[a]"}
+              "action_meaning": "action a applies mode actions[a]", **({"form": form} if form else {})}
     if args.product:
         from types import SimpleNamespace
 
@@ -682,7 +697,8 @@ def _cmd_export(args) -> int:
     written.append(str(meta))
     print(f"wrote {', '.join(written)}: {model.n_states} states, {model.n_choices} choices"
           + (f" (product of {n} cells + outside with {states['dfa_states']} DFA states)" if args.product else
-             f" ({n} cells + the outside state {n})"))
+             f" ({n} cells + the outside state {n})")
+          + ("; the factored abstraction's joint expansion" if form else ""))
     return Exit.OK
 
 

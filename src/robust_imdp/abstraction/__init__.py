@@ -2,5 +2,5 @@
 
 from robust_imdp._lazy import exports
 
-__getattr__, __dir__ = exports(__name__, ["cell_bounds", "probabilities", "periodic", "targets", "marginals",
+__getattr__, __dir__ = exports(__name__, ["cell_bounds", "probabilities", "periodic", "targets", "marginals", "factored",
                                           "exact_rows", "rows"])

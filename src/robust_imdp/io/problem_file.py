@@ -63,7 +63,7 @@ from robust_imdp.io.data_file import (
     _check_samples_possible, _read_data, _read_text, _warn_few_samples, refuse_adaptive_iid,
 )
 from robust_imdp.pipeline.problem import BOUND_MAX_BOXES, BOUND_TOL, GUARANTEES  # the one definition of these
-from robust_imdp.pipeline.problem import DEFAULT_TRANSITIONS, TRANSITIONS
+from robust_imdp.pipeline.problem import DEFAULT_TRANSITIONS, FORMS, TRANSITIONS
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -91,7 +91,7 @@ _SCHEMA: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     LEARNING_TABLE: (("rkhs_bound",), ("lengthscale", "error_bound", "misspecification", "iid_noise", "local_points",
                                        "split_tol", "known", "signal_variance",
                                        "optimize", "info_gain", "bound_tol", "bound_max_boxes")),
-    "abstraction": ((), ("eta", "eps_rule", "combine", "guarantee", "confidence", "transitions")),
+    "abstraction": ((), ("eta", "eps_rule", "combine", "guarantee", "confidence", "transitions", "form")),
     "refine": (("max_cells",), ("max_rounds", "min_cell_size", "time_budget", "split", "growth", "focus")),
     "inputs": ((), ("names", "lower", "upper", "step", "values")),
     "dynamics": (("f",), ()),
@@ -587,7 +587,7 @@ def _parse_gp_posterior(gp_in: dict, t: str, where: str) -> dict[str, Any]:
 
 def _parse_abstraction(ab_in: dict, n: int, where: str) -> dict[str, Any]:
     """``[abstraction]``: eta, eps_rule, combine, guarantee, confidence (defaults where absent); transitions
-    (only where given: the Problem's default applies otherwise)."""
+    and form (only where given: the Problem's defaults apply otherwise)."""
     ab: dict[str, Any] = {"eta": None, "eps_rule": "optimized", "combine": "product",
                           "guarantee": "confidence", "confidence": 0.99}
     if "eta" in ab_in:
@@ -598,7 +598,7 @@ def _parse_abstraction(ab_in: dict, n: int, where: str) -> dict[str, Any]:
             raise ProblemFileError(f"{where}: [abstraction].confidence must lie in (0, 1); got {c!r}")
         ab["confidence"] = float(c)
     for key, valid in (("eps_rule", EPS_RULES), ("combine", COMBINE_RULES), ("guarantee", GUARANTEES),
-                       ("transitions", TRANSITIONS)):
+                       ("transitions", TRANSITIONS), ("form", FORMS)):
         if key in ab_in:
             if ab_in[key] not in valid:
                 raise ProblemFileError(
@@ -781,7 +781,7 @@ def load_problem(path):
         noise=noise, rkhs_bound=rkhs_bound, gp_options=gp,
         bound_tol=bound_tol, bound_max_boxes=bound_max_boxes, eta=ab["eta"], eps_rule=ab["eps_rule"], combine=ab["combine"],
         guarantee=ab["guarantee"], confidence=ab["confidence"], transitions=ab.get("transitions", DEFAULT_TRANSITIONS),
-        error_bound=error_bound,
+        form=ab.get("form", "auto"), error_bound=error_bound,
         misspecification=misspecification, iid_noise=iid_noise, local_points=local_points,
         refine=spec["refine"], dim_names=spec["names"], periodic=spec.get("periodic"), split_tol=split_tol,
         semantics=spec.get("semantics", "auto"), inputs=inputs,

@@ -106,7 +106,7 @@ def _noise(noise, n: int) -> dict:
 
 def _tables(problem, data_path: str) -> list:
     """The problem file as (header, {key: value}) pairs in file order (``[[regions.NAME]]`` once per box)."""
-    from robust_imdp.pipeline.problem import BOUND_MAX_BOXES, BOUND_TOL
+    from robust_imdp.pipeline.problem import BOUND_MAX_BOXES, BOUND_TOL, DEFAULT_TRANSITIONS
 
     n = int(np.size(problem.space_lower))
     space = {"lower": np.asarray(problem.space_lower, float), "upper": np.asarray(problem.space_upper, float),
@@ -154,6 +154,10 @@ def _tables(problem, data_path: str) -> list:
           "confidence": float(problem.confidence)}
     if problem.eta is not None:
         ab = {"eta": np.broadcast_to(np.asarray(problem.eta, float), (n,)), **ab}
+    if problem.transitions != DEFAULT_TRANSITIONS:
+        ab["transitions"] = problem.transitions
+    if problem.form != "auto":
+        ab["form"] = problem.form
     out.append(("[abstraction]", ab))
     if problem.refine is not None:
         out.append(("[refine]", {k: v for k, v in problem.refine.to_dict().items() if v is not None}))

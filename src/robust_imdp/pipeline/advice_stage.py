@@ -139,11 +139,18 @@ def _sub_box_terms(problem: Problem):
 
 
 # ---------------------------------------------------------------------------------------------- re-solves
-def _rows_task(partition, lower, upper, noise, *, threads=1, **options):
-    """One chunk of rows of an advice re-solve (a module-level function, so that workers can import it)."""
+def _rows_task(partition, lower, upper, noise, k=None, *, threads=1, **options):
+    """One chunk of rows of an advice re-solve (a module-level function, so that workers can import it); ``k``:
+    the job's listed lengths per axis when its abstraction is factored (``advice.job_lengths``)."""
     from robust_imdp.synthesis.advice import job_rows
 
-    return job_rows(partition, lower, upper, noise, options)
+    return job_rows(partition, lower, upper, noise, options, k=k)
+
+
+def _advice_options(problem: Problem) -> dict:
+    """The abstraction options of the advice's re-solves: the run's, and its form (``form = "factored"`` where the
+    run's grid abstraction is factored: the re-solves abstract their grids the same way)."""
+    return {**problem.abstraction_options(), "form": problem.form_choice()[0]}
 
 
 def _scheduled_solver(problem: Problem, dfa, run: _Run, log: _Log):
@@ -151,21 +158,22 @@ def _scheduled_solver(problem: Problem, dfa, run: _Run, log: _Log):
     the run's scheduler, all jobs at once (in order: in process one after the other, on a cluster in parallel);
     a job's solve runs here as soon as its rows are in. Past ``deadline`` no further chunk is waited for and
     the unfinished jobs are yielded with share None."""
-    from robust_imdp.synthesis.advice import ROW_CHUNK, job_share
+    from robust_imdp.synthesis.advice import ROW_CHUNK, job_lengths, job_share
 
-    opts = problem.abstraction_options()
+    opts = _advice_options(problem)
     semantics = getattr(problem, "semantics", "auto")
 
     def solve(jobs, deadline):
         sched = run.scheduler(log)
         tasks, args = [], []
         for j, job in enumerate(jobs):
+            k = job_lengths(job, problem.noise, opts)  # factored: every chunk lists the job's lengths
             # the partition goes with each task, not scattered: a scattered object's key is its content's hash,
             # so releasing it here would release the run's own scattered grid under the later stages' tasks
             for s0 in range(0, job.partition.n_cells, ROW_CHUNK):
                 sl = slice(s0, s0 + ROW_CHUNK)
                 tasks.append((j, s0))
-                args.append((job.partition, job.lower[:, sl], job.upper[:, sl], problem.noise))
+                args.append((job.partition, job.lower[:, sl], job.upper[:, sl], problem.noise, k))
         need = {j: sum(1 for t in tasks if t[0] == j) for j in range(len(jobs))}
         pieces: dict = {j: {} for j in range(len(jobs))}
         finished = set()
@@ -293,7 +301,7 @@ def _advice(problem: Problem, partition, abstraction, cell_bounds, dfa, classes,
     adv = advise(partition, cell_bounds, _fitted(problem, data), problem.noise, dfa,
                  threshold=problem.threshold, horizon=problem.horizon, classes=classes,
                  noise_floor=_noise_floor(problem, data),
-                 abstraction_options=problem.abstraction_options(),
+                 abstraction_options=_advice_options(problem),
                  bound_cells=bound_cells, max_cells=MAX_CELLS if want == "auto" else 2 ** 62,
                  progress=log.info if log.enabled else None, sub_box_terms=_sub_box_terms(problem),
                  local_pools=_local_pools(problem, data), semantics=getattr(problem, "semantics", "auto"),

@@ -92,12 +92,19 @@ def _transitions_key(problem: Problem) -> list:
     return [] if kind == "thm1" else [("transitions", kind)]
 
 
+def _form_key(problem: Problem) -> list:
+    """``[("form", "factored")]`` when the grid's abstraction is factored (``Problem.form_choice``), else ``[]``
+    (keys of joint abstractions are unchanged)."""
+    choice = getattr(problem, "form_choice", None)
+    return [("form", "factored")] if choice is not None and choice()[0] == "factored" else []
+
+
 def abstraction_key(problem: Problem) -> str:
     """Hash of everything the abstraction depends on (not the formula, threshold, horizon)."""
     h = hashlib.sha256(bounds_key(problem).encode())
     _fingerprint(h, [None if problem.eta is None else np.asarray(problem.eta, float),
                      problem.eps_rule, problem.combine, problem.guarantee,
-                     float(problem.confidence)] + _transitions_key(problem))
+                     float(problem.confidence)] + _transitions_key(problem) + _form_key(problem))
     return h.hexdigest()[:20]
 
 
@@ -287,14 +294,21 @@ def _read_checks(path: Path):
     return checks, np.asarray(doc["noise_bound"], float)
 
 
-def _load_abstraction_entry(cache_file: Path):
-    """(abstraction, the JSON document saved beside it) from the cache, or None (absent or damaged)."""
+def load_abstraction_file(path):
+    """The abstraction in ``path``: a ``FactoredAbstraction`` (docs/factored.md) or a joint ``Abstraction``."""
+    from robust_imdp.abstraction.factored import FactoredAbstraction, is_factored_file
     from robust_imdp.abstraction.rows import Abstraction
 
+    return FactoredAbstraction.load(path) if is_factored_file(path) else Abstraction.load(path)
+
+
+def _load_abstraction_entry(cache_file: Path):
+    """(abstraction, the JSON document saved beside it) from the cache, or None (absent or damaged); the
+    abstraction is joint or factored, as it was saved."""
     doc = read_cache_entry(cache_file.with_suffix(".json"), _read_json)
     if doc is None:
         return None
-    abstraction = read_cache_entry(cache_file, Abstraction.load)
+    abstraction = read_cache_entry(cache_file, load_abstraction_file)
     return None if abstraction is None else (abstraction, doc)
 
 

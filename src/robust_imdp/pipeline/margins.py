@@ -140,6 +140,7 @@ def run_margins(problem: Problem, grid, partition, synthesis, classes, dfa, log:
         partition, ``refined_from_grid_cell``; or ``{"skipped": reason}``.
     """
     from robust_imdp.abstraction.cell_bounds import CellBounds
+    from robust_imdp.abstraction.factored import abstraction_model
     from robust_imdp.synthesis.margins import assumption_margins, strategy_bounds
 
     why = skip_reason(problem)
@@ -153,8 +154,8 @@ def run_margins(problem: Problem, grid, partition, synthesis, classes, dfa, log:
 
         def evaluate(scale):
             j = index[float(scale)]
-            abstraction = abstract(partition, CellBounds(lower[j], upper[j], None))
-            return strategy_bounds(abstraction.imdp, partition.labels, partition.atoms, dfa, synthesis,
+            abstraction = abstract(partition, CellBounds(lower[j], upper[j], None))  # the run's form
+            return strategy_bounds(abstraction_model(abstraction), partition.labels, partition.atoms, dfa, synthesis,
                                    outside_state=partition.outside_state)
 
         margins = assumption_margins(classes, evaluate, problem.threshold, (1.0,) + tuple(scales))

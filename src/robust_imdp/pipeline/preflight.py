@@ -55,30 +55,83 @@ def _check_atoms(dfa, problem: Problem) -> None:
 
 
 # --------------------------------------------------------------------------- entry points
-def estimate_resources(problem: Problem, n_dfa_states: int = 4) -> dict:
+def estimate_resources(problem: Problem, n_dfa_states: int = 4, form: str | None = None) -> dict:
     """Pre-flight estimate of a run's size and peak memory, before any heavy work.
 
     The cell count is that of the plain grid (regions that do not fit it add a few cells).
-    Memory: IMDP rows of ``~3^n`` listed successors (24 bytes each: column, lower, upper) held
-    about three times during assembly, the image boxes and their error radii, the partition, and
-    the product solver's value arrays. Calibrated on the case studies and the 3-D study
-    (``benchmarks/scale.py``) to over-estimate.
+    Memory of the joint form: IMDP rows of ``~3^n`` listed successors (Thm 1) or
+    :func:`exact_successors` (24 bytes each: column, lower, upper) held about three times during
+    assembly, the image boxes and their error radii, the partition, and the product solver's value
+    arrays. Calibrated on the case studies and the 3-D study (``benchmarks/scale.py``) to
+    over-estimate. The factored form (``form="factored"``): :func:`factored_bytes`.
+
+    Parameters
+    ----------
+    problem : Problem
+    n_dfa_states : int
+    form : {"joint", "factored"}, optional
+        The abstraction's form; default: the problem's (``Problem.form_choice``).
 
     Returns
     -------
-    dict with ``n_cells``, ``n_modes``, ``n_outputs``, ``bytes`` (estimated peak) and
-    ``available`` (bytes the machine has free now, or None if unknown).
+    dict with ``n_cells``, ``n_modes``, ``n_outputs``, ``form``, ``bytes`` (estimated peak), ``joint_bytes``
+    (the joint form's estimate, for comparison) and ``available`` (bytes the machine has free now, or None if
+    unknown); the factored form adds ``listed_per_axis`` (the estimated ``k_i``).
     """
     n = int(np.size(problem.space_lower))
     N = problem.n_grid_cells
     M = len(problem.mode_names)
+    form = problem.form_choice()[0] if form is None and hasattr(problem, "form_choice") else (form or "joint")
     succ = 3 ** n + 1 if getattr(problem, "transitions", "thm1") == "thm1" else exact_successors(problem) + 1
     imdp = N * M * (succ * 24 + 48)
     boxes = N * M * n * 8 * 8
     part = N * n * 8 * 6
     solver = N * M * max(int(n_dfa_states), 1) * 8 * 6
-    return {"n_cells": N, "n_modes": M, "n_outputs": n, "bytes": int(3 * imdp + boxes + part + solver + 2e8),
-            "available": _available_memory()}
+    joint = int(3 * imdp + boxes + part + solver + 2e8)
+    out = {"n_cells": N, "n_modes": M, "n_outputs": n, "form": form, "bytes": joint, "joint_bytes": joint,
+           "available": _available_memory()}
+    if form == "factored":
+        k = factored_lengths(problem)
+        out.update(bytes=factored_bytes(N, M, k, n_dfa_states), listed_per_axis=list(k))
+    return out
+
+
+#: Bytes of the process before the run's arrays (Python, numpy, scipy, numba and the package imported), and the
+#: factored form's multipliers, fitted to the peak RSS of benchmarks/factored_pipeline.py's runs
+#: (benchmarks/results/factored_pipeline.md, "Pre-flight").
+FACTORED_BASE = 2.5e8
+FACTORED_MODEL_COPIES = 3.0
+FACTORED_TREE_BYTES = 8 * 9
+
+
+def factored_lengths(problem: Problem, tol: float = 1e-9) -> tuple:
+    """The listed intervals per axis of the factored form (``abstraction.marginals``), estimated before the bound
+    stage: an image of one cell's width (the image is not known yet) widened by the listing radius of ``tol``
+    (``marginals.AXIS_TOL``) on each side, placed at its worst against the grid, capped by the axis's intervals."""
+    h = np.asarray(problem.cell_size, float).reshape(-1)
+    lo, up = np.asarray(problem.space_lower, float), np.asarray(problem.space_upper, float)
+    R = np.asarray(problem.noise.listing_radius(tol), float)
+    n_j = np.rint((up - lo) / h).astype(np.int64)
+    return tuple(int(min(n, np.ceil((hj + 2 * r) / hj) + 1)) for n, hj, r in zip(n_j, h, R))
+
+
+def factored_bytes(n_cells: int, n_modes: int, k, n_dfa_states: int = 4) -> int:
+    """Estimated peak bytes of a factored run (docs/factored.md, "In the pipeline").
+
+    The model's arrays (per (cell, mode) and axis: a start, ``k_i`` lower and ``k_i`` upper bounds and three
+    scalars, ``16 k_i + 32`` bytes) held :data:`FACTORED_MODEL_COPIES` times at the assembly's peak (the chunks, the
+    concatenation, the validated copy); the solver's traversal tree (about ``n_cells x d`` nodes of
+    :data:`FACTORED_TREE_BYTES` bytes and ``d`` box ends per mode); the partition's corners and labels; the image
+    boxes; the value iteration's vectors (per DFA state and mode); :data:`FACTORED_BASE` for the process."""
+    k = np.asarray(k, dtype=np.int64)
+    d = int(k.size)
+    R = int(n_cells) * int(n_modes)
+    model = R * int(np.sum(16 * k + 32))
+    tree = R * d * (FACTORED_TREE_BYTES + 8 * d)
+    part = int(n_cells) * d * 8 * 4
+    boxes = R * d * 8 * 4
+    values = int(n_cells) * max(int(n_dfa_states), 1) * 8 * 8 + R * 8 * 4
+    return int(FACTORED_BASE + FACTORED_MODEL_COPIES * model + tree + part + boxes + values)
 
 
 def load_text(cores_used: int) -> str:
@@ -154,12 +207,26 @@ def _preflight(problem: Problem, dfa, log: _Log, run: _Run) -> None:
     est = estimate_resources(problem, dfa.n_states)
     gb = est["bytes"] / 1e9
     avail = est["available"]
+    factored = est["form"] == "factored"
     log.info(f"pre-flight: {est['n_cells']:,} cells x {est['n_modes']} modes x {est['n_outputs']} outputs, "
-             f"peak memory about {gb:.2f} GB" + (f" of {avail / 1e9:.1f} GB available" if avail else ""))
+             f"peak memory about {gb:.2f} GB" + (f" of {avail / 1e9:.1f} GB available" if avail else "")
+             + (f" (factored form; the joint IMDP: about {est['joint_bytes'] / 1e9:.2f} GB)" if factored else ""))
     if run.check_resources and avail is not None and est["bytes"] > 0.9 * avail:
         coarser = np.round(np.asarray(problem.cell_size, float) * 2, 6).tolist()
         raise ResourceError(
             f"pre-flight: {est['n_cells']:,} cells x {est['n_modes']} modes need about {gb:.1f} GB, more than the "
             f"{avail / 1e9:.1f} GB available: use a coarser [space].cell_size (e.g. {coarser}, which divides the "
             f"cells by {2 ** est['n_outputs']}); --scheduler moves the bound stage to a Dask cluster but not the "
-            "abstraction; --yes runs anyway")
+            "abstraction; --yes runs anyway" + _factored_hint(problem, est))
+
+
+def _factored_hint(problem: Problem, est: dict) -> str:
+    """The pre-flight's pointer to the factored form where a joint run would fit it and does not use it."""
+    if est["form"] == "factored" or not hasattr(problem, "factored_reason"):
+        return ""
+    exact = problem.replace(transitions="exact", form="auto")
+    if exact.factored_reason() is not None:
+        return ""
+    need = factored_bytes(est["n_cells"], est["n_modes"], factored_lengths(exact))
+    return (f"; [abstraction].transitions = 'exact' stores the factored form (docs/factored.md), about "
+            f"{need / 1e9:.2f} GB")

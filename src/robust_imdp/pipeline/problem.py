@@ -22,6 +22,9 @@ TRANSITIONS = ("thm1", "exact")
 #: The default of ``transitions``: the exact bounds, never looser than Thm 1's entry by entry and never a Q_yes
 #: cell lost on any benchmark (docs/abstraction.md, "When each wins"; benchmarks/results/exact_marginals.md).
 DEFAULT_TRANSITIONS = "exact"
+#: ``[abstraction].form``: the factored model (per-axis marginals, docs/factored.md) where it applies ("auto"),
+#: always ("factored"), or the joint IMDP ("joint"); the values of ``abstraction.factored.FORMS``.
+FORMS = ("auto", "factored", "joint")
 #: How the unknown part is bounded over a cell (see :class:`Problem`): the method registry's names.
 ERROR_BOUNDS = methods.ERROR_BOUNDS
 #: Failure probability allowed to the assumption check's noise bound when the noise is unbounded.
@@ -180,6 +183,7 @@ class AbstractionConfig:
     guarantee: str
     confidence: float
     transitions: str = DEFAULT_TRANSITIONS
+    form: str = "auto"
 
 
 @dataclass(frozen=True, eq=False)
@@ -223,6 +227,12 @@ class Problem:
         every target (never looser than Thm 1 per entry, and the only ones that certify anything when the
         noise is wider than a cell; ``eta`` and ``eps_rule`` are unused there), or ``"thm1"``, the paper's
         Thm 1 (its containment events; needed to reproduce the paper).
+    form : {"auto", "factored", "joint"}
+        How the abstraction is stored and solved (``[abstraction].form``; docs/factored.md, "In the pipeline"):
+        "factored", one interval vector per (cell, mode, axis) solved axis by axis (needs ``transitions =
+        "exact"``, ``combine = "product"`` and image boxes that hold the whole error: not the GP route with
+        ``guarantee = "paper"``); "joint", one interval per (cell, mode, successor); "auto" (default), the
+        factored form where it applies (:meth:`form_choice`). Refined cells are always joint.
     guarantee : {"confidence", "paper"}
         How the GP error enters the abstraction. ``"confidence"`` (default, sound for the one
         fixed system that produced the data): the error bound of every GP is taken at one
@@ -321,6 +331,7 @@ class Problem:
     semantics: str = "auto"
     inputs: Any = None
     transitions: str = DEFAULT_TRANSITIONS
+    form: str = "auto"
 
     def __post_init__(self):
         if self.periodic is not None:
@@ -370,6 +381,11 @@ class Problem:
         method.check_noise_options(tau, self.iid_noise)
         if self.transitions not in TRANSITIONS:
             raise InvalidInputError(f"transitions must be one of {', '.join(TRANSITIONS)}; got {self.transitions!r}")
+        if self.form not in FORMS:
+            raise InvalidInputError(f"form must be one of {', '.join(FORMS)} (how the abstraction is stored); got "
+                                    f"{self.form!r}")
+        if self.form == "factored" and self.factored_reason() is not None:
+            raise InvalidInputError(f"form = 'factored' does not apply: {self.factored_reason()}")
         method.check_gp_options(self.gp_options)
         self._check_known_parts()
         if self.inputs is not None:
@@ -432,7 +448,54 @@ class Problem:
     @property
     def abstraction(self) -> AbstractionConfig:
         return AbstractionConfig(self.eta, self.eps_rule, self.combine, self.guarantee, self.confidence,
-                                 self.transitions)
+                                 self.transitions, self.form)
+
+    def factored_reason(self) -> str | None:
+        """Why the factored form does not apply to this problem's grid, or None when it does (the settings'
+        part of ``abstraction.factored.factored_reason``: the grid is a grid, every noise model has independent
+        components)."""
+        if self.transitions != "exact":
+            return (f"transitions = {self.transitions!r}: Thm 1's bounds are containment events of the joint image, "
+                    "not per-axis marginals (the factored form needs transitions = 'exact')")
+        if self.combine != "product":
+            return (f"combine = {self.combine!r} assumes no independence between the noise's components: only "
+                    "Frechet's joint bounds hold, not a product of per-axis laws")
+        if self.guarantee == "paper" and not self.known:
+            return ("guarantee = 'paper' mixes the laws on and off the GP error event (the P_g mixture), which is no "
+                    "product of per-axis laws")
+        return None
+
+    def form_choice(self) -> tuple:
+        """``(form, why)``: the form the run's grid abstraction takes ("factored" or "joint") and why, in words.
+
+        "auto" takes the factored form where it applies and its rows are expected smaller than the joint exact
+        rows (``abstraction.factored.row_sizes``: a joint row lists about ``prod_i`` of the per-axis successors,
+        a factored one stores ``sum_i (2 k_i + 4)`` numbers): there its pessimistic value is never below the
+        joint IMDP's (docs/factored.md, Theorem 2) and it costs less. Where the joint rows are short (noise
+        narrower than a cell, as in the case studies) the joint form is kept: as fast there, and its unbounded
+        solves have the end-component deflation that makes p_up tight (docs/factored.md, "In the pipeline";
+        measured in benchmarks/results/factored_pipeline.md). The choice depends on the problem only (not on the
+        horizon or the machine), so a cached abstraction is reused when only the formula, threshold or horizon
+        change.
+        """
+        why_not = self.factored_reason()
+        if self.form == "joint":
+            return "joint", "[abstraction].form = 'joint'"
+        if why_not is not None:  # form "auto" (an explicit "factored" that does not apply is refused above)
+            return "joint", f"auto: the factored form does not apply ({why_not})"
+        if self.form == "factored":
+            return "factored", "[abstraction].form = 'factored'"
+        from robust_imdp.abstraction.factored import row_sizes
+
+        joint, numbers = row_sizes(self.space_lower, self.space_upper, self.cell_size, self.noise)
+        if joint > numbers:
+            return "factored", (f"auto: it applies (a grid, exact per-axis bounds, independent noise components, image "
+                                f"boxes that hold the whole error) and stores about {numbers} numbers per row where "
+                                f"the joint IMDP would list about {joint:,} successors; its value is never below the "
+                                "joint IMDP's")
+        return "joint", (f"auto: the joint rows are short (about {joint:,} successors per row against {numbers} "
+                         "numbers factored): the joint form is as fast, and its unbounded solves deflate end "
+                         "components; [abstraction].form = 'factored' forces the factored form")
 
     def abstraction_options(self) -> dict:
         """The keyword options of ``abstraction.abstract`` / ``abstract_rows`` this problem asks for (one place)."""

@@ -95,6 +95,7 @@ def _parameters(problem: Problem, abstraction) -> dict:
         "local_points": problem.local_points,
         **({} if getattr(problem, "split_tol", None) is None else {"split_tol": float(problem.split_tol)}),
         "abstraction_key": abstraction_key(problem),
+        **(_form_parameters(problem, abstraction)),
         **({} if all(_is_affine(m) for m in problem.maps) else
            {"known_parts": {name: (None if _is_affine(m) else list(m.expressions))
                             for name, m in zip(problem.mode_names, problem.maps)}}),
@@ -105,6 +106,16 @@ def _parameters(problem: Problem, abstraction) -> dict:
     return _jsonable(params)
 
 
+def _form_parameters(problem: Problem, abstraction) -> dict:
+    """``form`` and ``form_reason`` of a factored result's parameters (joint results' parameters are unchanged)."""
+    from robust_imdp.abstraction.factored import is_factored
+
+    if abstraction is None or not is_factored(abstraction):
+        return {}
+    return {"form": "factored", "form_reason": problem.form_choice()[1],
+            "numbers_per_row": int(abstraction.numbers_per_row)}
+
+
 def _abstract_task(partition, cell_bounds, noise, *, threads=1, **options):
     """One chunk of the abstraction stage (a module-level function, so that workers can import it)."""
     from robust_imdp.abstraction.rows import abstract_rows
@@ -112,14 +123,37 @@ def _abstract_task(partition, cell_bounds, noise, *, threads=1, **options):
     return abstract_rows(partition, cell_bounds, noise, None, **options)
 
 
-def _chunked_abstract(problem: Problem, partition, cell_bounds, log: _Log, run: _Run, chunk: int):
-    """``abstraction.abstract`` for known image boxes, chunk by chunk on the run's scheduler."""
+def _factored_task(partition, cell_bounds, noise, *, threads=1, k, tol):
+    """One chunk of the factored abstraction stage: its cells' per-axis marginals (``abstraction.factored``)."""
+    from robust_imdp.abstraction.factored import factored_rows
+
+    return factored_rows(partition, cell_bounds, noise, k, tol=tol)
+
+
+def _form_of(problem: Problem, partition) -> str:
+    """The form of the abstraction of ``partition``: the problem's choice on a grid, joint on refined cells."""
+    from robust_imdp.models.geometry import Partition
+
+    return problem.form_choice()[0] if isinstance(partition, Partition) else "joint"
+
+
+def _chunked_abstract(problem: Problem, partition, cell_bounds, log: _Log, run: _Run, chunk: int, form=None):
+    """``abstraction.abstract`` for known image boxes, chunk by chunk on the run's scheduler; with ``form =
+    "factored"`` (default: :func:`_form_of`) the factored abstraction (``abstraction.factored``) instead: the listed
+    lengths of all cells first, then the chunks' marginals."""
     from robust_imdp.abstraction.rows import CellBounds, assemble_abstraction
 
+    form = _form_of(problem, partition) if form is None else form
     N = partition.n_cells
     starts = list(range(0, N, chunk))
     sched = run.sched
-    opts = problem.abstraction_options()
+    if form == "factored":
+        from robust_imdp.abstraction.factored import AXIS_TOL, assemble_factored, axis_lengths
+
+        task, assemble = _factored_task, assemble_factored
+        opts = {"k": axis_lengths(partition, cell_bounds, problem.noise), "tol": AXIS_TOL}
+    else:
+        task, assemble, opts = _abstract_task, assemble_abstraction, problem.abstraction_options()
     args = []
     part = partition if sched is None else sched.share(partition)
     for s0 in starts:
@@ -129,10 +163,10 @@ def _chunked_abstract(problem: Problem, partition, cell_bounds, log: _Log, run: 
     pieces = [None] * len(args)
     t0 = time.perf_counter()
     runner = sched if sched is not None else _serial()
-    for i, piece in runner.run(_abstract_task, args, opts):
+    for i, piece in runner.run(task, args, opts):
         pieces[i] = piece
         log.progress("abstract", sum(p is not None for p in pieces), len(pieces), t0)
-    return assemble_abstraction(partition, pieces)
+    return assemble(partition, pieces)
 
 
 def _build_abstraction(problem: Problem, partition, log: _Log, cache_dir=None, run: "_Run | None" = None):
@@ -179,19 +213,29 @@ def _build_abstraction(problem: Problem, partition, log: _Log, cache_dir=None, r
             abstraction = abstract(partition, cell_bounds, problem.noise, error_models,
                                    **problem.abstraction_options())
     diagnostics = dict(diagnostics)
-    diagnostics["successors_per_row"] = float(np.mean(abstraction.nnz_per_row))
-    log.info(f"IMDP: {abstraction.imdp.n_states} states, {int(np.sum(abstraction.nnz_per_row))} "
-             f"listed transitions ({diagnostics['successors_per_row']:.1f} per row)")
+    from robust_imdp.abstraction.factored import is_factored
+
+    if is_factored(abstraction):
+        m = abstraction.model
+        diagnostics["factored"] = {"numbers_per_row": int(m.numbers_per_row), "entries_per_row": int(m.entries_per_row),
+                                   "listed_per_axis": list(m.k), "bytes": int(m.nbytes)}
+        log.info(f"factored IMDP: {m.n_states} states, {m.n_modes} modes, {m.numbers_per_row} stored numbers per row "
+                 f"({' + '.join(str(k + 1) for k in m.k)} interval entries per axis), {m.nbytes / 1e6:.1f} MB")
+    else:
+        diagnostics["successors_per_row"] = float(np.mean(abstraction.nnz_per_row))
+        log.info(f"IMDP: {abstraction.imdp.n_states} states, {int(np.sum(abstraction.nnz_per_row))} "
+                 f"listed transitions ({diagnostics['successors_per_row']:.1f} per row)")
     return abstraction, diagnostics, (cell_bounds if error_models is None else None)
 
 
 def _synthesize(problem: Problem, partition, abstraction, dfa, log: _Log):
+    from robust_imdp.abstraction.factored import abstraction_model
     from robust_imdp.pipeline.nominal_stage import run_nominal
     from robust_imdp.synthesis.core import synthesize
 
     nominal = run_nominal(problem, partition, log)  # ranks modes of equal robust value (synthesis.ties)
     with log.stage("synthesize"):
-        syn = synthesize(abstraction.imdp, partition.labels, partition.atoms, dfa,
+        syn = synthesize(abstraction_model(abstraction), partition.labels, partition.atoms, dfa,
                          threshold=problem.threshold, horizon=problem.horizon,
                          outside_state=partition.outside_state, semantics=problem.semantics, nominal=nominal)
     classes = _class_names(syn.classes, syn, problem.threshold)
@@ -328,6 +372,8 @@ def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cac
                               _region_objects(problem), names=problem.dim_names, periodic=problem.periodic)
     log.info(f"partition: {partition.n_cells} cells")
     _check_reading(problem, partition, dfa)
+    form, why = problem.form_choice()
+    log.info(f"abstraction form: {form} ({why})")
 
     abstraction, from_cache, diagnostics, cell_bounds = None, False, {}, None
     cache_file = diag_file = None

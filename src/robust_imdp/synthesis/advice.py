@@ -218,23 +218,58 @@ class SolveJob:
     transitions: float
 
 
-def job_rows(partition, lower, upper, noise, options: dict):
-    """The IMDP rows (Thm 1, ``abstraction.abstract_rows``) of the cells whose boxes ``[lower, upper]``
-    ``(n_modes, k, n)`` are given: one chunk of a :class:`SolveJob`."""
+def _factored(partition, options: dict) -> bool:
+    """Whether a re-solve on ``partition`` is factored (``options["form"]``, on a grid; docs/factored.md)."""
+    from robust_imdp.models.geometry import Partition
+
+    return options.get("form") == "factored" and isinstance(partition, Partition)
+
+
+def job_lengths(job: "SolveJob", noise, options: dict):
+    """The listed lengths per axis of a factored job (``abstraction.factored.axis_lengths`` of all its cells), which
+    every chunk of its rows takes; None for a joint one."""
+    if not _factored(job.partition, options):
+        return None
+    from robust_imdp.abstraction.factored import axis_lengths
+    from robust_imdp.abstraction.rows import CellBounds
+
+    return axis_lengths(job.partition, CellBounds(job.lower, job.upper, None), noise)
+
+
+def job_rows(partition, lower, upper, noise, options: dict, k=None):
+    """The IMDP rows (``abstraction.abstract_rows`` with the run's options) of the cells whose boxes ``[lower,
+    upper]`` ``(n_modes, k, n)`` are given: one chunk of a :class:`SolveJob`. With ``options["form"] ==
+    "factored"`` on a grid: the chunk's per-axis marginals (``abstraction.factored.factored_rows``) with the job's
+    listed lengths ``k`` (:func:`job_lengths`; None: those of these cells)."""
     from robust_imdp.abstraction.rows import CellBounds, abstract_rows
 
-    return abstract_rows(partition, CellBounds(lower, upper, None), noise, None, **options)
+    cb = CellBounds(lower, upper, None)
+    if _factored(partition, options):
+        from robust_imdp.abstraction.factored import axis_lengths, factored_rows
+
+        return factored_rows(partition, cb, noise, axis_lengths(partition, cb, noise) if k is None else k)
+    return abstract_rows(partition, cb, noise, None, **{k_: v for k_, v in options.items() if k_ != "form"})
+
+
+def _entries(rows) -> int:
+    """Listed transitions of a chunk of rows (joint: its entries; factored: its interval entries)."""
+    if hasattr(rows, "col"):
+        return int(np.asarray(rows.col).size)
+    return int(rows.n_modes * rows.n_cells * sum(k + 1 for k in rows.k))
 
 
 def job_share(job: SolveJob, pieces, dfa, *, threshold: float, horizon=None, semantics: str = "auto") -> float:
     """Q_yes share (volume) of ``job`` from its rows' chunks in cell order, after the robust solve."""
+    from robust_imdp.abstraction.factored import FactoredRows, abstraction_model, assemble_factored
     from robust_imdp.abstraction.rows import assemble_abstraction
     from robust_imdp.synthesis.core import synthesize
 
     part = job.partition
-    ab = assemble_abstraction(part, list(pieces))
+    pieces = list(pieces)
+    assemble = assemble_factored if pieces and isinstance(pieces[0], FactoredRows) else assemble_abstraction
+    ab = assemble(part, pieces)
     kw = {} if semantics == "auto" else {"semantics": semantics}
-    syn = synthesize(ab.imdp, part.labels, part.atoms, dfa, threshold=threshold, horizon=horizon,
+    syn = synthesize(abstraction_model(ab), part.labels, part.atoms, dfa, threshold=threshold, horizon=horizon,
                      outside_state=part.outside_state, **kw)
     return _share(part, np.asarray(syn.p_low) >= threshold)  # Q_yes: p_low >= threshold (Sec. 5)
 
@@ -250,11 +285,12 @@ def serial_solver(noise, dfa, *, threshold: float, horizon=None, options=None, s
     def solve(jobs, deadline):
         for i, job in enumerate(jobs):
             pieces = []
+            k = job_lengths(job, noise, opts)
             for s0 in range(0, job.partition.n_cells, ROW_CHUNK):
                 if deadline is not None and time.perf_counter() > deadline:
                     break
                 sl = slice(s0, s0 + ROW_CHUNK)
-                pieces.append(job_rows(job.partition, job.lower[:, sl], job.upper[:, sl], noise, opts))
+                pieces.append(job_rows(job.partition, job.lower[:, sl], job.upper[:, sl], noise, opts, k=k))
             else:
                 yield i, job_share(job, pieces, dfa, threshold=threshold, horizon=horizon, semantics=semantics)
                 continue
@@ -292,7 +328,7 @@ def _sampled_transitions(partition, lower, upper, noise, options, k: int = SAMPL
     t0 = time.perf_counter()
     rows = job_rows(partition, lower[:, idx], upper[:, idx], noise, options)
     dt = time.perf_counter() - t0
-    nnz = max(int(np.asarray(rows.col).size), 1)
+    nnz = max(_entries(rows), 1)
     return nnz * n / idx.size, dt / nnz
 
 

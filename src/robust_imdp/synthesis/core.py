@@ -79,6 +79,7 @@ from robust_imdp.synthesis.controller import Controller, remap_letters  # below 
 from robust_imdp.synthesis import ties as _ties
 from robust_imdp.spec.api import check_reading, is_dfa, resolve_semantics
 from robust_imdp.errors import ConvergenceWarning, DimensionError, InvalidInputError, SoundnessError
+from robust_imdp.models.factored import FactoredIMDP
 from robust_imdp.models.imdp import IMDP
 
 __all__ = ["SolverRun", "SynthesisResult", "synthesize", "remap_letters"]
@@ -272,9 +273,13 @@ def synthesize(
 
     Parameters
     ----------
-    imdp : IMDP
+    imdp : IMDP or FactoredIMDP
         Abstraction: states ``0 .. n_cells-1`` are cells, then (optionally) the outside-X state;
-        the choice index within a state is the mode index.
+        the choice index within a state is the mode index. A factored model (docs/factored.md, "In
+        synthesis") is solved by :func:`robust_imdp.solvers.factored.solve_factored_product` in every
+        solve (same product, readings, horizons and lexicographic choice; its bracket is of the factored
+        operator's value, which is below the product set's for the adversary against the controller), and
+        always has the outside state ``n_cells``.
     labels : (n_cells,) int array
         Letter of each cell w.r.t. ``atoms`` (e.g. ``partition.labels``).
     atoms : sequence of str
@@ -293,7 +298,8 @@ def synthesize(
     precision : float
         Target width of the value brackets of the unbounded solves.
     method : str
-        Algorithm of the product solves (a name of :data:`robust_imdp.solvers.engine.METHODS`).
+        Algorithm of the product solves (a name of :data:`robust_imdp.solvers.engine.METHODS`); a factored
+        model has one (value iteration with the factored operator) and ignores it.
     semantics : {"auto", "reach", "safety"}
         The reading of the specification (module docstring, "Two readings"): "reach", a path satisfies
         it when some prefix is accepted; "safety", when no prefix is a bad prefix and the path stays in X;
@@ -352,7 +358,7 @@ def synthesize(
     return SynthesisResult(
         strategy=strategy, p_low=p_low, p_up=p_up, p_up_star=p_up_star, error=error,
         classes=classes, initial_dfa_state=init, labels=cell_letters, dfa=dfa,
-        threshold=threshold, horizon=horizon, n_modes=int(imdp.n_choices_of().max()),
+        threshold=threshold, horizon=horizon, n_modes=_n_modes(imdp),
         runs=runs, precision=float(precision), strategy_choice=choice, semantics=reading,
         tie_keys=_ties.TIE_KEYS[nominal is not None],
     )
@@ -361,8 +367,8 @@ def synthesize(
 def _check_inputs(imdp, labels, atoms, dfa, threshold, horizon, outside_state):
     """The checked inputs of :func:`synthesize`: (threshold, horizon, atoms tuple, labels as int64,
     avoid = the outside state or None)."""
-    if not isinstance(imdp, IMDP):
-        raise InvalidInputError(f"imdp must be an IMDP; got {type(imdp).__name__}")
+    if not isinstance(imdp, (IMDP, FactoredIMDP)):
+        raise InvalidInputError(f"imdp must be an IMDP or a FactoredIMDP; got {type(imdp).__name__}")
     if not is_dfa(dfa):
         raise InvalidInputError(f"dfa must be a DFA; got {type(dfa).__name__}")
     threshold = _check_threshold(threshold)
@@ -389,18 +395,49 @@ def _check_inputs(imdp, labels, atoms, dfa, threshold, horizon, outside_state):
     return threshold, horizon, atoms, lab, avoid
 
 
+def _n_modes(model) -> int:
+    return int(model.n_modes) if isinstance(model, FactoredIMDP) else int(model.n_choices_of().max())
+
+
+def _solvers(model):
+    """``(solve_product, evaluate_product_strategy)`` for the model's kind: the joint solvers of
+    :mod:`robust_imdp.solvers.product`, or :func:`~robust_imdp.solvers.factored.solve_factored_product` with the
+    same arguments and results (``control="maximize"``: the reported value is the satisfaction probability, and
+    "pessimistic" minimises it under both readings, as the joint solvers read it; ``method`` does not apply)."""
+    if not isinstance(model, FactoredIMDP):
+        return _product.solve_product, _product.evaluate_product_strategy
+    from robust_imdp.solvers.factored import solve_factored_product
+
+    def solve(m, letters, dfa, *, adversary, tie_break=None, method=None, **kw):
+        return solve_factored_product(m, letters, dfa, adversary=adversary, tie_break=tie_break, control="maximize",
+                                      **kw)
+
+    def evaluate(m, letters, dfa, strategy, *, adversary, method=None, **kw):
+        return solve_factored_product(m, letters, dfa, adversary=adversary, strategy=strategy, control="maximize",
+                                      **kw)
+
+    return solve, evaluate
+
+
 def _solve(imdp, letters, dfa, n_cells, precision, kw, nominal=None):
     """The product solves of :func:`synthesize`: (optimistic, robust, ev_low, ev_up, strategy,
     strategy_choice, extra runs)."""
-    optimistic = _product.solve_product(imdp, letters, dfa, adversary="optimistic", **kw)
+    solve_product, evaluate_product_strategy = _solvers(imdp)
+    optimistic = solve_product(imdp, letters, dfa, adversary="optimistic", **kw)
     safety = kw["semantics"] == "safety"
+    if isinstance(imdp, FactoredIMDP) and imdp.n_modes == 1:
+        # one mode: every strategy is that mode, so the robust solve is its pessimistic evaluation and the
+        # optimistic solve its optimistic one (the same operator applied to the same vectors): two solves, not four
+        robust = solve_product(imdp, letters, dfa, adversary="pessimistic", **kw)
+        return optimistic, robust, robust, optimistic, np.asarray(robust.strategy), \
+            ("least" if safety else "lexicographic"), ()
     # Lexicographic choice: best lower value, then the nominal model's value, then the best optimistic value
     # (module docstring; synthesis.ties). Safety: the minimising controller's least rows against the proven upper
     # bound (solvers.engine._minimising_strategy), then the same keys.
     ties, nom = _ties.tie_break(imdp, nominal, letters, dfa, optimistic, kw)
-    robust = _product.solve_product(imdp, letters, dfa, adversary="pessimistic", tie_break=ties, **kw)
+    robust = solve_product(imdp, letters, dfa, adversary="pessimistic", tie_break=ties, **kw)
     pi = np.asarray(robust.strategy)
-    ev_low = _product.evaluate_product_strategy(imdp, letters, dfa, pi, adversary="pessimistic", **kw)
+    ev_low = evaluate_product_strategy(imdp, letters, dfa, pi, adversary="pessimistic", **kw)
     choice = "least" if safety else "lexicographic"
     extra_runs = () if nom is None else (_run("nominal", nom, n_cells),)
     if safety:
@@ -413,15 +450,14 @@ def _solve(imdp, letters, dfa, n_cells, precision, kw, nominal=None):
     elif not _keeps_optimal_lower(ev_low, robust, n_cells, precision):
         # the tie-broken strategy lost lower value somewhere (it must not): use the first-choice
         # extraction instead if that one does better anywhere
-        first = _product.solve_product(imdp, letters, dfa, adversary="pessimistic", **kw)
-        ev_first = _product.evaluate_product_strategy(imdp, letters, dfa, first.strategy, adversary="pessimistic",
-                                                      **kw)
+        first = solve_product(imdp, letters, dfa, adversary="pessimistic", **kw)
+        ev_first = evaluate_product_strategy(imdp, letters, dfa, first.strategy, adversary="pessimistic", **kw)
         extra_runs += (_run("robust_first_choice", first, n_cells),
                        _run("evaluate_first_choice", ev_first, n_cells))
         tol = ev_low.precision + ev_first.precision + precision
         if np.any(np.asarray(ev_first.initial_lower)[:n_cells] > np.asarray(ev_low.initial_lower)[:n_cells] + tol):
             robust, ev_low, pi, choice = first, ev_first, np.asarray(first.strategy), "first"
-    ev_up = _product.evaluate_product_strategy(imdp, letters, dfa, pi, adversary="optimistic", **kw)
+    ev_up = evaluate_product_strategy(imdp, letters, dfa, pi, adversary="optimistic", **kw)
     return optimistic, robust, ev_low, ev_up, pi, choice, extra_runs
 
 

@@ -126,8 +126,9 @@ def strategy_bounds(imdp, labels, atoms, dfa, synthesis, *, outside_state=None):
 
     Parameters
     ----------
-    imdp : IMDP
-        States ``0 .. n_cells-1`` the cells (then the outside state, if any); choices the modes.
+    imdp : IMDP or FactoredIMDP
+        States ``0 .. n_cells-1`` the cells (then the outside state, if any); choices the modes. A factored
+        model is evaluated by the factored solver, as ``synthesis.core`` solves it.
     labels : (n_cells,) int array
         The cells' letters over ``atoms`` (``partition.labels``).
     atoms : sequence of str
@@ -139,8 +140,10 @@ def strategy_bounds(imdp, labels, atoms, dfa, synthesis, *, outside_state=None):
     -------
     p_low, p_up : (n_cells,) float arrays
     """
-    from robust_imdp.solvers import product as _product
     from robust_imdp.synthesis.controller import remap_letters
+    from robust_imdp.synthesis.core import _solvers
+
+    solve_product, evaluate_product_strategy = _solvers(imdp)
 
     labels = np.asarray(labels, dtype=np.int64)
     n_cells = int(labels.shape[0])
@@ -157,9 +160,9 @@ def strategy_bounds(imdp, labels, atoms, dfa, synthesis, *, outside_state=None):
     reading = getattr(synthesis, "semantics", "reach")
     if reading != "reach":  # only then: the solvers' default reading is reach
         kw["semantics"] = reading
-    low = _product.evaluate_product_strategy(imdp, letters, dfa, pi, adversary="pessimistic", **kw)
-    up = _product.evaluate_product_strategy(imdp, letters, dfa, pi, adversary="optimistic", **kw)
-    star = _product.solve_product(imdp, letters, dfa, adversary="optimistic", **kw)
+    low = evaluate_product_strategy(imdp, letters, dfa, pi, adversary="pessimistic", **kw)
+    up = evaluate_product_strategy(imdp, letters, dfa, pi, adversary="optimistic", **kw)
+    star = solve_product(imdp, letters, dfa, adversary="optimistic", **kw)
     p_low = np.array(low.initial_lower, dtype=np.float64)[:n_cells]
     p_up = np.minimum(np.array(up.initial_upper, dtype=np.float64)[:n_cells],
                       np.array(star.initial_upper, dtype=np.float64)[:n_cells])

@@ -43,9 +43,11 @@ from typing import Callable
 
 import numpy as np
 
+from robust_imdp.abstraction.factored import is_factored
 from robust_imdp.abstraction.rows import AbstractionRows, CellBounds, abstract_rows, assemble_abstraction, join_rows, \
     select_rows
-from robust_imdp.errors import DimensionError, InvalidInputError
+from robust_imdp.errors import DimensionError, InvalidInputError, ResourceError
+from robust_imdp.models.factored import MAX_JOINT_ENTRIES
 from robust_imdp.models.geometry import BoxPartition, Partition
 
 __all__ = ["RefineOptions", "RefineRound", "RefineResult", "refine", "select_cells", "focus_cells", "class_shares"]
@@ -345,7 +347,10 @@ def refine(partition, cell_bounds: CellBounds, bound_cells: Callable, noise, dfa
     abstraction, synthesis : optional
         The starting abstraction (on ``partition``, with these bounds) and its synthesis result,
         when already computed (e.g. by the pipeline); they are rebuilt from ``cell_bounds`` if
-        not given.
+        not given. A factored abstraction (``abstraction.factored``; docs/factored.md) is not kept:
+        refined cells are boxes, not a grid, so the rounds work on joint rows (``abstraction_options``'
+        transitions), built from ``cell_bounds`` for the whole grid and re-solved in round 0; where
+        those rows would exceed :data:`MAX_JOINT_ENTRIES` the refinement is refused.
     progress : callable ``(str) -> None``, optional
         Receives one line per round.
 
@@ -360,6 +365,12 @@ def refine(partition, cell_bounds: CellBounds, bound_cells: Callable, noise, dfa
     partition = _check_start(partition, cell_bounds)
     abs_opts = dict(abstraction_options or {})
     M = cell_bounds.n_modes
+    if is_factored(abstraction):
+        _check_joint_size(abstraction)
+        if progress:
+            progress(f"refinement: the grid's factored abstraction becomes joint rows (refined cells are boxes, not "
+                     f"a grid; about {abstraction.joint_entries():,} entries); round 0 re-solves them")
+        abstraction, synthesis = None, None
 
     def solve(ab, part):
         if synthesize is not None:
@@ -425,6 +436,17 @@ def refine(partition, cell_bounds: CellBounds, bound_cells: Callable, noise, dfa
         stopped = "max_rounds" if focus_cells(synthesis, options.focus).any() else "no undecided cells"
     return RefineResult(partition=partition, cell_bounds=cell_bounds, abstraction=abstraction, synthesis=synthesis,
                         rounds=tuple(rounds), stopped=stopped, options=options)
+
+
+def _check_joint_size(abstraction) -> None:
+    """Refuse (``ResourceError``) a refinement whose joint rows of the grid would exceed :data:`MAX_JOINT_ENTRIES`
+    (the entries of the factored model's joint expansion: the exact joint rows list at most these)."""
+    entries = abstraction.joint_entries()
+    if entries > MAX_JOINT_ENTRIES:
+        raise ResourceError(
+            f"refinement works on joint rows (refined cells are boxes, not a grid), and the joint rows of this "
+            f"{abstraction.partition.n_cells:,}-cell grid would hold about {entries:,} entries (> {MAX_JOINT_ENTRIES:,}): "
+            "drop [refine] and keep the factored result, or use a coarser grid")
 
 
 def _check_start(partition, cell_bounds) -> BoxPartition:

@@ -115,6 +115,23 @@ def power_function(points: np.ndarray, data: np.ndarray, inv_l2: np.ndarray, lam
     return np.maximum(1.0 - np.sum(V * V, axis=0), 0.0)
 
 
+def _row_reader(abstraction):
+    """``rows(cell, mode) -> (cols, upper)``: a row's listed successors and their upper bounds, from a joint
+    abstraction's IMDP or a factored one's per-axis vectors (``FactoredAbstraction.row_upper``)."""
+    from robust_imdp.abstraction.factored import is_factored
+
+    if is_factored(abstraction):
+        return abstraction.row_upper
+    imdp = abstraction.imdp
+
+    def rows(q, u):
+        row = int(imdp.state_ptr[q]) + int(u)  # one choice per mode, in mode order
+        lo, hi = int(imdp.row_ptr[row]), int(imdp.row_ptr[row + 1])
+        return np.asarray(imdp.col[lo:hi]), np.asarray(imdp.upper[lo:hi])
+
+    return rows
+
+
 def _candidates(result):
     """(cells, weight per (mode, cell), reason per cell) of the undecided cells and those they reach."""
     syn = result.synthesis
@@ -129,7 +146,7 @@ def _candidates(result):
         strategy = strategy[0]
     init = np.asarray(syn.initial_dfa_state)
     chosen = strategy[np.arange(n_cells), init]
-    imdp = result.abstraction.imdp
+    rows = _row_reader(result.abstraction)
     # how far each undecided cell's lower bound is from the threshold (a reached cell: that of the closest
     # undecided cell reaching it); orders the candidates when there are more than MAX_CANDIDATES
     gap_q = np.maximum(float(result.threshold) - np.asarray(result.p_low, float), 0.0)
@@ -142,12 +159,10 @@ def _candidates(result):
         weights[:, q] = OTHER_MODE_WEIGHT
         weights[chosen[q], q] = 1.0
         reason[int(q)] = "undecided (Q_?)"
-        row = int(imdp.state_ptr[q]) + int(chosen[q])  # one choice per mode, in mode order
-        lo, hi = int(imdp.row_ptr[row]), int(imdp.row_ptr[row + 1])
-        cols = np.asarray(imdp.col[lo:hi])
+        cols, upper = rows(int(q), int(chosen[q]))
         inside = cols < n_cells
-        yes_mass[q] = float(np.sum(np.asarray(imdp.upper[lo:hi])[inside][classes[cols[inside]] == "yes"]))
-        for t, p in zip(imdp.col[lo:hi], imdp.upper[lo:hi]):
+        yes_mass[q] = float(np.sum(upper[inside][classes[cols[inside]] == "yes"]))
+        for t, p in zip(cols, upper):
             t = int(t)
             if t >= n_cells or classes[t] == "maybe" or p <= 0:
                 continue
