@@ -495,3 +495,28 @@ def test_problem_files_and_the_pipeline_take_transitions(tmp_path):
         load_problem(path)
     with pytest.raises(InvalidInputError, match="transitions"):
         base.replace(transitions="joint")
+
+
+def test_unlisted_cells_stay_below_the_floor_at_their_worst_image_point():
+    # every cell a row does not list must have its largest probability over the image box (the product of the
+    # per-axis maxima) at most the floor; the floor is set just below a listed entry's upper bound (floor_tol
+    # = 20 x upper / 1.5, least floor = floor_tol / 20), so an entry between the floor and twice it exists
+    part = Partition(Box([0.0, 0.0], [6.0, 4.0]), 0.5)
+    noise = GaussianNoise([0.35, 0.25])
+    lo = np.array([[[2.1, 1.6]]]) * np.ones((1, part.n_cells, 2))
+    hi = lo + np.array([0.3, 0.2])
+    first = abstract(part, CellBounds(lo, hi), noise, transitions="exact")
+    r0, r1 = first.imdp.row_ptr[0], first.imdp.row_ptr[1] - 1  # without the outside entry
+    ups = first.imdp.upper[r0:r1]
+    pick = ups[(ups > 1e-5) & (ups < 1e-3)][0]
+    ab = abstract(part, CellBounds(lo, hi), noise, transitions="exact", floor_tol=20 * pick / 1.5)
+    r0, r1 = ab.imdp.row_ptr[0], ab.imdp.row_ptr[1]
+    floor = ab.imdp.floor[0]
+    assert floor < pick < 2 * floor and pick in ab.imdp.upper[r0:r1]  # listed, and within twice the floor
+    listed = set(ab.imdp.col[r0:r1].tolist())
+    bp = part.breakpoints
+    per_axis = [{i: dense_extrema(lambda y: g_mp(noise, j, y, bp[j][i], bp[j][i + 1]), lo[0, 0, j], hi[0, 0, j],
+                                  n=21)[1] for i in range(part.shape[j])} for j in range(2)]
+    worst = [float(per_axis[0][i0] * per_axis[1][i1]) for i0 in range(part.shape[0]) for i1 in range(part.shape[1])
+             if np.ravel_multi_index((i0, i1), part.shape) not in listed]
+    assert worst and max(worst) <= floor
