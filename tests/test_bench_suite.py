@@ -102,7 +102,7 @@ def test_runner_quick_runs_one_benchmark_end_to_end_and_writes_its_table(tmp_pat
     """bas4d's coarse variant (16 cells, 2 steps) in a child process: a row with the run's numbers, its Monte
     Carlo from the numpy BAS passing, and the markdown table; a second --only run keeps the first row."""
     cmd = [sys.executable, str(BENCH / "arch" / "run.py"), "--quick", "--only", "bas4d", "--out", str(tmp_path),
-           "--mc-cells", "16", "--mc-runs", "100", "--timeout", "600"]
+           "--mc-cells", "16", "--mc-runs", "100", "--timeout", "600", "--no-warm"]
     subprocess.run(cmd, check=True, cwd=ROOT, capture_output=True, text=True)
     data = json.loads((tmp_path / "arch_quick.json").read_text())
     (row,) = data["rows"]
@@ -118,12 +118,12 @@ def test_runner_quick_runs_one_benchmark_end_to_end_and_writes_its_table(tmp_pat
 
 def test_runner_reports_pending_and_timeout_rows_instead_of_crashing(arch, tmp_path, monkeypatch):
     monkeypatch.setattr(arch, "factored_available", lambda: "not here (test)")
-    assert arch.main(["--only", "linear7d", "--out", str(tmp_path)]) == 0
+    assert arch.main(["--only", "linear7d", "--out", str(tmp_path), "--no-warm"]) == 0
     row = json.loads((tmp_path / "arch.json").read_text())["rows"][0]
     assert row["status"] == "pending" and "factored" in row["why"]
     assert "**pending**" in (tmp_path / "arch.md").read_text()
     # a child stopped at --timeout: its process group is killed and the row says so; the pending row is kept
-    assert arch.main(["--only", "bas4d", "--quick", "--out", str(tmp_path), "--timeout", "0.5"]) == 0
+    assert arch.main(["--only", "bas4d", "--quick", "--out", str(tmp_path), "--timeout", "0.5", "--no-warm"]) == 0
     row = json.loads((tmp_path / "arch_quick.json").read_text())["rows"][0]
     assert row["status"] == "timeout" and row["wall_seconds"] < 30
     assert json.loads((tmp_path / "arch.json").read_text())["rows"][0]["status"] == "pending"

@@ -432,7 +432,8 @@ def render(data: dict) -> str:
              f"the start, {data['load_end']:.1f} at the end (per row below). Reproduce: `{cmd}` "
              f"(`python benchmarks/arch/run.py --only NAME` for one row). Each row runs in its own process: "
              f"*time* is its wall time (start to exit, Monte Carlo excluded) and *stages* the pipeline's bound / "
-             f"abstract / synthesize seconds; *peak* the pipeline's peak RSS. Monte Carlo: the true system "
+             f"abstract / synthesize seconds (numba's kernels warmed up before the rows: `python -m robust_imdp.warmup`); "
+             f"*peak* the pipeline's peak RSS. Monte Carlo: the true system "
              f"(numpy, from the source's definition) under the run's controller, {data['mc_cells']} seeded cells "
              f"(+ the reference cells) x {data['mc_runs']} runs, Wilson 0.999; *flagged / allowed*.", "",
              "| benchmark | cells x inputs | spec | form | p_low min / mean / max | p_up min / mean / max | "
@@ -505,6 +506,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=RESULTS, help="results folder (default benchmarks/results)")
     ap.add_argument("--list", action="store_true", help="list the benchmarks and exit")
+    ap.add_argument("--no-warm", action="store_true",
+                    help="skip the numba warm-up before the timed rows (compile time then lands in the first rows)")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     ap.add_argument("--child-out", type=Path, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -528,6 +531,12 @@ def main(argv=None) -> int:
     path = args.out / f"{name}.json"
     old = json.loads(path.read_text()) if path.exists() else {"rows": []}
     load_start = os.getloadavg()[0]
+    warm = None
+    if not args.no_warm:  # numba's kernels compiled (or loaded) once, outside the timed rows
+        t0 = time.perf_counter()
+        rc = subprocess.run([sys.executable, "-m", "robust_imdp.warmup"], cwd=ROOT, capture_output=True).returncode
+        warm = {"seconds": time.perf_counter() - t0, "exit": rc}
+        print(f"[arch] warm-up (python -m robust_imdp.warmup): {warm['seconds']:.0f} s, exit {rc}", file=sys.stderr)
     rows = []
     for bench in chosen:
         print(f"[arch] {bench.name} ...", file=sys.stderr, flush=True)
@@ -544,7 +553,7 @@ def main(argv=None) -> int:
         data = {"rows": merged, "quick": args.quick, "commit": _commit(), "machine": _machine(),
                 "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "load_start": load_start,
                 "load_end": os.getloadavg()[0], "mc_cells": args.mc_cells, "mc_runs": args.mc_runs,
-                "timeout": args.timeout}
+                "timeout": args.timeout, "warm_up": warm}
         _write_json(path, data)
         _write_text(args.out / f"{name}.md", render(data))
     bad = [r["name"] for r in rows if r["status"] in ("monte-carlo failed", "error")]
