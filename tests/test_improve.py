@@ -174,15 +174,16 @@ def test_cli_improve_prints_rounds(tmp_path, capsys):
                                        "    def step(self, x, modes, rng):\n"
                                        "        s = np.array([[0.4, 0.0], [0.0, 0.4]])[modes]\n"
                                        "        return x + s + 0.05 * np.sin(x[:, ::-1])\n"
-                                       "class Clipped(Robot):\n"
+                                       "class Pushed(Robot):\n"
                                        "    def step(self, x, modes, rng):\n"
-                                       "        return np.clip(super().step(x, modes, rng), 0, 3)\n")
+                                       "        return super().step(x, modes, rng) + [0.5, 0.0]\n")
     args = ["improve", str(tmp_path / "p.toml"), "--budget", "4", "--rounds", "2", "--quiet", "--allow-outside"]
     assert main(args + ["--true-system", f"{tmp_path / 'robot.py'}:Robot", "--out", str(tmp_path / "o")]) == 0
     text = capsys.readouterr().out
     assert "round 2: +2 samples" in text and "Q_yes" in text and (tmp_path / "o" / "result.json").exists()
-    # a wall the model does not know: the new samples refute B, and the all-data check of the round says so
-    assert main(args + ["--true-system", f"{tmp_path / 'robot.py'}:Clipped", "--out", str(tmp_path / "c")]) == 1
+    # a push the model does not know (0.5 east, above B = 0.3 plus the noise anywhere the new samples are taken):
+    # the new samples refute B, and the all-data check of the round says so
+    assert main(args + ["--true-system", f"{tmp_path / 'robot.py'}:Pushed", "--out", str(tmp_path / "c")]) == 1
     assert "is refuted by the data" in capsys.readouterr().err
 
 

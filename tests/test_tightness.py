@@ -44,13 +44,14 @@ def test_refuted_rkhs_bound_exits_1_before_any_result(tmp_path, capsys):
     problem = _coarse_case(tmp_path, rkhs_bound=2.0)
     out = tmp_path / "out"
     out.mkdir()
-    (out / "result.json").write_text("{}")  # an old result must not survive a refused run
+    (out / "result.json").write_text("{}")  # an old result stays as it was (issue 33: a failed re-run keeps it)
     code, stdout, err = _run(["run", str(problem), "--out", str(out), "--quiet"], capsys)
     assert code == 1
     assert "[learning].rkhs_bound = 2 is refuted by the data" in err and "component" in err
     assert "needs an RKHS norm of at least" in err and "Traceback" not in err
     assert err.count("\n") == 1  # one message
-    assert not (out / "result.json").exists()
+    assert (out / "result.json").read_text() == "{}" and sorted(p.name for p in out.iterdir()) == ["cache",
+                                                                                                    "result.json"]
 
 
 def test_impossible_sample_is_named(tmp_path, capsys):

@@ -246,7 +246,7 @@ def test_cli_slice_option_is_parsed_checked_and_passed_to_the_figures(tmp_path, 
         cli._parser().parse_args(["run", "p.toml", "--out", "o", "--slice", "x3:0.5"])
     assert exc.value.code == 2 and "NAME=VALUE" in capsys.readouterr().err
     problem = SimpleNamespace(space_lower=np.array([-2.0] * 3), space_upper=np.array([2.0] * 3),
-                              dim_names=("px", "py", "theta"))
+                              dim_names=("px", "py", "theta"), n_grid_cells=8, mode_names=("a",))
     calls = []
     monkeypatch.setattr(io, "load_problem", lambda path: problem)
     monkeypatch.setattr(pipeline, "synthesize_from_data", lambda *a, **k: calls.append("synthesize") or

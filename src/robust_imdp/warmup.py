@@ -138,6 +138,9 @@ def _solver_models():
                                              method=method)
         solve_reachability(model, target, avoid=avoid, horizon=3)
         evaluate_strategy(model, target, res.strategy, avoid=avoid)
+        # action 0 everywhere: keeps the end component of states 4, 5 (and the wide row) in the evaluated chain,
+        # whatever the synthesised strategies choose, so the per-component kernels are typed for every row width
+        evaluate_strategy(model, target, np.zeros(n, dtype=np.int64), avoid=avoid)
 
 
 def _factored_models():

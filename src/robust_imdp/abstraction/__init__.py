@@ -3,4 +3,4 @@
 from robust_imdp._lazy import exports
 
 __getattr__, __dir__ = exports(__name__, ["cell_bounds", "probabilities", "periodic", "targets", "marginals", "factored",
-                                          "exact_rows", "rows"])
+                                          "exact_rows", "rows", "nominal"])

@@ -175,7 +175,10 @@ class DaskScheduler(Scheduler):
     side_description = "tasks on the Dask cluster"
 
     def share(self, obj):
-        return self.client.scatter(obj, broadcast=True)
+        # hash=False: a fresh key per call. With the default content hash, two stages scattering the same object
+        # share one key, and the first to release its future deletes the data under the other's tasks
+        # ("lost dependencies").
+        return self.client.scatter(obj, broadcast=True, hash=False)
 
     def run(self, fn, args, kwargs=None):
         from distributed import as_completed

@@ -2,4 +2,4 @@
 
 from robust_imdp._lazy import exports
 
-__getattr__, __dir__ = exports(__name__, ["core", "controller", "refine", "advice", "suggest", "margins"])
+__getattr__, __dir__ = exports(__name__, ["core", "controller", "refine", "advice", "suggest", "margins", "ties"])
