@@ -46,7 +46,7 @@ class _Car:
 
 
 def _learned_problem(**kw):
-    """A 2-D data-driven problem (RKHS route): x' = 0.8 x + 0.05 sin(x) + u + v, v uniform 0.05, two modes."""
+    """A 2-D data-driven problem (RKHS route): x' = 0.8 x + 0.05 sin(x) + u + v, v uniform in [-0.05, 0.05], two modes."""
     from robust_imdp import Problem, UniformNoise
 
     rng = np.random.default_rng(3)
@@ -57,7 +57,7 @@ def _learned_problem(**kw):
     modes = {"left": (0.8 * np.eye(2), np.array([-0.3, 0.0])), "right": (0.8 * np.eye(2), np.array([0.3, 0.0]))}
     return Problem.from_arrays(
         x, u, xn, lower=[-2, -2], upper=[2, 2], cell_size=0.5, regions={"goal": ([1, -1], [2, 1])},
-        formula="F goal", threshold=0.5, horizon=5, modes=modes, noise=UniformNoise([0.3, 0.3]), rkhs_bound=0.2,
+        formula="F goal", threshold=0.5, horizon=5, modes=modes, noise=UniformNoise([0.05, 0.05]), rkhs_bound=0.2,
         lengthscale=1.0, misspecification=0.0, transitions="exact", **kw)
 
 
@@ -397,3 +397,35 @@ def test_preflight_estimates_the_factored_form():
     # the estimate of the listed lengths is the measured one on car parking (40 x 40: 27 per axis)
     assert factored_lengths(p) == (27, 27)
     assert estimate_resources(p.replace(form="joint"), 3)["form"] == "joint"
+
+
+def test_improve_keeps_the_factored_form_and_equals_a_fresh_abstraction():
+    """The sampling loop in the factored form: each round re-abstracts only the re-bounded cells' marginals
+    (``abstraction.factored.replace_cells``); the assembled model equals the factored rows of all cells from the
+    loop's final boxes with the same listed lengths (bit for bit), and the loop's result is factored."""
+    from robust_imdp.abstraction.cell_bounds import CellBounds
+    from robust_imdp.abstraction.factored import axis_lengths, factored_rows, is_factored
+    from robust_imdp.improve import improve
+
+    class Truth:
+        mode_names = ("left", "right")
+
+        def step(self, x, modes, rng):
+            shift = np.where(np.asarray(modes)[:, None] == 0, [-0.3, 0.0], [0.3, 0.0])
+            return np.clip(0.8 * x + 0.05 * np.sin(x) + shift + rng.uniform(-0.05, 0.05, x.shape), -2, 2)
+
+    p = _learned_problem(form="factored")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out = improve(p, Truth(), 20, rounds=2, progress=False, keep_history=True, seed=1)
+    r = out.result
+    assert is_factored(r.abstraction) and len(out.rounds) == 3
+    lo, hi = out.history[-1]
+    assert not (np.array_equal(out.history[0][0], lo) and np.array_equal(out.history[0][1], hi))  # boxes moved
+    cb = CellBounds(lo, hi, None)
+    k = r.abstraction.model.k  # round 0's listed lengths; later boxes are inside, so their runs fit
+    assert all(a <= b for a, b in zip(axis_lengths(r.partition, cb, p.noise), k))
+    fresh = factored_rows(r.partition, cb, p.noise, k)
+    for a, b in zip(r.abstraction.model.axes, fresh.axes):
+        for name, arr in zip(("start", "lower", "upper", "out_lower", "out_upper", "rest_upper"), b):
+            np.testing.assert_array_equal(getattr(a, name), arr, err_msg=name)

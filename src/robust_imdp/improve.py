@@ -456,14 +456,43 @@ def _rebound(problem, partition, cell_bounds, cells: list, log, run):
     return CellBounds(ilo, ihi, None), int(sum(q.size for q in cells))
 
 
+def _rows(partition, cell_bounds, problem):
+    """The abstraction's rows of every cell: joint rows (``abstract_rows``), or in the factored form
+    (``Problem.form_choice``; docs/factored.md) the per-axis marginals (``abstraction.factored.factored_rows``)."""
+    from robust_imdp.abstraction.rows import abstract_rows
+
+    if problem.form_choice()[0] == "factored":
+        from robust_imdp.abstraction.factored import axis_lengths, factored_rows
+
+        return factored_rows(partition, cell_bounds, problem.noise, axis_lengths(partition, cell_bounds, problem.noise))
+    return abstract_rows(partition, cell_bounds, problem.noise, None, **_abstraction_options(problem))
+
+
+def _assemble(partition, rows):
+    """The abstraction of :func:`_rows`' rows (joint or factored)."""
+    from robust_imdp.abstraction.factored import FactoredRows, assemble_factored
+    from robust_imdp.abstraction.rows import assemble_abstraction
+
+    return (assemble_factored if isinstance(rows, FactoredRows) else assemble_abstraction)(partition, [rows])
+
+
 def _rebuild(partition, rows, cell_bounds, cells, problem):
     """The abstraction's rows with those of ``cells`` recomputed from their new boxes (every other row kept)."""
+    from robust_imdp.abstraction.factored import FactoredRows
     from robust_imdp.abstraction.rows import CellBounds, abstract_rows, join_rows, select_rows
 
     N = partition.n_cells
     redo = np.unique(np.concatenate(cells)) if cells else np.zeros(0, np.int64)
     if redo.size == 0:
         return rows
+    if isinstance(rows, FactoredRows):  # the boxes only shrink (intersections), so their runs fit the listed k
+        from robust_imdp.abstraction.factored import axis_lengths, factored_rows, replace_cells
+
+        if any(a > b for a, b in zip(axis_lengths(partition, cell_bounds, problem.noise), rows.k)):
+            return _rows(partition, cell_bounds, problem)
+        new = factored_rows(partition, CellBounds(cell_bounds.image_lower[:, redo], cell_bounds.image_upper[:, redo],
+                                                  None), problem.noise, rows.k)
+        return replace_cells(rows, redo, new)
     keep = np.setdiff1d(np.arange(N), redo)
     new_rows = abstract_rows(partition, CellBounds(cell_bounds.image_lower[:, redo], cell_bounds.image_upper[:, redo],
                                                    None), problem.noise, None, **_abstraction_options(problem))
@@ -498,12 +527,11 @@ class _Loop:
 
     def solve(self, timer: dict):
         """Assemble the rows, solve, and the Result with the rounds in its diagnostics."""
-        from robust_imdp.abstraction.rows import assemble_abstraction
         from robust_imdp.pipeline.result import Result
         from robust_imdp.pipeline.run import _parameters, _synthesize
 
         t0 = time.perf_counter()
-        abstraction = assemble_abstraction(self.partition, [self.rows])
+        abstraction = _assemble(self.partition, self.rows)
         timer["abstract"] = timer.get("abstract", 0.0) + time.perf_counter() - t0
         t0 = time.perf_counter()
         syn, classes = _synthesize(self.problem, self.partition, abstraction, self.dfa, self.log)
@@ -532,7 +560,6 @@ class _Loop:
 
 def _start(loop: _Loop, resume) -> int:
     """Round 0 (bound the grid, abstract, solve) or the interrupted loop's state; returns the last round."""
-    from robust_imdp.abstraction.rows import abstract_rows
     from robust_imdp.pipeline.bound_stage import _learn_and_bound, _residual_data
 
     problem = loop.problem
@@ -549,7 +576,7 @@ def _start(loop: _Loop, resume) -> int:
         loop.cell_bounds, last, _, loop.rounds, loop.diagnostics = resume
         added = None
     t0 = time.perf_counter()
-    loop.rows = abstract_rows(loop.partition, loop.cell_bounds, problem.noise, None, **_abstraction_options(problem))
+    loop.rows = _rows(loop.partition, loop.cell_bounds, problem)
     timer["abstract"] = time.perf_counter() - t0
     loop.solve(timer)
     if added is not None:

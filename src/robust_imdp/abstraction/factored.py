@@ -46,8 +46,8 @@ from robust_imdp.models.geometry import Partition, partition_from_dict
 from robust_imdp.models.noise import NoiseModel
 
 __all__ = ["FORMS", "FactoredAbstraction", "FactoredRows", "factored_reason", "row_sizes", "axis_lengths",
-           "factored_rows", "assemble_factored", "abstract_factored", "abstraction_model", "is_factored",
-           "is_factored_file"]
+           "factored_rows", "assemble_factored", "replace_cells", "abstract_factored", "abstraction_model",
+           "is_factored", "is_factored_file"]
 
 #: ``[abstraction].form``: the factored model where it applies ("auto"), always ("factored"), or never ("joint").
 FORMS = ("auto", "factored", "joint")
@@ -407,6 +407,23 @@ def assemble_factored(partition: Partition, chunks) -> FactoredAbstraction:
         axes.append(AxisMarginals(n=partition.shape[j], periodic=_periodic(partition, j), axis=j, **arrays))
     return FactoredAbstraction(model=FactoredIMDP(shape=partition.shape, axes=tuple(axes)), partition=partition,
                                tol=first.tol)
+
+
+def replace_cells(rows: FactoredRows, cells, new: FactoredRows) -> FactoredRows:
+    """``rows`` (all cells of a grid) with the rows of ``cells`` (sorted indices) replaced by ``new`` (their
+    :func:`factored_rows` with the same listed lengths): a row depends only on its own image box, so the result is
+    what :func:`factored_rows` gives for all cells with the new boxes (the incremental loop, ``improve``)."""
+    cells = np.asarray(cells, dtype=np.int64)
+    if new.k != rows.k or new.n_modes != rows.n_modes or new.n_cells != cells.size:
+        raise InvalidInputError(f"new must hold the rows of the {cells.size} cells with the same k {rows.k} and modes; "
+                                f"got {new.n_cells} cells, k {new.k}")
+    axes = []
+    for old_ax, new_ax in zip(rows.axes, new.axes):
+        arrays = [a.copy() for a in old_ax]
+        for a, b in zip(arrays, new_ax):
+            a[:, cells] = b
+        axes.append(tuple(arrays))
+    return FactoredRows(axes=tuple(axes), n_modes=rows.n_modes, n_cells=rows.n_cells, k=rows.k, tol=rows.tol)
 
 
 def abstract_factored(partition: Partition, cell_bounds: CellBounds, noise: NoiseModel, *, tol: float = AXIS_TOL,
