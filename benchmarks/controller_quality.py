@@ -7,7 +7,9 @@ after the nominal model ranks modes of equal robust value, against the best stra
 Problems: the newcomer problems of ``examples/newcomer`` (data from their generators, as their README says:
 ``robot2d_16``, ``robot2d_32``, ``unicycle3d_16``, ``di4d_8``) and ``robot2d_ens``, a 2-D robot through the
 Python API on X = [0, 5]^2 with modes east / north / stay, an obstacle in the middle and the goal in a corner
-(``advice_cost.dense_robot`` at cell 0.25: 400 cells, Gaussian noise sigma 0.08).
+(``advice_cost.dense_robot`` at cell 0.25: 400 cells, Gaussian noise sigma 0.08); and ``robot2d_16_safety``, the
+16 x 16 robot's abstraction under the safety reading (``G !obstacle`` within 25 steps: the controller minimises the
+probability of touching the obstacle or leaving X, and the nominal model ranks its ties the mirrored way).
 
 Per problem, in this process:
 
@@ -52,7 +54,7 @@ from advice_cost import dense_robot, problems  # noqa: E402
 from reference import merged_rows, results_record  # noqa: E402
 
 NAME = "controller_quality"
-NAMES = ("robot2d_16", "robot2d_32", "unicycle3d_16", "di4d_8", "robot2d_ens")
+NAMES = ("robot2d_16", "robot2d_32", "unicycle3d_16", "di4d_8", "robot2d_ens", "robot2d_16_safety")
 #: The issue's target: mean empirical satisfaction at least this share of the known-dynamics reference's.
 TARGET = 0.8
 #: Runs per cell by problem (the 3-D and 4-D problems have 4,096 cells).
@@ -123,7 +125,9 @@ class RobotENS:
 
 
 SYSTEMS = {"robot2d_16": Robot2D, "robot2d_32": Robot2D, "unicycle3d_16": Unicycle3D, "di4d_8": DoubleIntegrators4D,
-           "robot2d_ens": RobotENS}
+           "robot2d_ens": RobotENS, "robot2d_16_safety": Robot2D}
+#: The safety variant: formula and horizon (the cache reuses the 16 x 16 robot's abstraction).
+SAFETY = {"formula": "G !obstacle", "horizon": 25, "semantics": "safety"}
 
 
 # --------------------------------------------------------------------------- one problem
@@ -179,8 +183,8 @@ def measure(name: str, make, work: Path, runs: int, seed: int) -> dict:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         t0 = time.perf_counter()
-        res = synthesize_from_data(problem, progress=False, abstraction_cache=work / "cache" / name, advice=False,
-                                   margins=False)
+        cache = work / "cache" / name.replace("_safety", "")
+        res = synthesize_from_data(problem, progress=False, abstraction_cache=cache, advice=False, margins=False)
         row["run_s"] = time.perf_counter() - t0
         row["nominal_s"] = float(res.timings.get("nominal", 0.0))
         row["cells"] = int(res.partition.n_cells)
@@ -193,7 +197,7 @@ def measure(name: str, make, work: Path, runs: int, seed: int) -> dict:
         row["changes"] = _changes(variants["before"], variants["after"])
         known = _known(problem, system)
         t0 = time.perf_counter()
-        kres = synthesize_from_data(known, progress=False, abstraction_cache=work / "cache" / f"{name}_known",
+        kres = synthesize_from_data(known, progress=False, abstraction_cache=cache.with_name(f"{cache.name}_known"),
                                     advice=False, margins=False)
         row["known_s"] = time.perf_counter() - t0
         row["known_before"] = _quality(_resolve(kres, None), system, runs, seed)
@@ -277,8 +281,9 @@ def main(argv=None) -> int:
         return 0
     names = args.only or NAMES
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="controller_quality-"))
-    made = problems(work, [n for n in names if n != "robot2d_ens"])
+    made = problems(work, sorted({"robot2d_16" if n == "robot2d_16_safety" else n for n in names} - {"robot2d_ens"}))
     made["robot2d_ens"] = lambda: dense_robot(cell=0.25)
+    made["robot2d_16_safety"] = lambda: made["robot2d_16"]().replace(**SAFETY)
     rows = []
     for n in names:
         runs = args.runs if args.runs is not None else RUNS.get(n, 50)

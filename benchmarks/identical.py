@@ -2,6 +2,7 @@
 
     python benchmarks/identical.py record OUT [--src SRC] [--full]   # run every problem, write digests
     python benchmarks/identical.py compare A B [--ignore KEY ...]    # exit 1 if any result differs
+    python benchmarks/identical.py guarantees A B                    # exit 1 if B loses a guarantee of A
 
 ``record`` runs ``robust-imdp run`` on every shipped problem file (``examples/problems``, the
 newcomer problems of ``examples/newcomer`` with their data generators, the case studies written
@@ -20,6 +21,11 @@ kept in OUT; ``compare`` prints the first differing key of a differing result.
 
 Slow problems (the 3-D and 4-D newcomer problems, the 3-D case study at 16^3) run only with
 ``--full``.
+
+``guarantees`` is for a change meant to alter the strategy but no guarantee (e.g. how modes of equal
+robust value are ranked, README "What the controller does"): per problem, from both records' ``result.npz``,
+every Q_yes cell of A is Q_yes in B with ``p_low`` unchanged or higher, and it reports what did change: the
+strategy's entries, the cells whose ``p_up`` (the strategy's own upper bound) or class moved.
 """
 from __future__ import annotations
 
@@ -307,6 +313,40 @@ def compare(a: Path, b: Path, ignore: list[str] | None = None) -> int:
     return 1 if bad else 0
 
 
+def guarantees(a: Path, b: Path) -> int:
+    """B keeps every guarantee of A (module docstring); prints the changes per problem."""
+    da = json.loads((a / "digests.json").read_text())["problems"]
+    db = json.loads((b / "digests.json").read_text())["problems"]
+    bad = 0
+    for name in sorted(set(da) | set(db)):
+        x, y = da.get(name), db.get(name)
+        if x is None or y is None or "error" in x or "error" in y:
+            print(f"{name:32s} missing or failed")
+            bad += 1
+            continue
+        with np.load(a / "results" / name / "result.npz") as za, np.load(b / "results" / name / "result.npz") as zb:
+            A = {k: za[k] for k in ("p_low", "p_up", "classes", "strategy")}
+            B = {k: zb[k] for k in ("p_low", "p_up", "classes", "strategy")}
+        if A["p_low"].shape != B["p_low"].shape:
+            print(f"{name:32s} LOST: different cells ({A['p_low'].size} vs {B['p_low'].size})")
+            bad += 1
+            continue
+        yes = A["classes"] == "yes"
+        lost = int(np.count_nonzero(yes & (B["classes"] != "yes")))
+        drop = float(np.max(A["p_low"][yes] - B["p_low"][yes], initial=0.0))
+        changed = int(np.count_nonzero(A["strategy"] != B["strategy"])) if A["strategy"].shape == B["strategy"].shape \
+            else -1
+        what = (f"Q_yes {int(yes.sum())} -> {int(np.count_nonzero(B['classes'] == 'yes'))} (lost {lost}), "
+                f"largest p_low drop on Q_yes {drop:.3g}, strategy entries changed {changed}, p_up changed in "
+                f"{int(np.count_nonzero(A['p_up'] != B['p_up']))} cells, classes changed in "
+                f"{int(np.count_nonzero(A['classes'] != B['classes']))}")
+        ok = lost == 0 and drop <= 0.0
+        bad += not ok
+        print(f"{name:32s} {'kept' if ok else 'LOST'}: {what}")
+    print(f"{'every guarantee kept' if not bad else f'{bad} problem(s) lost a guarantee'}")
+    return 1 if bad else 0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -320,9 +360,14 @@ def main(argv=None) -> int:
     c.add_argument("b", type=Path)
     c.add_argument("--ignore", nargs="+", metavar="KEY", default=[],
                    help="result.json keys (dotted, e.g. diagnostics.advice) a change is meant to alter")
+    g = sub.add_parser("guarantees")
+    g.add_argument("a", type=Path)
+    g.add_argument("b", type=Path)
     args = ap.parse_args(argv)
     if args.cmd == "record":
         return record(args.out, args.src, args.full, args.only)
+    if args.cmd == "guarantees":
+        return guarantees(args.a, args.b)
     return compare(args.a, args.b, args.ignore)
 
 
