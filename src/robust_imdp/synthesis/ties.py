@@ -114,6 +114,11 @@ def tie_break(imdp, nominal, letters, dfa, optimistic, kw):
     if nominal is None:
         return (None if safety else optimistic), None
     joint = isinstance(imdp, IMDP)
+    unbounded = kw.get("horizon") is None
+    if not joint and (safety or not unbounded):
+        # a factored robust model takes no keys with a horizon or under the safety reading (module docstring):
+        # the nominal solve would only be thrown away (on BAS-4D, 10 steps, it took 47 of 50 s)
+        return (None if safety else optimistic), None
     opt_key = _product.TieKey(imdp, optimistic, "optimistic") if joint else None
     # the nominal model's best probability; its own ties go to the optimistic value of the robust model
     if isinstance(nominal, IMDP) and joint:
@@ -125,13 +130,10 @@ def tie_break(imdp, nominal, letters, dfa, optimistic, kw):
     with warnings.catch_warnings():  # the cap's ConvergenceWarning: the nominal values only rank modes
         warnings.simplefilter("ignore", ConvergenceWarning)
         nom = _solve(nominal, letters, dfa, adversary="pessimistic", tie_break=nominal_ties, kw=nkw)
-    unbounded = kw.get("horizon") is None
     if isinstance(nominal, IMDP) and joint:
         keys = (_product.TieKey(nominal, nom, "pessimistic"), opt_key)
         return _product.Ties(keys, strategy=np.asarray(nom.strategy) if unbounded else None), nom
     # a factored model on either side: the nominal mode where every lower value is 0, the optimistic key elsewhere
     if joint:
         return _product.Ties((opt_key,), strategy=np.asarray(nom.strategy) if unbounded else None), nom
-    if safety or not unbounded:
-        return (None if safety else optimistic), nom
     return SimpleNamespace(upper=optimistic.upper, strategy=np.asarray(nom.strategy)), nom
