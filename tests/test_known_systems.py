@@ -199,3 +199,23 @@ def test_known_run_never_calls_the_assumption_check(monkeypatch):
         warnings.simplefilter("ignore")
         r = synthesize_from_data(p, progress=False)
     assert r.diagnostics["dynamics"] == "known" and r.diagnostics.get("refinement") is not None
+
+
+def test_a_known_problem_with_a_reading_is_written_without_data_and_read_back(tmp_path):
+    # save_problem of a known system: no [data] table and no data file, the misspecification and the formula's
+    # reading kept; the file reads back to the same problem (the same abstraction key and spec)
+    from robust_imdp.io.problem_file import load_problem
+    from robust_imdp.io.problem_writer import save_problem
+    from robust_imdp.pipeline.cache import abstraction_key
+
+    p = load_problem(_write(tmp_path, KNOWN_1D + "[learning]\nrkhs_bound = 0\nmisspecification = 0.01\n"))
+    p = p.replace(semantics="safety")
+    out = save_problem(p, tmp_path / "w" / "k.toml")
+    text = out.read_text()
+    assert "[data]" not in text and 'semantics = "safety"' in text
+    assert sorted(f.name for f in out.parent.iterdir()) == ["k.toml"]
+    back = load_problem(out)
+    assert back.known and back.data is None and back.semantics == "safety"
+    assert float(back.misspecification) == 0.01
+    assert (back.formula, back.threshold, back.horizon) == (p.formula, p.threshold, p.horizon)
+    assert abstraction_key(back) == abstraction_key(p)

@@ -106,7 +106,7 @@ def _noise(noise, n: int) -> dict:
 
 def _tables(problem, data_path: str) -> list:
     """The problem file as (header, {key: value}) pairs in file order (``[[regions.NAME]]`` once per box)."""
-    from robust_imdp.pipeline.problem import BOUND_MAX_BOXES, BOUND_TOL, DEFAULT_TRANSITIONS
+    from robust_imdp.pipeline.problem import DEFAULT_TRANSITIONS
 
     n = int(np.size(problem.space_lower))
     space = {"lower": np.asarray(problem.space_lower, float), "upper": np.asarray(problem.space_upper, float),
@@ -122,10 +122,33 @@ def _tables(problem, data_path: str) -> list:
     spec = {"formula": problem.formula, "threshold": float(problem.threshold)}
     if problem.horizon is not None:
         spec["horizon"] = int(problem.horizon)
-    out += [("[spec]", spec), ("[data]", {"path": data_path})]
+    if problem.semantics != "auto":
+        spec["semantics"] = problem.semantics
+    out.append(("[spec]", spec))
+    if problem.data is not None:  # known dynamics need no [data] (problem_file, "Known dynamics")
+        out.append(("[data]", {"path": data_path}))
     for name, m in zip(problem.mode_names, problem.maps):
         out.append((f"[modes.{_key(name)}]", _known_part(name, m, n)))
     out.append(("[noise]", _noise(problem.noise, n)))
+    out.append(("[learning]", _learning(problem)))  # also for known dynamics: it may carry a misspecification
+    ab = {"eps_rule": problem.eps_rule, "combine": problem.combine, "guarantee": problem.guarantee,
+          "confidence": float(problem.confidence)}
+    if problem.eta is not None:
+        ab = {"eta": np.broadcast_to(np.asarray(problem.eta, float), (n,)), **ab}
+    if problem.transitions != DEFAULT_TRANSITIONS:
+        ab["transitions"] = problem.transitions
+    if problem.form != "auto":
+        ab["form"] = problem.form
+    out.append(("[abstraction]", ab))
+    if problem.refine is not None:
+        out.append(("[refine]", {k: v for k, v in problem.refine.to_dict().items() if v is not None}))
+    return out
+
+
+def _learning(problem) -> dict:
+    """``[learning]``: the assumption and the bound options that differ from the file's defaults."""
+    from robust_imdp.pipeline.problem import BOUND_MAX_BOXES, BOUND_TOL
+
     learning = {"rkhs_bound": _setting(problem.rkhs_bound)}
     unknown = sorted(set(problem.gp_options) - set(_GP_OPTION_KEYS))
     if unknown:
@@ -149,19 +172,7 @@ def _tables(problem, data_path: str) -> list:
         learning["bound_tol"] = float(problem.bound_tol)
     if int(problem.bound_max_boxes) != BOUND_MAX_BOXES:
         learning["bound_max_boxes"] = int(problem.bound_max_boxes)
-    out.append(("[learning]", learning))
-    ab = {"eps_rule": problem.eps_rule, "combine": problem.combine, "guarantee": problem.guarantee,
-          "confidence": float(problem.confidence)}
-    if problem.eta is not None:
-        ab = {"eta": np.broadcast_to(np.asarray(problem.eta, float), (n,)), **ab}
-    if problem.transitions != DEFAULT_TRANSITIONS:
-        ab["transitions"] = problem.transitions
-    if problem.form != "auto":
-        ab["form"] = problem.form
-    out.append(("[abstraction]", ab))
-    if problem.refine is not None:
-        out.append(("[refine]", {k: v for k, v in problem.refine.to_dict().items() if v is not None}))
-    return out
+    return learning
 
 
 def problem_to_toml(problem, data_path: str = "data.csv") -> str:
@@ -219,6 +230,10 @@ def save_problem(problem, path, *, data_path: str | None = None) -> Path:
     path = Path(path)
     data_path = data_path or f"{path.stem}_data.csv"
     text = problem_to_toml(problem, data_path)  # refuses before anything is written
+    if problem.data is None:  # known dynamics: the file alone
+        path.parent.mkdir(parents=True, exist_ok=True)
+        _atomic_write(path, lambda tmp: tmp.write_text(text))
+        return path
     data_file = path.parent / data_path
     data_file.parent.mkdir(parents=True, exist_ok=True)
     d = problem.data
