@@ -316,3 +316,54 @@ def test_a_real_ctrl_c_during_the_swap_lets_it_finish_and_says_so(work, capsys, 
     assert load_result(work / "k").threshold == 0.5  # the new result, whole
     assert sorted(p.name for p in (work / "k").iterdir()) == ["bounds.png", "cache", "notes.txt", "result.json",
                                                              "result.npz"]  # no staging or backup folder left
+
+
+# --------------------------------------------------------------------------- after SIGKILL
+def _dead_pid() -> int:
+    import subprocess
+    import sys
+
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    child.wait()
+    return child.pid
+
+
+def test_a_killed_commands_staging_folder_is_removed_by_the_next_one_and_a_live_ones_kept(tmp_path):
+    dead, live = _dead_pid(), os.getpid()
+    (tmp_path / "result.json").write_text("old")
+    stale = tmp_path / f"{result_file.STAGE_PREFIX}{dead}-abc"
+    mine = tmp_path / f"{result_file.STAGE_PREFIX}{live}-abc"
+    for f in (stale, mine):
+        f.mkdir()
+        (f / "result.npz").write_text("half")
+    with result_file.staged_outputs(tmp_path, ("result.json", "result.npz")) as stage:
+        (stage.path / "result.json").write_text("new")
+    assert not stale.exists() and (mine / "result.npz").read_text() == "half"
+    assert (tmp_path / "result.json").read_text() == "new"
+
+
+def test_a_swap_cut_by_sigkill_is_rolled_back_or_finished_by_the_next_command(tmp_path):
+    owned = ("result.json", "result.npz", "p_low.png")
+    dead = _dead_pid()
+    # cut before result.json arrived: the new result.npz and p_low.png are in, the old files in the backup
+    backup = tmp_path / f"{result_file.BACKUP_PREFIX}{dead}-x"
+    backup.mkdir()
+    (backup / "result.json").write_text("old json")
+    (backup / "result.npz").write_text("old npz")
+    (tmp_path / "result.npz").write_text("new npz")
+    (tmp_path / "p_low.png").write_text("new png")  # no old counterpart: it goes
+    (tmp_path / "mine.txt").write_text("user")
+    result_file.recover_stale(tmp_path, owned)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mine.txt", "result.json", "result.npz"]
+    assert (tmp_path / "result.json").read_text() == "old json" and (tmp_path / "result.npz").read_text() == "old npz"
+    # cut after result.json arrived: the new result is complete, only the backup goes
+    backup.mkdir()
+    (backup / "result.npz").write_text("older npz")
+    (tmp_path / "result.json").write_text("new json")
+    result_file.recover_stale(tmp_path, owned)
+    assert not backup.exists() and (tmp_path / "result.npz").read_text() == "old npz"
+    # a live process's backup is its own swap in progress: untouched
+    live = tmp_path / f"{result_file.BACKUP_PREFIX}{os.getpid()}-y"
+    live.mkdir()
+    (live / "result.json").write_text("x")
+    assert result_file.recover_stale(tmp_path, owned) == [] and (live / "result.json").exists()

@@ -100,6 +100,50 @@ def _sigint_deferred():
             previous(signal.SIGINT, caught[0])
 
 
+def _dead_owner(folder: Path, prefix: str) -> bool:
+    """Whether the process that made ``folder`` (``PREFIX<pid>-...``) is gone; False when it may live, or when
+    the name carries no pid."""
+    pid = folder.name[len(prefix):].split("-", 1)[0]
+    if not pid.isdigit():
+        return False
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return True
+    except OSError:  # e.g. PermissionError: it exists, under another user
+        return False
+    return False
+
+
+def recover_stale(out_dir, owned) -> list:
+    """Clean up after a command killed without a chance to clean (SIGKILL, power loss) in ``out_dir``.
+
+    A staging folder of a dead process holds an unfinished new result: removed. A backup folder of a dead
+    process means the swap of :meth:`OutputStage.commit` was cut: when ``result.json`` is in ``out_dir`` the new
+    result was complete (it is renamed in last), so the backup is removed; otherwise the previous outputs in the
+    backup are put back over whatever new files had arrived (of ``owned``), as the swap's own rollback does.
+    Folders of a live process are left alone. Returns the folders handled.
+    """
+    out = Path(out_dir)
+    done = []
+    for folder in sorted(out.glob(BACKUP_PREFIX + "*")):
+        if not folder.is_dir() or not _dead_owner(folder, BACKUP_PREFIX):
+            continue
+        if not (out / "result.json").exists():
+            for name in owned:  # new files of the cut swap
+                if (out / name).exists() and not (folder / name).exists():
+                    (out / name).unlink()
+            for f in folder.iterdir():
+                os.replace(f, out / f.name)
+        shutil.rmtree(folder, ignore_errors=True)
+        done.append(folder)
+    for folder in sorted(out.glob(STAGE_PREFIX + "*")):
+        if folder.is_dir() and _dead_owner(folder, STAGE_PREFIX):
+            shutil.rmtree(folder, ignore_errors=True)
+            done.append(folder)
+    return done
+
+
 class OutputStage:
     """A command's new outputs, written into a fresh folder inside ``out_dir`` and swapped in as one.
 
@@ -128,7 +172,8 @@ class OutputStage:
         self.out = Path(out_dir)
         self.owned = tuple(owned)
         self.out.mkdir(parents=True, exist_ok=True)
-        self.path = Path(tempfile.mkdtemp(dir=self.out, prefix=STAGE_PREFIX))
+        recover_stale(self.out, owned)
+        self.path = Path(tempfile.mkdtemp(dir=self.out, prefix=f"{STAGE_PREFIX}{os.getpid()}-"))
         self.written: list = []
         self.committed = False
 
@@ -149,7 +194,7 @@ class OutputStage:
         for name in new:
             _fsync(self.path / name)
         replaced = [n for n in dict.fromkeys([*self.owned, *new]) if os.path.lexists(self.out / n)]
-        backup = Path(tempfile.mkdtemp(dir=self.out, prefix=BACKUP_PREFIX))
+        backup = Path(tempfile.mkdtemp(dir=self.out, prefix=f"{BACKUP_PREFIX}{os.getpid()}-"))
         moved_old, moved_new = [], []
         with _sigint_deferred():  # a Ctrl-C during the swap arrives after it, the folders cleaned up
             try:
