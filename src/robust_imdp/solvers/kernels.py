@@ -15,7 +15,10 @@ Hot loop: numba (``@njit(cache=True)``), serial.  A numpy formulation needs a pe
 default engine's sweep (:func:`node_sweep`) keeps each row's order of successor values from the
 previous sweep (1 byte per entry) and re-sorts by insertion, which costs O(k) once the order has
 settled, and prefetches the successor values of the entries ``PREFETCH_DISTANCE`` ahead (the
-gathers of a large model miss the caches); ``benchmarks/results/solver.md`` has the numbers.
+gathers of a large model miss the caches); ``benchmarks/results/solver.md`` has the numbers.  Jacobi
+sweeps of long rows (k-step values, strategy extraction, floor models) order all rows at once by buckets
+(:func:`bellman_layer_bucketed`, section "sweeps of long rows"): O(nnz) per sweep instead of the
+insertion sort's O(k^2) per row, the same bits; ``benchmarks/results/finite_horizon.md``.
 
 Rounding-error bound of one row (ROW_ERR)
 -----------------------------------------
@@ -31,6 +34,8 @@ Summing, the error is below (2k + k + 4k + 8(k+1) + 4) u <= (15k + 12) u; we use
 ``ROW_ERR(k) = (16 k + 64) u``, a safety margin above the derivation."""
 
 from __future__ import annotations
+
+from collections import namedtuple
 
 import numpy as np
 from llvmlite import ir
@@ -164,6 +169,39 @@ def row_value(j0, j1, col, lower, upper, f, w, use_rank, rank, sv, hi, lo, adv_m
 
 
 @njit(cache=True, inline="always")
+def _round_row(v, left, k, direction):
+    """One row's value ``v`` (mass ``left`` unassigned) rounded by its error bound ``ROW_ERR(k)`` in
+    ``direction`` (-1 down, +1 up, 0 plain) and clamped to [0, 1]."""
+    if direction < 0:
+        v = v - row_err(k)
+        if v < 0.0:
+            v = 0.0  # safe: every true value is >= 0
+    elif direction > 0:
+        # mass left unassigned (a row whose upper sum is below 1 within the model
+        # tolerance) is credited with the largest possible value 1: stays an upper bound
+        v = v + row_err(k) + left
+        if v > 1.0:
+            v = 1.0  # safe: every true value is <= 1
+    return v
+
+
+@njit(cache=True, inline="always")
+def _store_state(q, best, barg, out_val, out_arg, direction, keep_better):
+    """Write state q's best row value and its row: unbounded iteration (keep_better) keeps the better of
+    the old bound (in out_val) and the new one, both sound for the same value; with out_val aliasing w
+    this is a sound Gauss-Seidel sweep.  Never for k-step values (the old bound is for k-1 steps)."""
+    if keep_better and direction < 0:
+        if best > out_val[q]:
+            out_val[q] = best
+    elif keep_better and direction > 0:
+        if best < out_val[q]:
+            out_val[q] = best
+    else:
+        out_val[q] = best
+    out_arg[q] = barg
+
+
+@njit(cache=True, inline="always")
 def _bellman_state(q, state_ptr, row_ptr, col, lower, upper, floor, w, adv_max, use_rank, rank, sv, hi, lo, ctrl,
                    strat, direction, out_val, out_arg, out_rows, want_rows, keep_better, keys, idx):
     """The update of one state q by :func:`bellman_layer` (writes only index q of the outputs and
@@ -176,33 +214,13 @@ def _bellman_state(q, state_ptr, row_ptr, col, lower, upper, floor, w, adv_max, 
         j1 = row_ptr[r + 1]
         v, left = row_value(j0, j1, col, lower, upper, floor[r], w, use_rank, rank, sv, hi, lo,
                             adv_max, keys, idx)
-        if direction < 0:
-            v = v - row_err(j1 - j0)
-            if v < 0.0:
-                v = 0.0  # safe: every true value is >= 0
-        elif direction > 0:
-            # mass left unassigned (a row whose upper sum is below 1 within the model
-            # tolerance) is credited with the largest possible value 1: stays an upper bound
-            v = v + row_err(j1 - j0) + left
-            if v > 1.0:
-                v = 1.0  # safe: every true value is <= 1
+        v = _round_row(v, left, j1 - j0, direction)
         if want_rows:
             out_rows[r] = v
         if best < 0.0 or (ctrl == _MAX and v > best) or (ctrl == _MIN and v < best):
             best = v
             barg = r - state_ptr[q]
-    # unbounded iteration (keep_better): keep the better of the old bound (in out_val) and
-    # the new one, both sound for the same value; with out_val aliasing w this is a sound
-    # Gauss-Seidel sweep.  Never for k-step values (the old bound is for k-1 steps).
-    if keep_better and direction < 0:
-        if best > out_val[q]:
-            out_val[q] = best
-    elif keep_better and direction > 0:
-        if best < out_val[q]:
-            out_val[q] = best
-    else:
-        out_val[q] = best
-    out_arg[q] = barg
+    _store_state(q, best, barg, out_val, out_arg, direction, keep_better)
 
 
 @njit(cache=True)
@@ -258,6 +276,231 @@ def bellman_layer_parallel(state_ptr, row_ptr, col, lower, upper, floor, w, acti
                 _bellman_state(q, state_ptr, row_ptr, col, lower, upper, floor, w, adv_max, use_rank, rank, sv, hi,
                                lo, ctrl, strat, direction, out_val, out_arg, out_rows, want_rows, keep_better, keys,
                                idx)
+
+
+# =========================================================================== sweeps of long rows
+# A row's greedy allocation visits its entries in the adversary's order of the successor values.
+# row_value sorts them by insertion: O(k^2) per row, which dominates rows of hundreds of entries
+# (exact Gaussian rows: 300-400).  The bucketed sweep instead orders every row at once: the states
+# are sorted once per sweep (the global order of ``Sweeper``), and walking them in that order
+# through a transpose of the rows (the entries of each state, per block of rows) appends every
+# entry to its row's list: O(nnz) per sweep, no comparison.  The order is the one row_value sorts
+# into -- by rank (unique) with floor rows, by the value with ties in storage order otherwise,
+# which is the global order's tie order (state index) when every row lists its states in
+# increasing order (``Sweeper`` checks it) -- and the arithmetic is row_value's, so the values
+# are the same bits.
+
+#: The transpose of a model's rows for the bucketed sweep (:func:`entry_transpose`): states in
+#: blocks ``bstate[b] .. bstate[b+1]`` (about equal numbers of entries); block b's entries with
+#: successor q are ``ptr[b*(n+1) + q] .. ptr[b*(n+1) + q + 1]`` of ``row`` (their rows) and ``loc``
+#: (their indices within the row), in storage order.
+EntryOrder = namedtuple("EntryOrder", ["bstate", "ptr", "row", "loc"])
+
+#: The model's rows as the bucketed sweep reads them.
+RowArrays = namedtuple("RowArrays", ["state_ptr", "row_ptr", "col", "lower", "upper", "floor"])
+
+#: The successor values of one layer and their order: ``w`` (n,), ``order`` (states in adversary
+#: order), and for floor rows ``rank`` (position of every state in ``order``), ``sv = w[order]`` and
+#: its double-double prefix sums ``hi``/``lo`` (:func:`dd_prefix`).
+LayerValues = namedtuple("LayerValues", ["w", "order", "rank", "sv", "hi", "lo"])
+
+
+@njit(cache=True)
+def entry_transpose(state_ptr, row_ptr, col, n_blocks):
+    """:class:`EntryOrder` of a model: its states cut into ``n_blocks`` blocks of about equal numbers of
+    entries, and per block a counting sort of its entries by successor (stable: storage order)."""
+    n = state_ptr.shape[0] - 1
+    nnz = col.shape[0]
+    bstate = np.empty(n_blocks + 1, dtype=np.int64)
+    bstate[0] = 0
+    s = 0
+    for b in range(1, n_blocks):
+        goal = (nnz * b) // n_blocks
+        while s < n and row_ptr[state_ptr[s]] < goal:
+            s += 1
+        bstate[b] = s
+    bstate[n_blocks] = n
+    ptr = np.zeros(n_blocks * (n + 1) + 1, dtype=np.int64)
+    row = np.empty(nnz, dtype=np.int32)
+    loc = np.empty(nnz, dtype=np.int32)
+    for b in range(n_blocks):
+        base = b * (n + 1)
+        e0 = row_ptr[state_ptr[bstate[b]]]
+        e1 = row_ptr[state_ptr[bstate[b + 1]]]
+        for j in range(e0, e1):
+            ptr[base + col[j] + 1] += 1
+        ptr[base] = e0
+        for q in range(n):
+            ptr[base + q + 1] += ptr[base + q]
+        fill = ptr[base:base + n].copy()
+        for r in range(state_ptr[bstate[b]], state_ptr[bstate[b + 1]]):
+            for j in range(row_ptr[r], row_ptr[r + 1]):
+                c = col[j]
+                row[fill[c]] = r
+                loc[fill[c]] = j - row_ptr[r]
+                fill[c] += 1
+    return EntryOrder(bstate, ptr, row, loc)
+
+
+@njit(cache=True)
+def rows_sorted(row_ptr, col):
+    """Whether every row lists its successors in increasing order."""
+    for r in range(row_ptr.shape[0] - 1):
+        for j in range(row_ptr[r] + 1, row_ptr[r + 1]):
+            if col[j] <= col[j - 1]:
+                return False
+    return True
+
+
+@njit(cache=True, inline="always")
+def row_value_sorted(j0, j1, sl, col, lower, upper, f, vals, use_rank, adv_max):
+    """:func:`row_value` (same operations in the same order, hence the same bits and the same
+    ``ROW_ERR``) of a row whose entries come in adversary order: entry ``j0 + sl[j0 + t]`` t-th."""
+    w = vals.w
+    n = w.shape[0]
+    val = 0.0
+    rem = 1.0
+    floor_row = use_rank and f > 0.0 and (j1 - j0) < n
+    for j in range(j0, j1):
+        lj = lower[j]
+        val += lj * w[col[j]]
+        rem -= lj
+    if rem <= 0.0:
+        return val, 0.0  # sum(lower) >= 1 (within the model tolerance): p = lower
+    pos = 0
+    rank, sv, hi, lo = vals.rank, vals.sv, vals.hi, vals.lo
+    for t in range(j1 - j0):
+        j = j0 + sl[j0 + t]
+        if floor_row:
+            p = rank[col[j]]
+            cnt = p - pos
+            if cnt > 0:
+                mass = cnt * f
+                if mass >= rem:
+                    return _fill_floors(val, rem, f, cnt, pos, hi, lo, sv), 0.0
+                val += f * _block(hi, lo, pos, p)
+                rem -= mass
+            pos = p + 1
+        # entries with upper == lower (which row_value leaves out of its order) have cap 0: no-op
+        cap = upper[j] - lower[j]
+        if cap > 0.0:
+            if cap >= rem:
+                val += rem * w[col[j]]
+                return val, 0.0
+            val += cap * w[col[j]]
+            rem -= cap
+    if floor_row and pos < n:
+        cnt = n - pos
+        mass = cnt * f
+        if mass >= rem:
+            return _fill_floors(val, rem, f, cnt, pos, hi, lo, sv), 0.0
+        val += f * _block(hi, lo, pos, n)
+        rem -= mass
+    return val, rem
+
+
+#: The bucketed sweep sorts the evaluated entries of a block by counting instead of walking the block's
+#: transpose when they are fewer than this fraction of the block's entries (a fixed strategy: 1 row in a
+#: state's several).
+BUCKET_SPARSE = 3
+
+
+@njit(cache=True, inline="always")
+def _bucketed_block(b, m, tr, vals, active, adv_max, use_rank, ctrl, strat, direction, out_val, out_arg, out_rows,
+                    want_rows, keep_better, sl):
+    """Block b of :func:`bellman_layer_bucketed`: order the entries of its evaluated rows (into ``sl``, at
+    the rows' own positions), then update its active states."""
+    state_ptr, row_ptr = m.state_ptr, m.row_ptr
+    s0 = tr.bstate[b]
+    s1 = tr.bstate[b + 1]
+    rb0 = state_ptr[s0]
+    nr = state_ptr[s1] - rb0
+    if nr == 0:
+        return
+    cursor = np.full(nr, -1, dtype=np.int64)  # -1: row not evaluated
+    n_eval = 0
+    for q in range(s0, s1):
+        if active[q]:
+            r0, r1 = _rows(state_ptr, q, ctrl, strat, q)
+            for r in range(r0, r1):
+                cursor[r - rb0] = 0
+                n_eval += row_ptr[r + 1] - row_ptr[r]
+    order = vals.order
+    n = order.shape[0]
+    if BUCKET_SPARSE * n_eval < row_ptr[state_ptr[s1]] - row_ptr[rb0]:
+        # few rows evaluated (a fixed strategy's): a counting sort of their entries by rank, then
+        # each entry appended to its row, instead of walking every entry of the block
+        rank = vals.rank
+        start = np.zeros(n + 1, dtype=np.int64)
+        for q in range(s0, s1):
+            if active[q]:
+                r0, r1 = _rows(state_ptr, q, ctrl, strat, q)
+                for j in range(row_ptr[r0], row_ptr[r1]):
+                    start[rank[m.col[j]] + 1] += 1
+        for k in range(n):
+            start[k + 1] += start[k]
+        by_rank = np.empty(n_eval, dtype=np.int64)  # (row - rb0) << 32 | index within the row
+        for q in range(s0, s1):
+            if active[q]:
+                r0, r1 = _rows(state_ptr, q, ctrl, strat, q)
+                for r in range(r0, r1):
+                    for j in range(row_ptr[r], row_ptr[r + 1]):
+                        k = rank[m.col[j]]
+                        by_rank[start[k]] = ((r - rb0) << 32) | (j - row_ptr[r])
+                        start[k] += 1
+        for t in range(n_eval):
+            i = by_rank[t] >> 32
+            sl[row_ptr[rb0 + i] + cursor[i]] = by_rank[t] & 0xFFFFFFFF
+            cursor[i] += 1
+    else:
+        base = b * (n + 1)
+        for t in range(n):
+            q2 = order[t]
+            for e in range(tr.ptr[base + q2], tr.ptr[base + q2 + 1]):
+                i = tr.row[e] - rb0
+                c = cursor[i]
+                if c >= 0:
+                    sl[row_ptr[rb0 + i] + c] = tr.loc[e]
+                    cursor[i] = c + 1
+    for q in range(s0, s1):
+        if not active[q]:
+            continue
+        r0, r1 = _rows(state_ptr, q, ctrl, strat, q)
+        best = -1.0
+        barg = 0
+        for r in range(r0, r1):
+            j0 = row_ptr[r]
+            j1 = row_ptr[r + 1]
+            v, left = row_value_sorted(j0, j1, sl, m.col, m.lower, m.upper, m.floor[r], vals, use_rank, adv_max)
+            v = _round_row(v, left, j1 - j0, direction)
+            if want_rows:
+                out_rows[r] = v
+            if best < 0.0 or (ctrl == _MAX and v > best) or (ctrl == _MIN and v < best):
+                best = v
+                barg = r - state_ptr[q]
+        _store_state(q, best, barg, out_val, out_arg, direction, keep_better)
+
+
+@njit(cache=True)
+def bellman_layer_bucketed(m, tr, vals, active, adv_max, use_rank, ctrl, strat, direction, out_val, out_arg, out_rows,
+                           want_rows, keep_better, sl):
+    """:func:`bellman_layer` (same outputs, bit for bit) for a Jacobi sweep (``out_val`` is not ``vals.w``)
+    with the entries ordered by buckets (section comment above): ``m`` :class:`RowArrays`, ``tr``
+    :class:`EntryOrder`, ``vals`` :class:`LayerValues`, ``sl`` (nnz,) int32 scratch."""
+    for b in range(tr.bstate.shape[0] - 1):
+        _bucketed_block(b, m, tr, vals, active, adv_max, use_rank, ctrl, strat, direction, out_val, out_arg,
+                        out_rows, want_rows, keep_better, sl)
+
+
+@njit(cache=True, parallel=True)
+def bellman_layer_bucketed_parallel(m, tr, vals, active, adv_max, use_rank, ctrl, strat, direction, out_val, out_arg,
+                                    out_rows, want_rows, keep_better, sl):
+    """:func:`bellman_layer_bucketed` on numba's threads, one block of states per task: a block reads
+    ``vals`` and writes only its own states, rows and entries, so the result is the serial one, bit for
+    bit, for any number of threads."""
+    for b in numba.prange(tr.bstate.shape[0] - 1):
+        _bucketed_block(b, m, tr, vals, active, adv_max, use_rank, ctrl, strat, direction, out_val, out_arg,
+                        out_rows, want_rows, keep_better, sl)
 
 
 @njit(cache=True, inline="always")
