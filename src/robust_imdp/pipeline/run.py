@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from robust_imdp._blas import blas_threads
 from robust_imdp.errors import InvalidInputError
 
 from robust_imdp.pipeline.problem import Problem, _is_affine, _setting_value, _settings
@@ -359,7 +360,8 @@ def synthesize_from_data(problem: Problem, *, progress: bool = True, abstraction
     _warn_overlaps(problem, dfa)
     _preflight(problem, dfa, log, run)
     try:
-        return _synthesize_run(problem, dfa, log, run, abstraction_cache)
+        with blas_threads(1):  # LAPACK's bits depend on its thread count: one, for the same bits on any core count
+            return _synthesize_run(problem, dfa, log, run, abstraction_cache)
     finally:
         run.close()
 
