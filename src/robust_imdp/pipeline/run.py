@@ -232,11 +232,16 @@ def _build_abstraction(problem: Problem, partition, log: _Log, cache_dir=None, r
 def _synthesize(problem: Problem, partition, abstraction, dfa, log: _Log):
     from robust_imdp.abstraction.factored import abstraction_model
     from robust_imdp.pipeline.nominal_stage import run_nominal
+    from robust_imdp.spec.api import resolve_semantics
     from robust_imdp.synthesis.core import synthesize
+    from robust_imdp.synthesis.ties import takes_nominal
 
-    nominal = run_nominal(problem, partition, log)  # ranks modes of equal robust value (synthesis.ties)
+    model = abstraction_model(abstraction)
+    nominal = None  # ranks modes of equal robust value (synthesis.ties); not built where the synthesis takes none
+    if takes_nominal(model, horizon=problem.horizon, semantics=resolve_semantics(dfa, problem.semantics)[0]):
+        nominal = run_nominal(problem, partition, log)
     with log.stage("synthesize"):
-        syn = synthesize(abstraction_model(abstraction), partition.labels, partition.atoms, dfa,
+        syn = synthesize(model, partition.labels, partition.atoms, dfa,
                          threshold=problem.threshold, horizon=problem.horizon,
                          outside_state=partition.outside_state, semantics=problem.semantics, nominal=nominal)
     classes = _class_names(syn.classes, syn, problem.threshold)
