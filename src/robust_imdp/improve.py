@@ -57,6 +57,19 @@ __all__ = ["ImproveRound", "ImproveResult", "IncrementalCheck", "improve", "REBO
 REBOUND_TOL = 0.01
 #: Most points of a mode used for that estimate (an evenly spaced subset beyond it, as in suggest).
 MAX_POWER_POINTS = 2000
+#: The look-ahead (docs/sampling.md, "Look-ahead targets"): the fractions of the undecided cells' RKHS terms kept in
+#: its solves, largest first; a Q_? cell's target is the largest at which the solve makes it Q_yes.
+LOOKAHEAD_LEVELS = (0.75, 0.5, 0.25, 0.0)
+#: Precision of the look-ahead solves (their values only rank requests).
+LOOKAHEAD_PRECISION = 1e-6
+#: A target's predicted shrink must exceed this fraction of its cell's smallest half-width (else its box is at
+#: the noise floor: more data barely move it, and the cell turned Q_yes through its neighbours' boxes).
+TARGET_TOL = 0.01
+#: Extra weight of a frontier target: a cell whose own shrunk row, one step on today's lower values, meets the
+#: threshold (it turns Q_yes by itself: the next cell of the path to Q_yes).
+FRONTIER_WEIGHT = 10.0
+#: Cap of a target's expected steps to Q_yes (``_hops``); its extra weight halves with every step beyond the first.
+MAX_HOPS = 12
 #: The loop's saved state (cell boxes, last complete round) and its data file, in the output directory.
 STATE_FILE = "improve-state.npz"
 DATA_FILE = "data.csv"
@@ -612,6 +625,196 @@ def _update(loop: _Loop, data, n_old: int, rnd: int, timer: dict) -> int:
     return rebound
 
 
+def _targets(loop):
+    """The look-ahead's value-of-information targets (``synthesis.suggest.Targets``), or None when no undecided
+    cell turns Q_yes even without RKHS terms.
+
+    Every undecided cell's box is shrunk on each side by ``(1 - a)`` times its predicted RKHS term
+    ``B_ui sqrt(P_u(centre))`` (the power function of ``synthesis.suggest``, at most the part of the box
+    beyond the known affine part's range), for ``a`` in :data:`LOOKAHEAD_LEVELS`; the rows of those cells
+    are rebuilt and the model solved. A cell that turns Q_yes at ``a`` (the largest such) is a target for
+    the mode its look-ahead strategy uses there, keeping the share ``a`` of its term. This is a ranking:
+    the boxes of the look-ahead are predictions, never used for a guarantee.
+    """
+    from robust_imdp.abstraction.factored import abstraction_model
+    from robust_imdp.abstraction.rows import CellBounds
+    from robust_imdp.bounds.assumptions import resolve
+    from robust_imdp.pipeline.bound_rkhs import _affine_part
+    from robust_imdp.pipeline.run import _class_names
+    from robust_imdp.synthesis.core import synthesize
+    from robust_imdp.synthesis.suggest import Targets, _assumption
+
+    problem, part = loop.problem, loop.partition
+    maybe = np.flatnonzero(np.asarray(loop.result.class_names) == "maybe")
+    if maybe.size == 0:
+        return None
+    M, n = len(problem.mode_names), int(np.size(problem.space_lower))
+    st = resolve(problem.rkhs_bound, problem.gp_options.get("lengthscale"), problem.misspecification,
+                 problem.mode_names, n)
+    Bmax, inv_l2, floor = _assumption(problem)
+    lo_all, up_all = np.asarray(part.cells_lower), np.asarray(part.cells_upper)
+    lo_c, up_c = lo_all[maybe], up_all[maybe]
+    centre = 0.5 * (lo_all + up_all)
+    ilo, ihi = np.asarray(loop.cell_bounds.image_lower), np.asarray(loop.cell_bounds.image_upper)
+    B_ui = np.asarray(st.rkhs_bound, float)
+    shrink = np.zeros((M, maybe.size, n))
+    for u in range(M):
+        x = np.asarray(problem.data.by_mode(u)[0], float)
+        if Bmax[u] <= 0 or x.shape[0] == 0:
+            continue
+        root = np.sqrt(_power(centre, x, inv_l2[u], max((floor[u] / Bmax[u]) ** 2, 1e-10)))
+        A = np.asarray(_affine_part(problem, u)[0], float)
+        excess = np.maximum(0.5 * (ihi[u] - ilo[u] - (up_all - lo_all) @ np.abs(A).T), 0.0)  # (N, n)
+        for i in range(n):
+            if B_ui[u, i] > 0:
+                term = B_ui[u, i] * root
+                e0, kappa = _term_line(term, excess[:, i])
+                shrink[u, :, i] = np.minimum(kappa * term[maybe], np.maximum(excess[maybe, i] - e0, 0.0))
+    if not np.any(shrink > 0):
+        return None
+    keep = np.full(maybe.size, -1.0)
+    mode = np.zeros(maybe.size, dtype=np.int64)
+    models = []
+    values = np.append(np.clip(np.asarray(loop.result.p_low, float), 0.0, 1.0), 0.0)  # cells, then outside
+    for a in LOOKAHEAD_LEVELS:
+        todo = keep < 0  # every level is solved: the frontier below may need a deeper one
+        lo2, hi2 = ilo.copy(), ihi.copy()
+        lo2[:, maybe] += (1.0 - a) * shrink
+        hi2[:, maybe] = np.maximum(hi2[:, maybe] - (1.0 - a) * shrink, lo2[:, maybe])
+        abstraction = _assemble(part, _rebuild(part, loop.rows, CellBounds(lo2, hi2, None), [maybe] * M, problem))
+        syn = synthesize(abstraction_model(abstraction), part.labels, part.atoms, loop.dfa,
+                         threshold=problem.threshold, horizon=problem.horizon, outside_state=part.outside_state,
+                         semantics=problem.semantics, precision=LOOKAHEAD_PRECISION)
+        cls = np.asarray(_class_names(syn.classes, syn, problem.threshold))
+        strategy = np.asarray(syn.strategy)
+        if strategy.ndim == 3:  # k-step: the first step's choice
+            strategy = strategy[0]
+        chosen = strategy[np.arange(part.n_cells), np.asarray(syn.initial_dfa_state)]
+        hit = np.flatnonzero(todo & (cls[maybe] == "yes"))
+        keep[hit], mode[hit] = a, chosen[maybe[hit]]
+        models.append(abstraction)
+    tol = TARGET_TOL * 0.5 * np.min(up_c - lo_c, axis=1)
+    k = np.flatnonzero((keep >= 0) & ((1.0 - np.maximum(keep, 0.0)) * shrink[mode, np.arange(maybe.size)].max(axis=1)
+                                      > tol))
+    if k.size == 0:
+        return None
+    # the frontier: a target whose own shrunk row, one step on today's lower values, meets the threshold (the
+    # largest share of the term at which it does, and the best mode there): it turns Q_yes by itself
+    front = np.zeros(k.size, dtype=bool)
+    for a, abstraction in zip(LOOKAHEAD_LEVELS, models):
+        cand = np.flatnonzero(~front)
+        if cand.size == 0:
+            break
+        cells = np.repeat(maybe[k[cand]], M)
+        best = _one_step(abstraction, values, np.tile(np.arange(M), cand.size), cells).reshape(cand.size, M)
+        ok = best.max(axis=1) >= float(problem.threshold)
+        front[cand[ok]] = True
+        keep[k[cand[ok]]] = np.minimum(keep[k[cand[ok]]], a)
+        mode[k[cand[ok]]] = best[ok].argmax(axis=1)
+    # how close to today's Q_yes each target is along the look-ahead's rows: the expected number of steps to
+    # reach Q_yes, successors drawn in proportion to their upper bounds (a cluster of targets that turns Q_yes
+    # only together, next to Q_yes, comes before the far ones)
+    level_of = {a: i for i, a in enumerate(LOOKAHEAD_LEVELS[:len(models)])}
+    hops = _hops(part.n_cells, np.asarray(loop.result.class_names) == "yes", maybe[k], mode[k],
+                 [models[level_of[float(a)]] for a in keep[k]])
+    near = np.where(front, 1.0, 0.5 ** np.maximum(hops - 1.0, 0.0))
+    weights, keeps = np.zeros((M, part.n_cells)), np.zeros((M, part.n_cells))
+    weights[mode[k], maybe[k]] = 1.0 + FRONTIER_WEIGHT * near
+    keeps[mode[k], maybe[k]] = keep[k]
+    reason = {int(maybe[i]): f"undecided (Q_?), Q_yes in the look-ahead keeping {keep[i]:.2f} of its RKHS term, "
+              f"{h:.1f} steps from Q_yes" + ("; frontier: its own smaller box turns it Q_yes on today's values"
+                                             if f else "")
+              for i, f, h in zip(k, front, hops)}
+    return Targets(weights, keeps, reason)
+
+
+def _hops(n_cells: int, yes: np.ndarray, cells: np.ndarray, modes: np.ndarray, models: list) -> np.ndarray:
+    """Expected steps from each ``cells[k]`` (row ``modes[k]`` of ``models[k]``) to the ``yes`` cells, successors
+    drawn in proportion to their upper bounds; other cells and the outside state count :data:`MAX_HOPS`."""
+    from scipy.sparse import csr_matrix
+
+    from robust_imdp.synthesis.suggest import _row_reader
+
+    ptr, cols_all, w_all, cache = [0], [], [], {}
+    for q, u, m in zip(cells, modes, models):
+        reader = cache.setdefault(id(m), _row_reader(m))
+        cols, upper = reader(int(q), int(u))
+        upper = np.asarray(upper, float)
+        cols_all.append(np.minimum(np.asarray(cols, np.int64), n_cells))
+        w_all.append(upper / max(upper.sum(), 1e-300))
+        ptr.append(ptr[-1] + upper.size)
+    P = csr_matrix((np.concatenate(w_all), np.concatenate(cols_all), np.asarray(ptr)),
+                   shape=(cells.size, n_cells + 1))
+    val = np.append(np.where(yes, 0.0, float(MAX_HOPS)), float(MAX_HOPS))  # the outside state last
+    h = np.full(cells.size, float(MAX_HOPS))
+    for _ in range(4 * int(MAX_HOPS)):
+        val[cells] = h
+        new = np.minimum(1.0 + P @ val, float(MAX_HOPS))
+        if np.allclose(new, h):
+            break
+        h = new
+    return h
+
+
+def _one_step(abstraction, values: np.ndarray, modes: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """The pessimistic value of one step from each ``(modes[k], cells[k])`` row with successor ``values``
+    ``(n_cells + 1,)`` (the outside state last): ``min sum_j p_j V_j`` over the row's intervals (the mass
+    beyond the lower bounds to the lowest values first; a row's floor on unlisted states goes to value 0)."""
+    from robust_imdp.abstraction.factored import is_factored
+
+    if is_factored(abstraction):
+        from robust_imdp.solvers.factored import factored_bellman
+
+        return factored_bellman(abstraction.model, values, rounding="nearest")[modes, cells]
+    imdp = abstraction.imdp
+    out = np.empty(cells.size)
+    for k, (q, u) in enumerate(zip(cells, modes)):
+        row = int(imdp.state_ptr[q]) + int(u)  # one choice per mode, in mode order
+        j0, j1 = int(imdp.row_ptr[row]), int(imdp.row_ptr[row + 1])
+        v = np.append(values[imdp.col[j0:j1]], 0.0)
+        lo = np.append(imdp.lower[j0:j1], 0.0)
+        hi = np.append(imdp.upper[j0:j1], float(imdp.floor[row]) * int(imdp.n_unlisted[row]))
+        order = np.argsort(v, kind="stable")
+        room = np.minimum(np.cumsum((hi - lo)[order]), max(1.0 - lo.sum(), 0.0))
+        extra = np.diff(np.concatenate([[0.0], room]))
+        out[k] = lo @ v + extra @ v[order]
+    return out
+
+
+def _term_line(term: np.ndarray, excess: np.ndarray) -> tuple:
+    """``(e0, kappa)``: the least-squares line ``excess ~ e0 + kappa term`` over the cells, ``e0 >= 0``, ``kappa >= 1``.
+
+    ``term`` is the predicted RKHS term ``B sqrt(P)`` at each cell's centre, ``excess`` the half-width of the
+    cell's box beyond the known part's range. The certificate's radius is larger than the term at the centre
+    (its supremum over the cell, and the noise terms its weights trade against it): ``kappa`` turns a drop of
+    the term into a drop of the box. ``e0`` is the noise floor: what no amount of data removes (bounded noise,
+    a worst-case bound: repeated samples do not average it away).
+    """
+    t, e = np.asarray(term, float), np.asarray(excess, float)
+    if t.size < 2 or np.ptp(t) <= 0:
+        return 0.0, 1.0
+    kappa = max(float(np.cov(t, e)[0, 1] / np.var(t, ddof=1)), 1.0)
+    e0 = float(e.mean() - kappa * t.mean())
+    if e0 < 0:  # the floor cannot be negative: the line through the origin
+        e0, kappa = 0.0, max(float(t @ e / (t @ t)), 1.0)
+    return e0, kappa
+
+
+def _requests(loop, n: int, targeted: bool) -> list:
+    """The round's ``n`` requests: the look-ahead's targets first (:func:`_targets`), the rest (targets met,
+    or none) by the undecided cells' radius change, seeing the targeted requests as data."""
+    from robust_imdp.synthesis.suggest import suggest_samples
+
+    targets = _targets(loop) if targeted else None
+    reqs = [] if targets is None else suggest_samples(loop.result, n, targets=targets)
+    if len(reqs) < n:
+        names = list(loop.problem.mode_names)
+        pts = [np.vstack([loop.problem.data.by_mode(u)[0]] + [r.x[None] for r in reqs if r.mode == m])
+               for u, m in enumerate(names)]
+        reqs += suggest_samples(loop.result, n - len(reqs), data_points=pts)
+    return reqs
+
+
 def _append(data, xs, us, xn):
     from robust_imdp.models.system import Dataset
 
@@ -626,7 +829,7 @@ def _per_round(budget: int, rounds: int, rnd: int) -> int:
 
 def improve(problem, true_system, budget: int, *, rounds: int = 1, out=None, seed: int = 0, progress: bool = True,
             allow_outside: bool = False, keep_history: bool = False, workers: int | None = None,
-            on_round=None) -> ImproveResult:
+            on_round=None, targeted: bool = True) -> ImproveResult:
     """Collect ``budget`` samples in ``rounds`` rounds where they help most, re-bounding incrementally.
 
     Parameters
@@ -659,8 +862,6 @@ def improve(problem, true_system, budget: int, *, rounds: int = 1, out=None, see
     from robust_imdp.pipeline.preflight import _check_atoms, _region_objects
     from robust_imdp.pipeline.runtime import _Log, _Run
     from robust_imdp.spec.api import to_dfa
-    from robust_imdp.synthesis.suggest import suggest_samples
-
     for name, v, least in (("budget", budget, 1), ("rounds", rounds, 1)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < least:
             raise InvalidInputError(f"improve: {name} must be an integer >= {least}; got {v!r}")
@@ -705,7 +906,7 @@ def improve(problem, true_system, budget: int, *, rounds: int = 1, out=None, see
         for rnd in range(last + 1, rounds + 1):
             timer = {}
             t0 = time.perf_counter()
-            reqs = suggest_samples(loop.result, _per_round(budget, rounds, rnd))
+            reqs = _requests(loop, _per_round(budget, rounds, rnd), targeted)
             timer["suggest"] = time.perf_counter() - t0
             if not reqs:
                 stopped = "no undecided cells"

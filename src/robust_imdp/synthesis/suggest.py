@@ -32,7 +32,7 @@ from robust_imdp._kernels import se_gram
 from robust_imdp.bounds.fit import evenly_spaced
 from robust_imdp.errors import InvalidInputError
 
-__all__ = ["SampleRequest", "suggest_samples", "write_requests", "power_function"]
+__all__ = ["SampleRequest", "Targets", "suggest_samples", "write_requests", "power_function"]
 
 #: Largest number of data points of a mode used for the power function (an evenly spaced subset
 #: beyond it: fewer points only make the power function larger, i.e. the gains look larger).
@@ -48,6 +48,28 @@ MAX_SITES = 500
 #: Weight of a mode other than the strategy's in an undecided cell, and of a reached cell.
 OTHER_MODE_WEIGHT = 0.5
 REACHED_WEIGHT = 0.5
+
+
+@dataclass(frozen=True)
+class Targets:
+    """Which (mode, cell) pairs a smaller box would decide, and how much smaller (the value-of-information
+    candidates of ``robust_imdp.improve``'s look-ahead; docs/sampling.md, "Look-ahead targets").
+
+    Attributes
+    ----------
+    weights : (n_modes, n_cells) float array
+        Weight of each (mode, cell); 0 for pairs that are no target.
+    keep : (n_modes, n_cells) float array in [0, 1)
+        The fraction of the cell's current RKHS term (``B sqrt(P)`` at its centre) it may keep: the
+        look-ahead turned the cell Q_yes with every undecided cell's RKHS term scaled by ``keep``.
+        A request's gain for the pair is the fraction of the needed drop ``(1 - keep) sqrt(P0)`` it
+        achieves, capped at the need (eq. S3).
+    reason : dict ``cell -> str``
+    """
+
+    weights: np.ndarray
+    keep: np.ndarray
+    reason: dict
 
 
 @dataclass(frozen=True)
@@ -201,7 +223,7 @@ def _assumption(problem):
     return B, 1.0 / (ls * ls), floor
 
 
-def suggest_samples(result, n: int, *, data_points=None) -> list:
+def suggest_samples(result, n: int, *, data_points=None, targets: Targets | None = None) -> list:
     """The ``n`` sample requests that shrink the error radii of undecided cells most (see the module).
 
     Parameters
@@ -212,6 +234,10 @@ def suggest_samples(result, n: int, *, data_points=None) -> list:
         Number of requests (>= 1).
     data_points : sequence (n_modes) of (m_u, d) arrays, optional
         The inputs of each mode's data (default: the problem's data set).
+    targets : Targets, optional
+        Value-of-information candidates (``improve``'s look-ahead): the (mode, cell) pairs whose smaller
+        box turns them Q_yes, each scored by the capped fraction of its needed drop (eq. S3) instead of
+        the undecided cells' summed radius change (eq. S2).
 
     Returns
     -------
@@ -221,7 +247,17 @@ def suggest_samples(result, n: int, *, data_points=None) -> list:
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
         raise InvalidInputError(f"n (the number of sample requests) must be an integer >= 1; got {n!r}")
     problem = result.problem
-    cells, weights, reason = _candidates(result)
+    if targets is None:
+        cells, weights, reason = _candidates(result)
+        keep = None
+    else:
+        cells = np.flatnonzero(np.asarray(targets.weights).max(axis=0) > 0)
+        if cells.size > MAX_CANDIDATES:  # the cheapest targets first (the largest share of the term they may keep)
+            k = np.asarray(targets.keep)[:, cells].max(axis=0)
+            order = np.lexsort((-np.asarray(targets.weights)[:, cells].max(axis=0), -k))
+            cells = np.sort(cells[order[:MAX_CANDIDATES]])
+        weights, keep, reason = np.asarray(targets.weights, float)[:, cells], np.asarray(targets.keep)[:, cells], \
+            targets.reason
     if cells.size == 0:
         return []
     part = result.partition
@@ -230,7 +266,7 @@ def suggest_samples(result, n: int, *, data_points=None) -> list:
     modes = problem.mode_names
     xs, lam = [], []
     for u in range(len(modes)):
-        x = np.asarray(problem.data.by_mode(u)[0], float)
+        x = np.asarray(problem.data.by_mode(u)[0] if data_points is None else data_points[u], float)
         if x.shape[0] > MAX_POINTS:
             x = x[evenly_spaced(x.shape[0], MAX_POINTS)]
         xs.append(x)
@@ -249,6 +285,10 @@ def suggest_samples(result, n: int, *, data_points=None) -> list:
         S, p = _posterior_block(centres, xs[u], inv_l2[u], lam[u], sites)
         sig.append(S)
         var.append(p)
+    if keep is not None:  # eq. S3: per candidate the level its RKHS term must reach, and the drop it needs
+        root0 = [np.sqrt(np.maximum(v, 0.0)) for v in var]
+        level = [keep[u] * root0[u] for u in range(len(modes))]
+        need = [np.maximum(root0[u] - level[u], 1e-300) for u in range(len(modes))]
     out = []
     for _ in range(int(n)):
         best = None
@@ -259,8 +299,13 @@ def suggest_samples(result, n: int, *, data_points=None) -> list:
             p = np.maximum(var[u], 0.0)
             ps = p[site_index]
             drop = S * S / (ps[None, :] + lam[u])  # drop[q, c]: decrease of P(q) from a sample at site c (eq. S1)
-            change = B[u] * (np.sqrt(p)[:, None] - np.sqrt(np.maximum(p[:, None] - drop, 0.0)))  # (eq. S2)
-            gain = weights[u] @ change
+            after = np.sqrt(np.maximum(p[:, None] - drop, 0.0))
+            change = B[u] * (np.sqrt(p)[:, None] - after)  # (eq. S2)
+            if keep is None:
+                gain = weights[u] @ change
+            else:  # eq. S3: the fraction of each target's needed drop, capped at the need
+                lv = level[u][:, None]
+                gain = weights[u] @ ((np.maximum(np.sqrt(p)[:, None], lv) - np.maximum(after, lv)) / need[u][:, None])
             c = int(np.argmax(gain))
             if best is None or gain[c] > best[0]:
                 best = (float(gain[c]), u, c, float(change[site_index[c], c]))
