@@ -10,9 +10,11 @@ and its re-solves on the run's scheduler.
 * **Cache.** ``advice-<advice_key>.json`` in the run's cache holds every estimate as it completes; a re-run
   reuses them, and so does a run interrupted during the advice when it is started again (Ctrl-C there says
   how many estimates are kept).
-* **Scheduler.** The re-solves' rows are tasks of the run's scheduler (:func:`_rows_task`), every lever's at
-  once, so a Dask cluster abstracts them in parallel; each solve runs in this process as soon as its rows
-  are in.
+* **Scheduler.** Where the run has several cores (a Dask cluster, or in process with the side lane's helper
+  processes: :func:`side_by_side`) each lever's whole re-solve (rows and solve) is one task (:func:`_job_task`) and
+  they run side by side (:func:`spread`: this process and the helpers take them from one queue). Otherwise the
+  re-solves' rows are tasks of the run's scheduler (:func:`_rows_task`), every lever's at once, and each solve runs
+  in this process as soon as its rows are in. The shares are the same either way.
 * **Assumptions per mode and component** (known components, periodic axes): the fit, the noise floor and
   the sub-box terms are per component; B is never a lever (``premise`` says what the guarantee needs).
 """
@@ -40,7 +42,7 @@ from robust_imdp.pipeline.cache import (
 from robust_imdp.pipeline.problem import Problem, _settings
 from robust_imdp.pipeline.runtime import _Log, _Run
 
-__all__ = ["run_advice", "advice_key", "ADVICE_VERSION"]
+__all__ = ["run_advice", "advice_key", "ADVICE_VERSION", "spread", "side_by_side"]
 
 #: Version of the advice's estimates: cache entries of another version are not read.
 ADVICE_VERSION = 2
@@ -138,6 +140,99 @@ def _sub_box_terms(problem: Problem):
     return cell_terms
 
 
+# ---------------------------------------------------------------------------------------------- every core
+def spread(sched, fn, args, kwargs=None):
+    """Yield ``(index, fn(*args[index], **kwargs))`` for every task, in order of completion, on every core the run
+    has: a Dask cluster's workers (``sched.run``); in process on several cores this process *and* the side lane's
+    helper processes (``pipeline.parallel.SideLane``, one BLAS and numba thread each), taking the tasks from one
+    queue, so independent serial work (the margins' and the advice's re-solves: one topological solve each)
+    runs side by side; else one after the other here.
+
+    ``fn`` must be a module-level function of pure tasks: the caller assembles the results by index, so they do
+    not depend on where each task ran (the solvers' and the abstraction's bits do not depend on the thread
+    count; BLAS has one thread in the run and in the helpers). A task's exception is raised here. A consumer
+    that stops iterating (``close()``) leaves the tasks not yet started unstarted; those running in a helper
+    finish there and are dropped.
+    """
+    import queue
+    import threading
+
+    from robust_imdp.pipeline.parallel import InProcess, SideLaneError
+
+    kw = dict(kwargs or {})
+    lane = getattr(sched, "lane", None) if isinstance(sched, InProcess) else None
+    if lane is None or len(args) < 2:
+        yield from sched.run(fn, args, kw)
+        return
+    todo = list(range(len(args)))
+    lock = threading.Lock()
+    done: queue.Queue = queue.Queue()
+
+    def take():
+        with lock:
+            return todo.pop(0) if todo else None
+
+    def feed():  # one per helper: its next task from the queue, until the queue is empty
+        while True:
+            i = take()
+            if i is None:
+                return
+            try:
+                done.put((i, True, lane.submit(fn, *args[i], threads=1, **kw).result()))
+            except SideLaneError:  # the lane is gone: the task goes back to this process
+                with lock:
+                    todo.insert(0, i)
+                return
+            except BaseException as exc:  # the task's own failure: raised in the caller
+                done.put((i, False, exc))
+
+    feeders = [threading.Thread(target=feed, name="robust-imdp spread", daemon=True) for _ in lane.helpers]
+    for t in feeders:
+        t.start()
+    got = 0
+    try:
+        while got < len(args):
+            try:
+                item = done.get_nowait()
+            except queue.Empty:
+                i = take()
+                if i is None:  # everything started: wait for the helpers' last tasks
+                    if not any(t.is_alive() for t in feeders) and done.empty():
+                        with lock:
+                            if not todo:
+                                raise RuntimeError("spread: a task was lost")  # pragma: no cover
+                        continue
+                    try:
+                        item = done.get(timeout=0.05)
+                    except queue.Empty:
+                        continue
+                else:
+                    item = (i, True, fn(*args[i], threads=getattr(sched, "threads", 1), **kw))
+            i, ok, value = item
+            if not ok:
+                raise value
+            got += 1
+            yield i, value
+    finally:
+        with lock:
+            todo.clear()  # a consumer that stopped: nothing more starts
+
+
+def side_by_side(sched, cell_modes: int) -> bool:
+    """Whether independent re-solves of ``cell_modes`` (cell, mode) pairs each run side by side (:func:`spread`):
+    on a Dask cluster, or in process on several cores with a side lane (started here from
+    ``pipeline.parallel.SIDE_MIN_CELL_MODES`` pairs on, where a helper's start-up is small against a re-solve)."""
+    from robust_imdp.pipeline.parallel import SIDE_MIN_CELL_MODES, DaskScheduler, InProcess
+
+    if isinstance(sched, DaskScheduler):
+        return True
+    if not isinstance(sched, InProcess) or sched.threads < 2:
+        return False
+    if not sched.concurrent_side and cell_modes >= SIDE_MIN_CELL_MODES:
+        sched.use_side_lane()
+    return sched.concurrent_side
+
+
 # ---------------------------------------------------------------------------------------------- re-solves
 def _rows_task(partition, lower, upper, noise, k=None, *, threads=1, **options):
     """One chunk of rows of an advice re-solve (a module-level function, so that workers can import it); ``k``:
@@ -145,6 +240,16 @@ def _rows_task(partition, lower, upper, noise, k=None, *, threads=1, **options):
     from robust_imdp.synthesis.advice import job_rows
 
     return job_rows(partition, lower, upper, noise, options, k=k)
+
+
+def _job_task(job, noise, k, options, dfa, threshold, horizon, semantics, *, threads=1):
+    """One whole re-solve of the advice (a module-level function: it runs in helper processes and on workers): the
+    job's rows in the chunks of :func:`_scheduled_solver` (``advice.ROW_CHUNK`` cells) and its Q_yes share."""
+    from robust_imdp.synthesis.advice import ROW_CHUNK, job_rows, job_share
+
+    pieces = [job_rows(job.partition, job.lower[:, s0:s0 + ROW_CHUNK], job.upper[:, s0:s0 + ROW_CHUNK], noise,
+                       options, k=k) for s0 in range(0, job.partition.n_cells, ROW_CHUNK)]
+    return job_share(job, pieces, dfa, threshold=threshold, horizon=horizon, semantics=semantics)
 
 
 def _advice_options(problem: Problem) -> dict:
@@ -165,6 +270,11 @@ def _scheduled_solver(problem: Problem, dfa, run: _Run, log: _Log):
 
     def solve(jobs, deadline):
         sched = run.scheduler(log)
+        if len(jobs) > 1 and side_by_side(sched, max(j.partition.n_cells for j in jobs) * len(problem.mode_names)):
+            # whole re-solves as tasks, side by side on every core (spread); the same rows and solves, so the
+            # same shares; past the deadline no further one is waited for
+            yield from _side_by_side_jobs(sched, jobs, deadline)
+            return
         tasks, args = [], []
         for j, job in enumerate(jobs):
             k = job_lengths(job, problem.noise, opts)  # factored: every chunk lists the job's lengths
@@ -190,6 +300,23 @@ def _scheduled_solver(problem: Problem, dfa, run: _Run, log: _Log):
                     break
         finally:
             stream.close()  # a cluster's remaining tasks are cancelled
+        for j in range(len(jobs)):
+            if j not in finished:
+                yield j, None
+
+    def _side_by_side_jobs(sched, jobs, deadline):
+        args = [(job, problem.noise, job_lengths(job, problem.noise, opts), opts, dfa, problem.threshold,
+                 problem.horizon, semantics) for job in jobs]
+        finished = set()
+        stream = spread(sched, _job_task, args)
+        try:
+            for j, share in stream:
+                finished.add(j)
+                yield j, share
+                if deadline is not None and time.perf_counter() > deadline:
+                    break
+        finally:
+            stream.close()  # nothing more starts
         for j in range(len(jobs)):
             if j not in finished:
                 yield j, None

@@ -6,7 +6,10 @@ nothing is optimised again). This stage gets those boxes (from the bound stage o
 cache, else by running the bound stage once more with them), abstracts them through the pipeline's own
 abstraction function (the one the run used, so ``[abstraction]`` options such as ``transitions`` apply),
 evaluates the run's controller on each (``synthesis.margins.strategy_bounds``) and stops when no cell
-keeps its class (``synthesis.margins.assumption_margins``).
+keeps its class (``synthesis.margins.assumption_margins``). Where the run has several cores (a Dask cluster, or
+in process with the side lane's helper processes) every factor's abstraction and evaluation is one task
+(:func:`_margin_task`) and they run side by side (``pipeline.advice_stage.spread``), all started when the first
+factor is asked for; the results are the same bits as one after the other.
 
 Refined results (``BoxPartition``): a cell created by refinement uses the boxes the refinement's bounder
 certified for it at each factor when this run bounded it, else those of its grid cell (it lies inside it,
@@ -15,10 +18,12 @@ so the grid cell's box at ``beta B`` contains its image: sound, looser; its marg
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from robust_imdp.pipeline.advice_stage import side_by_side, spread
 from robust_imdp.pipeline.cache import _load_npz, _savez, bounds_key, read_cache_entry, write_cache_entry
 from robust_imdp.pipeline.problem import Problem
 from robust_imdp.pipeline.runtime import _Log, _Run
@@ -110,6 +115,47 @@ def _cell_boxes(partition, lower, upper, new_cells: dict):
     return lo, hi, fallback
 
 
+@dataclass(frozen=True)
+class _Controller:
+    """What :func:`robust_imdp.synthesis.margins.strategy_bounds` reads of the run's synthesis (sent to helpers)."""
+
+    strategy: np.ndarray
+    horizon: int | None
+    precision: float
+    semantics: str
+
+
+def _abstraction_form(problem: Problem, partition) -> str:
+    """The form of the run's abstraction of ``partition`` (``pipeline.run._form_of``): the problem's choice on a
+    grid, joint on refined cells."""
+    from robust_imdp.models.geometry import Partition
+
+    return problem.form_choice()[0] if isinstance(partition, Partition) else "joint"
+
+
+def _margin_task(partition, lower, upper, noise, form, options, dfa, controller, *, threads=1):
+    """One factor of the margins (a module-level function: it runs in helper processes and on workers): the
+    abstraction of ``partition`` with the boxes ``lower``/``upper`` (n_modes, n_cells, n) in the run's ``form``
+    (all cells in one chunk: the rows do not depend on the chunking, tests/test_chunks.py) and the bounds
+    ``(p_low, p_up)`` of the run's controller on it (``synthesis.margins.strategy_bounds``)."""
+    from robust_imdp.abstraction.cell_bounds import CellBounds
+    from robust_imdp.abstraction.factored import abstraction_model
+    from robust_imdp.synthesis.margins import strategy_bounds
+
+    cb = CellBounds(lower, upper, None)
+    if form == "factored":
+        from robust_imdp.abstraction.factored import AXIS_TOL, assemble_factored, axis_lengths, factored_rows
+
+        k = axis_lengths(partition, cb, noise)
+        abstraction = assemble_factored(partition, [factored_rows(partition, cb, noise, k, tol=AXIS_TOL)])
+    else:
+        from robust_imdp.abstraction.rows import abstract_rows, assemble_abstraction
+
+        abstraction = assemble_abstraction(partition, [abstract_rows(partition, cb, noise, None, **options)])
+    return strategy_bounds(abstraction_model(abstraction), partition.labels, partition.atoms, dfa, controller,
+                           outside_state=partition.outside_state)
+
+
 def run_margins(problem: Problem, grid, partition, synthesis, classes, dfa, log: _Log, run: _Run, cache_dir, *,
                 abstract, learn_and_bound) -> tuple:
     """The margins of a run: ``(b_margin (n_cells,) float array or None, Result.margins' dict)``.
@@ -151,12 +197,27 @@ def run_margins(problem: Problem, grid, partition, synthesis, classes, dfa, log:
         scales, lower, upper = _scaled_bounds(problem, grid, log, run, cache_dir, learn_and_bound)
         lower, upper, fallback = _cell_boxes(partition, lower, upper, getattr(run, "scaled_new_cells", {}))
         index = {s: j for j, s in enumerate(scales)}
+        sched = run.scheduler(log)
+        if side_by_side(sched, partition.n_cells * len(problem.mode_names)):
+            # every factor's abstraction and evaluation is a task, side by side on every core (advice_stage.spread):
+            # the first factor asked for starts them all, the results are the same bits as one after the other
+            done: dict = {}
 
-        def evaluate(scale):
-            j = index[float(scale)]
-            abstraction = abstract(partition, CellBounds(lower[j], upper[j], None))  # the run's form
-            return strategy_bounds(abstraction_model(abstraction), partition.labels, partition.atoms, dfa, synthesis,
-                                   outside_state=partition.outside_state)
+            def evaluate(scale):
+                if not done:
+                    form = _abstraction_form(problem, partition)
+                    ctrl = _Controller(np.asarray(synthesis.strategy), synthesis.horizon, float(synthesis.precision),
+                                       getattr(synthesis, "semantics", "reach"))
+                    args = [(partition, lower[j], upper[j], problem.noise, form, problem.abstraction_options(), dfa,
+                             ctrl) for j in range(len(scales))]
+                    done.update(spread(sched, _margin_task, args))
+                return done[index[float(scale)]]
+        else:
+            def evaluate(scale):
+                j = index[float(scale)]
+                abstraction = abstract(partition, CellBounds(lower[j], upper[j], None))  # the run's form
+                return strategy_bounds(abstraction_model(abstraction), partition.labels, partition.atoms, dfa,
+                                       synthesis, outside_state=partition.outside_state)
 
         margins = assumption_margins(classes, evaluate, problem.threshold, (1.0,) + tuple(scales))
     doc = margins.to_dict()

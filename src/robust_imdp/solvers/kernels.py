@@ -10,8 +10,10 @@ file never leaves a stale compiled kernel behind.  The integer constants read by
 (:class:`robust_imdp.solvers.common.Control`) are frozen into the compiled code; their values
 never change.
 
-Hot loop: numba (``@njit(cache=True)``), serial.  A numpy formulation needs a per-row sort
-(``np.lexsort`` over all nnz entries each iteration) and several nnz-sized temporaries.  The
+Hot loop: numba (``@njit(cache=True)``), serial; the kernels called from Python release the GIL
+(``nogil=True``: another thread of the process, e.g. the side lane's dispatch, runs meanwhile).  A
+numpy formulation needs a per-row sort (``np.lexsort`` over all nnz entries each iteration) and
+several nnz-sized temporaries.  The
 default engine's sweep (:func:`node_sweep`) keeps each row's order of successor values from the
 previous sweep (1 byte per entry) and re-sorts by insertion, which costs O(k) once the order has
 settled, and prefetches the successor values of the entries ``PREFETCH_DISTANCE`` ahead (the
@@ -232,7 +234,7 @@ def _max_row_len(row_ptr):
     return maxk
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def bellman_layer(state_ptr, row_ptr, col, lower, upper, floor, w, active, adv_max, use_rank,
                   rank, sv, hi, lo, ctrl, strat, direction, out_val, out_arg, out_rows, want_rows, keep_better):
     """One Bellman update of the states with ``active[q]``.
@@ -258,7 +260,7 @@ def bellman_layer(state_ptr, row_ptr, col, lower, upper, floor, w, active, adv_m
 PAR_BLOCK = 1024
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def bellman_layer_parallel(state_ptr, row_ptr, col, lower, upper, floor, w, active, adv_max, use_rank,
                            rank, sv, hi, lo, ctrl, strat, direction, out_val, out_arg, out_rows, want_rows,
                            keep_better):
@@ -305,7 +307,7 @@ RowArrays = namedtuple("RowArrays", ["state_ptr", "row_ptr", "col", "lower", "up
 LayerValues = namedtuple("LayerValues", ["w", "order", "rank", "sv", "hi", "lo"])
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def entry_transpose(state_ptr, row_ptr, col, n_blocks):
     """:class:`EntryOrder` of a model: its states cut into ``n_blocks`` blocks of about equal numbers of
     entries, and per block a counting sort of its entries by successor (stable: storage order)."""
@@ -481,7 +483,7 @@ def _bucketed_block(b, m, tr, vals, active, adv_max, use_rank, ctrl, strat, dire
         _store_state(q, best, barg, out_val, out_arg, direction, keep_better)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def bellman_layer_bucketed(m, tr, vals, active, adv_max, use_rank, ctrl, strat, direction, out_val, out_arg, out_rows,
                            want_rows, keep_better, sl):
     """:func:`bellman_layer` (same outputs, bit for bit) for a Jacobi sweep (``out_val`` is not ``vals.w``)
@@ -492,7 +494,7 @@ def bellman_layer_bucketed(m, tr, vals, active, adv_max, use_rank, ctrl, strat, 
                         out_rows, want_rows, keep_better, sl)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def bellman_layer_bucketed_parallel(m, tr, vals, active, adv_max, use_rank, ctrl, strat, direction, out_val, out_arg,
                                     out_rows, want_rows, keep_better, sl):
     """:func:`bellman_layer_bucketed` on numba's threads, one block of states per task: a block reads
@@ -1000,7 +1002,7 @@ def ovi_component(nodes, c, comp, n, state_ptr, row_ptr, col, lower, upper, nxt,
                            perm, keys, idx, target, sweeps, max_sweeps)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def component_levels(order, comp_ptr, comp, n, state_ptr, row_ptr, col, upper, nxt, layered, ctrl, strat):
     """Level of every component in the DAG of components: 0 without successor components,
     else 1 + the largest level of a successor component.  Components must come in reverse
@@ -1025,7 +1027,7 @@ def component_levels(order, comp_ptr, comp, n, state_ptr, row_ptr, col, upper, n
     return level
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def solve_components(c0, order, comp_ptr, kind, comp, n, state_ptr, row_ptr, col, lower, upper, nxt, layered,
                      ctrl, strat, adv_max, lo, up, perm, prec, max_sweeps, comp_sweeps, comp_status, params):
     """Solve the components ``c0, c0+1, ...`` (reverse topological order: every successor
