@@ -56,7 +56,8 @@ TARGET_SERIAL = 0.05
 #: Rows of the table: (key, label). Stage keys are Result.timings' names; the others are measured by the child.
 ROWS = [("startup", "start-up (interpreter, imports, reading the problem)"), ("specify", "specify"),
         ("partition", "partition"), ("check", "check"), ("bound", "bound"), ("abstract", "abstract"),
-        ("synthesize", "synthesize"), ("advice", "advice"), ("margins", "margins"), ("refine", "refine"),
+        ("nominal", "nominal model"), ("synthesize", "synthesize"), ("advice", "advice"), ("margins", "margins"),
+        ("refine", "refine"),
         ("outside_stages", "pipeline outside its stages (pre-flight, diagnostics, ...)"),
         ("figures", "figures"), ("writing", "writing (result.json, result.npz, renames)")]
 
@@ -350,9 +351,20 @@ def _estimate(pairs, p: int) -> dict:
     pairs = [(a, b) for a, b in pairs if "cpu_parts" in a and "cpu_parts" in b]
     if not pairs:
         return {}
-    keys = [k for k, _ in ROWS if any(k in a["cpu_parts"] or k in b["cpu_parts"] for a, b in pairs)]
-    one = [{k: a["cpu_parts"].get(k, {}).get("cpu", 0.0) for k in keys} for a, _ in pairs]
-    all_ = [{k: b["cpu_parts"].get(k, {}).get("wall_estimate", 0.0) for k in keys} for _, b in pairs]
+    known = {k for k, _ in ROWS}
+
+    def folded(parts: dict, field: str) -> dict:  # a stage without a row of its own (e.g. load_abstraction) counts
+        out: dict = {}                            # as the pipeline outside its stages, as in _parts
+        for k, v in parts.items():
+            key = k if k in known else "outside_stages"
+            out[key] = out.get(key, 0.0) + v.get(field, 0.0)
+        return out
+
+    ones_ = [folded(a["cpu_parts"], "cpu") for a, _ in pairs]
+    alls_ = [folded(b["cpu_parts"], "wall_estimate") for _, b in pairs]
+    keys = [k for k, _ in ROWS if any(k in x or k in y for x, y in zip(ones_, alls_))]
+    one = [{k: x.get(k, 0.0) for k in keys} for x in ones_]
+    all_ = [{k: y.get(k, 0.0) for k in keys} for y in alls_]
     ratio = [sum(x.values()) / sum(y.values()) for x, y in zip(one, all_)]
     serial = [sum(max(0.0, (p * y[k] - x[k]) / (p - 1)) for k in keys) / sum(x.values()) for x, y in zip(one, all_)]
     return {"rows": {k: {"one": _median([x[k] for x in one]), "all": _median([y[k] for y in all_])} for k in keys},
