@@ -24,6 +24,11 @@ random: ``--uniform-steps`` points (``budget / steps`` apart) of whole pipeline 
 that many uniformly drawn (state, mode) pairs, for ``--seeds`` seeds. ``--validate K``: Monte-Carlo
 containment (``validate.validate``, K runs per cell, fixed seed) of every improve round's result.
 
+``starved:PER`` (e.g. ``starved:20 starved:40 starved:80``): the data-starved 2-D problem of
+``benchmarks/starved.py`` with PER samples per mode, over ``--seeds`` start-data seeds: improve with
+``--starved-budget`` N samples in its default rounds, with and without the look-ahead targets, against whole
+runs with N and 3 N uniform samples (:func:`run_starved`; target: improve with N >= uniform with 3 N, medians).
+
 Target: the Q_yes uniform random sampling reaches with N added samples (median over the seeds, at the
 largest N) is reached by improve with <= N / 3 samples. Writes ``case_<name>.json`` per case, and
 ``sampling.json`` / ``sampling.md`` / ``sampling.png`` from every case file in ``--out`` (``--render``:
@@ -264,17 +269,103 @@ def _target(out: dict) -> dict:
             "validation_all_passed": bool(val) and all(val), "validated_rounds": len(val)}
 
 
+def run_starved(case_name: str, budget: int, seeds: int, factor: int = 3) -> dict:
+    """``starved:PER``: ``benchmarks/starved.py`` with PER samples per mode, over ``seeds`` start-data seeds.
+
+    Per seed s (start data ``starved.build(PER, s)``, the same for every curve): ``improve`` with ``budget``
+    samples in its default rounds (the look-ahead targets), the same without targets (``targeted=False``:
+    the undecided cells' summed radius change, the rule before the look-ahead), and whole runs on the start
+    data plus ``budget`` and ``factor x budget`` uniform (state, mode) samples (``np.random.default_rng(1000 + s)``).
+    The target: improve's median Q_yes >= the uniform median at ``factor x budget``."""
+    import starved
+    from robust_imdp.improve import auto_rounds, improve
+    from robust_imdp.pipeline.run import synthesize_from_data
+
+    per = int(case_name.split(":", 1)[1])
+    print(case_name, flush=True)
+    out = {"case": case_name, "start_per_mode": per, "budget": budget, "factor": factor, "seeds": seeds,
+           "rounds": auto_rounds(budget), "cells": 256, "load_before": os.getloadavg(), "per_seed": []}
+    t0 = time.time()
+    for seed in range(seeds):
+        b = starved.build(per, seed)
+        x0, u0, xn0 = b["start"]
+        row = {"seed": seed}
+        for key, targeted in (("improve", True), ("improve_untargeted", False)):
+            t1 = time.perf_counter()
+            res = improve(b["problem"](x0, u0, xn0), b["system"], budget, progress=False, allow_outside=True,
+                          seed=seed, targeted=targeted)
+            row[key] = [r.counts["yes"] for r in res.rounds]
+            row[key + "_s"] = time.perf_counter() - t1
+            row[key + "_suggest_s"] = sum(r.seconds.get("suggest", 0.0) for r in res.rounds)
+        rng = np.random.default_rng(1000 + seed)
+        M = len(b["system"].mode_names)
+        xs = rng.uniform(b["lower"], b["upper"], (factor * budget, 2))
+        us = rng.integers(0, M, factor * budget)
+        xn = b["system"].step(xs, us, rng)
+        for m in (0, budget, factor * budget):
+            res = synthesize_from_data(b["problem"](np.vstack([x0, xs[:m]]), np.concatenate([u0, us[:m]]),
+                                                    np.vstack([xn0, xn[:m]])), progress=False, advice=False)
+            row[f"uniform_{m}"] = _classes(res)["yes"]
+        print(f"  seed {seed}: start {row['uniform_0']}; improve {row['improve']} ({row['improve_s']:.0f} s); "
+              f"untargeted {row['improve_untargeted']}; uniform +{budget}: {row[f'uniform_{budget}']}, "
+              f"+{factor * budget}: {row[f'uniform_{factor * budget}']}", flush=True)
+        out["per_seed"].append(row)
+    out["load_after"] = os.getloadavg()
+    out["wall_s"] = time.time() - t0
+    med = {k: float(np.median([r[k][-1] if isinstance(r[k], list) else r[k] for r in out["per_seed"]]))
+           for k in ("improve", "improve_untargeted", "uniform_0", f"uniform_{budget}", f"uniform_{factor * budget}")}
+    out["median"] = med
+    out["target_met"] = med["improve"] >= med[f"uniform_{factor * budget}"]
+    return out
+
+
+def _write_starved(outs: list) -> list:
+    """The markdown section of the ``starved:PER`` cases."""
+    if not outs:
+        return []
+    b, f = outs[0]["budget"], outs[0]["factor"]
+    lines = ["## The data-starved 2-D problem (`benchmarks/starved.py`)", "",
+             f"X = [-2, 2]^2, cells 0.25 (256), 3 modes, lengthscale 1, bounded noise 0.02, `G !obs & F goal` at 0.9. "
+             f"Per start density and seed (start data `starved.build(PER, seed)`): `improve` with N = {b} samples in "
+             f"its default rounds ({outs[0]['rounds']}), the same loop without the look-ahead targets (the rule "
+             f"before them), and whole runs with N and {f} N uniform (state, mode) samples. Median over "
+             f"{outs[0]['seeds']} seeds; per seed in brackets. Target: improve with N >= uniform with {f} N.", "",
+             f"| start per mode | start Q_yes | improve N = {b} | untargeted N = {b} | uniform N = {b} | "
+             f"uniform {f} N = {f * b} | target | improve s per run (median) |", "|---|---|---|---|---|---|---|---|"]
+    for o in outs:
+        rs, m = o["per_seed"], o["median"]
+
+        def cell(key, last=False):
+            v = [r[key][-1] if last else r[key] for r in rs]
+            return f"{m[key]:g} ({', '.join(str(x) for x in v)})"
+
+        lines.append(f"| {o['start_per_mode']} | {cell('uniform_0')} | {cell('improve', True)} | "
+                     f"{cell('improve_untargeted', True)} | {cell(f'uniform_{b}')} | {cell(f'uniform_{f * b}')} | "
+                     f"{'met' if o['target_met'] else 'NOT met'} | "
+                     f"{np.median([r['improve_s'] for r in rs]):.0f} |")
+    lines += ["", "Q_yes after each round of improve (round 0 = start):", ""]
+    for o in outs:
+        for r in o["per_seed"]:
+            lines.append(f"* {o['start_per_mode']} per mode, seed {r['seed']}: improve {r['improve']}; untargeted "
+                         f"{r['improve_untargeted']}")
+    return lines + [""]
+
+
 def write(outs: list, where: Path) -> None:
     where.mkdir(parents=True, exist_ok=True)
-    (where / "sampling.json").write_text(json.dumps(outs, indent=1))
+    _write_atomic(where / "sampling.json", json.dumps(outs, indent=1))
+    starved_outs = [o for o in outs if o["case"].startswith("starved:")]
+    outs = [o for o in outs if not o["case"].startswith("starved:")]
     lines = ["# improve (incremental) vs uniform random samples", "",
              "`benchmarks/sampling.py`; targets (issue 22): improve reaches the uniform median Q_yes at the largest N "
              "with <= N/3 samples; a round costs <= 3 x (bound + solve) of the round; Monte-Carlo containment "
              "after every round. Machine: 2 cores, shared; load averages (1, 5, 15 min) before / after each case.",
              ""]
-    summary = ["| case | cells | N | uniform median Q_yes at N | improve samples to reach it (<= N/3) | worst round "
-               "ratio (round) | median ratio | median s per round | max check s | MC every round |",
-               "|---|---|---|---|---|---|---|---|---|---|"]
+    lines += _write_starved(sorted(starved_outs, key=lambda o: o["start_per_mode"]))
+    summary = [] if not outs else [
+        "| case | cells | N | uniform median Q_yes at N | improve samples to reach it (<= N/3) | worst round "
+        "ratio (round) | median ratio | median s per round | max check s | MC every round |",
+        "|---|---|---|---|---|---|---|---|---|---|"]
     for out in outs:
         t = out["target"]
         summary.append(
@@ -329,8 +420,9 @@ def write(outs: list, where: Path) -> None:
     notes = where / "notes.md"  # measurement notes kept beside the case files (appended as they are)
     if notes.exists():
         lines += ["## Notes", "", notes.read_text().strip(), ""]
-    (where / "sampling.md").write_text("\n".join(lines) + "\n")
-    _plot(outs, where / "sampling.png")
+    _write_atomic(where / "sampling.md", "\n".join(lines) + "\n")
+    if outs:
+        _plot(outs, where / "sampling.png")
 
 
 def _plot(outs: list, path: Path) -> None:
@@ -358,6 +450,12 @@ def _plot(outs: list, path: Path) -> None:
     fig.savefig(path, dpi=120)
 
 
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
 def main(argv=None) -> int:
     global UNICYCLE_CELLS
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -370,6 +468,7 @@ def main(argv=None) -> int:
     ap.add_argument("--validate", type=int, default=20, help="runs per cell of each round's validation (0: none)")
     ap.add_argument("--validate-cells", type=int, default=2000, help="most cells validated per round (seeded subset)")
     ap.add_argument("--unicycle-cells", type=int, default=UNICYCLE_CELLS)
+    ap.add_argument("--starved-budget", type=int, default=240, help="N of the starved:PER cases (default 240)")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "sampling")
     ap.add_argument("--render", action="store_true", help="only re-render from the case files in --out")
     args = ap.parse_args(argv)
@@ -377,9 +476,12 @@ def main(argv=None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     if not args.render:
         for c in args.cases:
-            out = run(c, args.start, args.budget, args.round_size, args.uniform_steps, args.seeds, args.validate,
-                      args.validate_cells)
-            (args.out / f"case_{c.replace(':', '_')}.json").write_text(json.dumps(out, indent=1))
+            if c.startswith("starved:"):
+                out = run_starved(c, args.starved_budget, args.seeds)
+            else:
+                out = run(c, args.start, args.budget, args.round_size, args.uniform_steps, args.seeds, args.validate,
+                          args.validate_cells)
+            _write_atomic(args.out / f"case_{c.replace(':', '_')}.json", json.dumps(out, indent=1))
     order = ["three_mode_linear", "four_mode_nonlinear", "unicycle_3d_known"]
     outs = [json.loads(f.read_text()) for f in sorted(args.out.glob("case_*.json"))]
     outs.sort(key=lambda o: (order.index(o["case"]) if o["case"] in order else len(order), o["case"]))

@@ -237,3 +237,74 @@ def test_beyond_max_candidates_the_frontier_of_q_yes_is_kept(starved, monkeypatc
     dropped = [q for q in np.setdiff1d(cells, kept) if c[q] == "maybe" and yes_mass(q) > 0]
     if dropped:
         assert min(yes_mass(q) for q in und) >= max(yes_mass(q) for q in dropped) - 1e-12
+
+
+def _targets_of(result, keep_level: float, n_targets: int = 4):
+    """Targets on ``n_targets`` undecided cells (evenly spread), each for its strategy's mode, keeping
+    ``keep_level`` of its RKHS term."""
+    maybe = np.flatnonzero(np.asarray(result.class_names) == "maybe")
+    cells = maybe[np.linspace(0, maybe.size - 1, n_targets).astype(int)]
+    modes = np.asarray(result.strategy)[cells, 0] if np.asarray(result.strategy).ndim == 2 else \
+        np.asarray(result.strategy)[cells]
+    M, N = len(result.problem.mode_names), result.partition.n_cells
+    w, keep = np.zeros((M, N)), np.zeros((M, N))
+    w[modes, cells] = 1.0
+    keep[modes, cells] = keep_level
+    return sg.Targets(w, keep, {int(q): "test" for q in cells}), cells, modes
+
+
+def test_targeted_requests_stop_when_every_target_reached_its_level(starved):
+    """Eq. S3: a target's gain is the share of its needed drop ``(1 - keep) sqrt(P0)``, capped at the need. With
+    an easy level (keep 0.9) the greedy stops before n; recomputed from scratch with the requests as data
+    (_posterior_cov, no rank-one updates), every target's sqrt(P) is at or below keep sqrt(P0), the requests are
+    for target cells and modes, and the gains add up to at most the targets' total weight."""
+    targets, cells, modes = _targets_of(starved, 0.9)
+    reqs = sg.suggest_samples(starved, 50, targets=targets)
+    assert 0 < len(reqs) < 50
+    assert {r.cell for r in reqs} <= set(cells.tolist())
+    names = list(starved.problem.mode_names)
+    assert {names.index(r.mode) for r in reqs} <= set(modes.tolist())
+    assert sum(r.gain for r in reqs) <= targets.weights.sum() * (1 + 1e-9)  # each target's share is capped at 1
+    part = starved.partition
+    B, inv_l2, floor = sg._assumption(starved.problem)
+    for q, u in zip(cells, modes):
+        c = 0.5 * (part.cells_lower[q:q + 1] + part.cells_upper[q:q + 1])
+        lam = (floor[u] / B[u]) ** 2
+        x0 = starved.problem.data.by_mode(u)[0]
+        x1 = np.vstack([x0] + [r.x[None] for r in reqs if r.mode == names[u]])
+        p0 = sg._posterior_cov(c, x0, inv_l2[u], lam)[0, 0]
+        p1 = sg._posterior_cov(c, x1, inv_l2[u], lam)[0, 0]
+        # the greedy stops when no target gains: each is at its level (1e-9: the rank-one updates' float error,
+        # as in the eq. S1 test)
+        assert np.sqrt(max(p1, 0)) <= 0.9 * np.sqrt(p0) + 1e-9
+
+
+def test_a_hard_target_draws_more_requests_than_an_easy_one(starved):
+    """Two targets far apart, one keeping 0.9 of its term (easy), one keeping 0 (its whole term must go): after
+    the easy one is met, every further request serves the hard one (its mode, near it)."""
+    maybe = np.flatnonzero(np.asarray(starved.class_names) == "maybe")
+    part = starved.partition
+    centres = 0.5 * (part.cells_lower + part.cells_upper)
+    a = maybe[0]
+    b = maybe[np.argmax(np.linalg.norm(centres[maybe] - centres[a], axis=1))]
+    M, N = len(starved.problem.mode_names), part.n_cells
+    w, keep = np.zeros((M, N)), np.zeros((M, N))
+    w[0, [a, b]] = 1.0
+    keep[0, a], keep[0, b] = 0.9, 0.0
+    reqs = sg.suggest_samples(starved, 8, targets=sg.Targets(w, keep, {}))
+    assert len(reqs) == 8
+    near_b = [np.linalg.norm(r.x - centres[b]) < np.linalg.norm(r.x - centres[a]) for r in reqs]
+    assert sum(near_b) >= 6 and near_b[-1]
+
+
+def test_data_points_replace_the_problem_s_data(starved):
+    """``data_points`` is the data the power function sees: the problem's own points give the same requests,
+    a dense cover of X leaves almost nothing to gain."""
+    names = starved.problem.mode_names
+    own = [starved.problem.data.by_mode(u)[0] for u in range(len(names))]
+    a, b = sg.suggest_samples(starved, 5), sg.suggest_samples(starved, 5, data_points=own)
+    assert [(r.cell, r.mode) for r in a] == [(r.cell, r.mode) for r in b]
+    t = np.linspace(0, 3, 31)
+    dense = np.stack(np.meshgrid(t, t), -1).reshape(-1, 2)
+    c = sg.suggest_samples(starved, 5, data_points=[dense] * len(names))
+    assert sum(r.gain for r in c) < 0.05 * sum(r.gain for r in a)

@@ -218,7 +218,8 @@ def _parser() -> argparse.ArgumentParser:
     im.add_argument("--true-system", required=True, help="a case study name, or FILE.py:NAME (a class or object with "
                                                          "mode_names and step(x, modes, rng))")
     im.add_argument("--budget", type=_at_least(1), required=True, help="samples to add in all")
-    im.add_argument("--rounds", type=_at_least(1), default=1, help="rounds (default 1)")
+    im.add_argument("--rounds", type=_at_least(1), default=None,
+                    help="rounds (default: budget // 10, at most 8; robust_imdp.improve.auto_rounds)")
     im.add_argument("--out", type=Path, default=Path("improve"), help="output directory (default ./improve)")
     im.add_argument("--seed", type=int, default=0, help="random seed of the simulations (default 0)")
     im.add_argument("--allow-outside", action="store_true", help="accept next states outside X")

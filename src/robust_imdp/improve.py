@@ -1,8 +1,14 @@
 """The sampling loop: suggest samples, simulate them, re-bound only the cells the new data can tighten, re-solve.
 
-:func:`improve` starts from a problem's data (or from an interrupted loop's state) and repeats, round by round:
+:func:`improve` starts from a problem's data (or from an interrupted loop's state) and repeats, round by round
+(default :func:`auto_rounds`: up to 8 rounds, a closed loop):
 
-1. **suggest** ``budget / rounds`` sample requests (``synthesis.suggest.suggest_samples``);
+1. **suggest** ``budget / rounds`` sample requests (``synthesis.suggest.suggest_samples``) for the look-ahead's
+   targets (:func:`_targets`): every undecided cell's box is shrunk by a share of its predicted RKHS term and
+   the model re-solved; the cells that turn Q_yes are the targets, each for the mode the look-ahead uses
+   there, weighted up when it is near today's Q_yes (its own smaller box meets the threshold on today's
+   values, or few expected steps to Q_yes). Requests maximise the capped share of each target's needed
+   drop; the rest of the round (targets met, or none) goes to the undecided cells' summed radius change;
 2. **simulate** one step of the user's true system from each request (``step(x, modes, rng)``, the
    interface of ``validate.simulate``); a simulator that raises, returns another shape, NaN / inf
    or states outside X is refused with a message naming the round and the request;
@@ -48,7 +54,8 @@ import numpy as np
 
 from robust_imdp.errors import DimensionError, InvalidInputError
 
-__all__ = ["ImproveRound", "ImproveResult", "IncrementalCheck", "improve", "REBOUND_TOL", "STATE_FILE", "DATA_FILE"]
+__all__ = ["ImproveRound", "ImproveResult", "IncrementalCheck", "improve", "auto_rounds", "REBOUND_TOL", "STATE_FILE",
+           "DATA_FILE"]
 
 #: Without local weights, a cell is re-bounded when the new points lower the RKHS term of its error
 #: radius at its centre by more than this fraction of its smallest half-width (the power-function
@@ -70,6 +77,10 @@ TARGET_TOL = 0.01
 FRONTIER_WEIGHT = 10.0
 #: Cap of a target's expected steps to Q_yes (``_hops``); its extra weight halves with every step beyond the first.
 MAX_HOPS = 12
+HOPS_SWEEPS = 500
+#: Default rounds (:func:`auto_rounds`): at most this many, of at least MIN_ROUND samples each.
+AUTO_ROUNDS = 8
+MIN_ROUND = 10
 #: The loop's saved state (cell boxes, last complete round) and its data file, in the output directory.
 STATE_FILE = "improve-state.npz"
 DATA_FILE = "data.csv"
@@ -629,47 +640,30 @@ def _targets(loop):
     """The look-ahead's value-of-information targets (``synthesis.suggest.Targets``), or None when no undecided
     cell turns Q_yes even without RKHS terms.
 
-    Every undecided cell's box is shrunk on each side by ``(1 - a)`` times its predicted RKHS term
-    ``B_ui sqrt(P_u(centre))`` (the power function of ``synthesis.suggest``, at most the part of the box
-    beyond the known affine part's range), for ``a`` in :data:`LOOKAHEAD_LEVELS`; the rows of those cells
-    are rebuilt and the model solved. A cell that turns Q_yes at ``a`` (the largest such) is a target for
-    the mode its look-ahead strategy uses there, keeping the share ``a`` of its term. This is a ranking:
-    the boxes of the look-ahead are predictions, never used for a guarantee.
+    Every undecided cell's box is shrunk on each side by ``(1 - a)`` times its predicted shrink
+    (:func:`_predicted_shrink`: the RKHS term, down to the noise floor), for ``a`` in :data:`LOOKAHEAD_LEVELS`;
+    the rows of those cells are rebuilt and the model solved. A cell that turns Q_yes at ``a`` (the largest
+    such) is a target for the mode its look-ahead strategy uses there, keeping the share ``a`` of its term
+    (dropped when that is less than :data:`TARGET_TOL` of its half-width: its own box hardly matters).
+    Weights: ``1 + FRONTIER_WEIGHT`` for the *frontier* (a target whose own shrunk row, one step on today's
+    lower values, meets the threshold, at the largest level where it does, in its best mode there), else
+    ``1 + FRONTIER_WEIGHT / 2^(h - 1)`` with ``h`` the expected steps to today's Q_yes along the look-ahead's
+    rows (:func:`_hops`). This is a ranking: the look-ahead's boxes are predictions, never used for a guarantee.
     """
     from robust_imdp.abstraction.factored import abstraction_model
     from robust_imdp.abstraction.rows import CellBounds
-    from robust_imdp.bounds.assumptions import resolve
-    from robust_imdp.pipeline.bound_rkhs import _affine_part
     from robust_imdp.pipeline.run import _class_names
     from robust_imdp.synthesis.core import synthesize
-    from robust_imdp.synthesis.suggest import Targets, _assumption
+    from robust_imdp.synthesis.suggest import Targets
 
     problem, part = loop.problem, loop.partition
     maybe = np.flatnonzero(np.asarray(loop.result.class_names) == "maybe")
     if maybe.size == 0:
         return None
-    M, n = len(problem.mode_names), int(np.size(problem.space_lower))
-    st = resolve(problem.rkhs_bound, problem.gp_options.get("lengthscale"), problem.misspecification,
-                 problem.mode_names, n)
-    Bmax, inv_l2, floor = _assumption(problem)
-    lo_all, up_all = np.asarray(part.cells_lower), np.asarray(part.cells_upper)
-    lo_c, up_c = lo_all[maybe], up_all[maybe]
-    centre = 0.5 * (lo_all + up_all)
+    M = len(problem.mode_names)
+    lo_c, up_c = np.asarray(part.cells_lower)[maybe], np.asarray(part.cells_upper)[maybe]
     ilo, ihi = np.asarray(loop.cell_bounds.image_lower), np.asarray(loop.cell_bounds.image_upper)
-    B_ui = np.asarray(st.rkhs_bound, float)
-    shrink = np.zeros((M, maybe.size, n))
-    for u in range(M):
-        x = np.asarray(problem.data.by_mode(u)[0], float)
-        if Bmax[u] <= 0 or x.shape[0] == 0:
-            continue
-        root = np.sqrt(_power(centre, x, inv_l2[u], max((floor[u] / Bmax[u]) ** 2, 1e-10)))
-        A = np.asarray(_affine_part(problem, u)[0], float)
-        excess = np.maximum(0.5 * (ihi[u] - ilo[u] - (up_all - lo_all) @ np.abs(A).T), 0.0)  # (N, n)
-        for i in range(n):
-            if B_ui[u, i] > 0:
-                term = B_ui[u, i] * root
-                e0, kappa = _term_line(term, excess[:, i])
-                shrink[u, :, i] = np.minimum(kappa * term[maybe], np.maximum(excess[maybe, i] - e0, 0.0))
+    shrink = _predicted_shrink(problem, part, loop.cell_bounds, maybe)
     if not np.any(shrink > 0):
         return None
     keep = np.full(maybe.size, -1.0)
@@ -747,13 +741,47 @@ def _hops(n_cells: int, yes: np.ndarray, cells: np.ndarray, modes: np.ndarray, m
                    shape=(cells.size, n_cells + 1))
     val = np.append(np.where(yes, 0.0, float(MAX_HOPS)), float(MAX_HOPS))  # the outside state last
     h = np.full(cells.size, float(MAX_HOPS))
-    for _ in range(4 * int(MAX_HOPS)):
+    for _ in range(HOPS_SWEEPS):  # from above: monotone, each sweep one sparse product
         val[cells] = h
         new = np.minimum(1.0 + P @ val, float(MAX_HOPS))
-        if np.allclose(new, h):
-            break
+        done = np.max(np.abs(new - h), initial=0.0) < 1e-9
         h = new
+        if done:
+            break
     return h
+
+
+def _predicted_shrink(problem, part, cell_bounds, maybe: np.ndarray) -> np.ndarray:
+    """``(n_modes, maybe.size, d)``: how much each side of the boxes of the cells ``maybe`` would shrink without
+    their RKHS term: ``kappa B_ui sqrt(P_u(centre))`` (:func:`_term_line`'s slope; the power function of
+    ``synthesis.suggest``), at most the box's excess beyond the known affine part's range less the noise floor
+    ``e0``; 0 for known components (B = 0). A prediction for ranking, never a bound."""
+    from robust_imdp.bounds.assumptions import resolve
+    from robust_imdp.pipeline.bound_rkhs import _affine_part
+    from robust_imdp.synthesis.suggest import _assumption
+
+    M, n = len(problem.mode_names), int(np.size(problem.space_lower))
+    st = resolve(problem.rkhs_bound, problem.gp_options.get("lengthscale"), problem.misspecification,
+                 problem.mode_names, n)
+    Bmax, inv_l2, floor = _assumption(problem)
+    lo_all, up_all = np.asarray(part.cells_lower), np.asarray(part.cells_upper)
+    centre = 0.5 * (lo_all + up_all)
+    ilo, ihi = np.asarray(cell_bounds.image_lower), np.asarray(cell_bounds.image_upper)
+    B_ui = np.asarray(st.rkhs_bound, float)
+    shrink = np.zeros((M, maybe.size, n))
+    for u in range(M):
+        x = np.asarray(problem.data.by_mode(u)[0], float)
+        if Bmax[u] <= 0 or x.shape[0] == 0:
+            continue
+        root = np.sqrt(_power(centre, x, inv_l2[u], max((floor[u] / Bmax[u]) ** 2, 1e-10)))
+        A = np.asarray(_affine_part(problem, u)[0], float)
+        excess = np.maximum(0.5 * (ihi[u] - ilo[u] - (up_all - lo_all) @ np.abs(A).T), 0.0)  # (N, n)
+        for i in range(n):
+            if B_ui[u, i] > 0:
+                term = B_ui[u, i] * root
+                e0, kappa = _term_line(term, excess[:, i])
+                shrink[u, :, i] = np.minimum(kappa * term[maybe], np.maximum(excess[maybe, i] - e0, 0.0))
+    return shrink
 
 
 def _one_step(abstraction, values: np.ndarray, modes: np.ndarray, cells: np.ndarray) -> np.ndarray:
@@ -822,12 +850,20 @@ def _append(data, xs, us, xn):
                    modes=data.mode_names)
 
 
+def auto_rounds(budget: int) -> int:
+    """The default number of rounds: ``budget // MIN_ROUND`` capped at :data:`AUTO_ROUNDS` (at least 1).
+
+    One round is not a closed loop: the look-ahead's targets are predictions, and a path to Q_yes turns
+    Q_yes a stretch at a time (docs/sampling.md, "How many rounds")."""
+    return max(1, min(AUTO_ROUNDS, int(budget) // MIN_ROUND))
+
+
 def _per_round(budget: int, rounds: int, rnd: int) -> int:
     """Samples of round ``rnd`` (1-based): ``budget // rounds``, the remainder spread over the first rounds."""
     return budget // rounds + (1 if rnd <= budget % rounds else 0)
 
 
-def improve(problem, true_system, budget: int, *, rounds: int = 1, out=None, seed: int = 0, progress: bool = True,
+def improve(problem, true_system, budget: int, *, rounds: int | None = None, out=None, seed: int = 0, progress: bool = True,
             allow_outside: bool = False, keep_history: bool = False, workers: int | None = None,
             on_round=None, targeted: bool = True) -> ImproveResult:
     """Collect ``budget`` samples in ``rounds`` rounds where they help most, re-bounding incrementally.
@@ -839,9 +875,11 @@ def improve(problem, true_system, budget: int, *, rounds: int = 1, out=None, see
     true_system : object
         ``mode_names`` (sequence of str) and ``step(x (k, n), modes (k,) int, rng) -> (k, n)``
         (``modes`` index ``true_system.mode_names``), as for ``validate.simulate``.
-    budget, rounds : int
-        Samples to add in all, and in how many rounds (``budget // rounds`` each, the remainder
-        to the first rounds).
+    budget : int
+        Samples to add in all.
+    rounds : int, optional
+        In how many rounds (``budget // rounds`` each, the remainder to the first rounds); default
+        :func:`auto_rounds` (``budget // 10``, at most 8).
     out : str or Path, optional
         Directory of the loop's data file (``data.csv``, with a ``round`` column), its state and
         ``result.json`` (rewritten after every round); an interrupted loop resumes from it.
@@ -853,6 +891,9 @@ def improve(problem, true_system, budget: int, *, rounds: int = 1, out=None, see
         Keep every round's image boxes in ``ImproveResult.history`` (for tests and benchmarks).
     on_round : callable ``(ImproveRound, Result) -> None``, optional
         Called after every completed round (round 0 included), after its files are written.
+    targeted : bool
+        Choose requests by the look-ahead's value-of-information targets (:func:`_targets`; default), else
+        (or when there are none) by the undecided cells' summed radius change alone.
 
     Returns
     -------
@@ -862,6 +903,8 @@ def improve(problem, true_system, budget: int, *, rounds: int = 1, out=None, see
     from robust_imdp.pipeline.preflight import _check_atoms, _region_objects
     from robust_imdp.pipeline.runtime import _Log, _Run
     from robust_imdp.spec.api import to_dfa
+    if rounds is None and not (isinstance(budget, bool) or not isinstance(budget, (int, np.integer))):
+        rounds = auto_rounds(budget)
     for name, v, least in (("budget", budget, 1), ("rounds", rounds, 1)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < least:
             raise InvalidInputError(f"improve: {name} must be an integer >= {least}; got {v!r}")
