@@ -61,6 +61,43 @@ def _peak_mb() -> float:
     return max(own, kids) / 1024.0  # Linux: KiB
 
 
+class _Stamped:
+    """A text stream that prefixes every line with the seconds since it was made (where a timed-out run spent
+    its time)."""
+
+    def __init__(self, stream):
+        self.stream, self.t0, self.fresh = stream, time.perf_counter(), True
+
+    def write(self, text):
+        for part in text.splitlines(keepends=True):
+            if self.fresh:
+                self.stream.write(f"[{time.perf_counter() - self.t0:8.1f} s] ")
+            self.stream.write(part)
+            self.fresh = part.endswith("\n")
+        self.stream.flush()
+        return len(text)
+
+    def flush(self):
+        self.stream.flush()
+
+
+def _rss_lines(stream, every: float) -> None:
+    """A daemon thread writing the process's resident memory (and its peak so far) to ``stream`` every ``every``
+    seconds: which stage holds the memory."""
+    import threading
+
+    def loop():
+        while True:
+            time.sleep(every)
+            try:
+                rss = int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
+            except (OSError, ValueError):
+                return
+            stream.write(f"rss {rss:,.0f} MB (peak so far {_peak_mb():,.0f} MB)\n")
+
+    threading.Thread(target=loop, daemon=True).start()
+
+
 def _problem(spec: dict, work: Path):
     """The problem a child runs: an arch problem file, the vehicle case study, or a problem file given by path."""
     from robust_imdp.io.files import load_problem
@@ -115,6 +152,9 @@ def child(spec: dict, out: Path) -> None:
     from robust_imdp.spec.api import to_dfa
 
     work = Path(tempfile.mkdtemp(prefix="factored-bench-"))
+    if spec.get("progress"):
+        sys.stderr = _Stamped(sys.stderr)  # the pipeline's progress lines with the seconds since the child started
+        _rss_lines(sys.stderr, float(spec.get("rss_every", 10.0)))
     load0 = os.getloadavg()
     problem = _problem(spec, work)
     dfa = to_dfa(problem.formula)
@@ -145,9 +185,10 @@ def child(spec: dict, out: Path) -> None:
         row.update(numbers_per_row=int(m.numbers_per_row), entries_per_row=int(m.entries_per_row),
                    listed_per_axis=list(m.k), model_mb=m.nbytes / 1e6)
     else:
+        mem = getattr(res.abstraction.imdp, "memory_bytes", None)  # a property (int) of IMDP
+        mem = mem() if callable(mem) else mem
         row.update(successors_per_row=float(np.mean(res.abstraction.nnz_per_row)),
-                   imdp_mb=float(res.abstraction.imdp.memory_bytes() / 1e6)
-                   if hasattr(res.abstraction.imdp, "memory_bytes") else None)
+                   imdp_mb=None if mem is None else float(mem) / 1e6)
     np.savez(out / f"{spec['key']}.npz", p_low=p_low, p_up=p_up, classes=np.asarray(res.classes).astype("U5"))
     system = _true_system(spec, problem)
     if system is not None:
@@ -174,17 +215,26 @@ def _run_child(spec: dict, out: Path, src: str | None, timeout: float) -> dict:
     if src:
         env["PYTHONPATH"] = src + os.pathsep + env.get("PYTHONPATH", "")
     cmd = ["nice", "-n", "5", sys.executable, __file__, "--child", json.dumps(spec), "--out", str(out)]
+    log = out / f"{spec['key']}.log"  # the child's output (the pipeline's progress lines where spec asks for them)
     t0 = time.perf_counter()
-    try:
-        p = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout)
-    except subprocess.TimeoutExpired:
-        return {"name": spec["name"], "error": f"timeout after {timeout:.0f} s", "form": spec.get("form")}
+    with open(log, "w") as fh:
+        p = subprocess.Popen(cmd, env=env, stdout=fh, stderr=subprocess.STDOUT, start_new_session=True)
+        try:
+            rc = p.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            os.killpg(p.pid, 9)  # the child's own process group (start_new_session): nothing else
+            p.wait()
+            lines = log.read_text(errors="replace").strip().splitlines()
+            return {"name": spec["name"], "error": f"timeout after {timeout:.0f} s", "form": spec.get("form"),
+                    "log_tail": lines[-40:], "child_s": time.perf_counter() - t0}
     f = out / f"{spec['key']}.json"
-    if p.returncode != 0 or not f.exists():
-        tail = (p.stderr or p.stdout).strip().splitlines()[-3:]
+    if rc != 0 or not f.exists():
+        tail = log.read_text(errors="replace").strip().splitlines()[-3:]
         return {"name": spec["name"], "error": " | ".join(tail), "form": spec.get("form")}
     row = json.loads(f.read_text())
     row["child_s"] = time.perf_counter() - t0
+    if spec.get("progress"):
+        row["log_tail"] = log.read_text(errors="replace").strip().splitlines()[-60:]
     print(f"  {spec['name']}: {row['form']} Q_yes {row['yes']} Q_no {row['no']} mean p_low {row['mean_p_low']:.4f} "
           f"wall {row['wall_s']:.1f} s peak {row['peak_mb']:.0f} MB" + (f" MC {row['mc']['flagged']}/"
                                                                        f"{row['mc']['allowed']}" if "mc" in row else ""),
@@ -204,12 +254,12 @@ def _pair(out: Path, a: dict, b: dict, thr: float) -> dict:
             "gained": int(np.sum(ya & ~yb)), "cells_below": int(np.sum(d < 0))}
 
 
-def _spec(name, key, source, form, *, replace=None, system=None, mc=0, mc_cells=None, cache=None):
+def _spec(name, key, source, form, *, replace=None, system=None, mc=0, mc_cells=None, cache=None, progress=False):
     r = dict(replace or {})
     if form is not None:
         r["form"] = form
     return {"name": name, "key": key, "source": source, "form": form, "replace": r, "system": system, "mc": mc,
-            "mc_cells": mc_cells, "cache": cache}
+            "mc_cells": mc_cells, "cache": cache, "progress": progress}
 
 
 def suite_car(args, out):
@@ -233,7 +283,7 @@ def suite_bas4d(args, out):
 
 def _linear(args, out, d, target_s, target_gb):
     s = _spec(f"linear{d}d/factored", f"linear{d}", f"arch:linear{d}d.toml", None, system=f"linear{d}d",
-              mc=args.mc_linear, mc_cells=args.mc_cells)
+              mc=args.mc_linear, mc_cells=args.mc_cells, progress=True)
     row = dict(_run_child(s, out, args.src, args.timeout_linear), key=s["key"])
     return [{"suite": f"linear{d}", "name": f"linear{d}d", "runs": {"factored": row}, "target_s": target_s,
              "target_gb": target_gb}]
@@ -249,7 +299,7 @@ def suite_linear7(args, out):
 
 def suite_vehicle(args, out):
     s = _spec("vehicle_4d_24/factored", "vehicle24", "vehicle:24", "factored", system="vehicle_4d", mc=4,
-              mc_cells=1000)
+              mc_cells=1000, progress=True)
     row = dict(_run_child(s, out, args.src, args.timeout_linear), key=s["key"])
     return [{"suite": "vehicle", "name": "vehicle_4d_24^4", "runs": {"factored": row}, "joint_recorded": VEHICLE_JOINT}]
 
