@@ -96,3 +96,22 @@ def test_spread_order_errors_and_close():
         stream.close()
         sched.lane = None
     assert math.isfinite(float(np.sum(plain[0][0])))
+
+
+def test_spread_takes_back_tasks_waiting_behind_other_side_work():
+    """With the lane's only helper busy (other side work: here a 30 s sleep), the tasks sent to it are cancelled
+    there and run in this process: spread ends long before the helper is free."""
+    from robust_imdp.models.noise import UniformNoise
+    from robust_imdp.spec.api import to_dfa
+
+    part, lo, up = _partition_and_boxes()
+    dfa = to_dfa("F goal", part.atoms)
+    ctrl = margins_mod._Controller(np.zeros((part.n_cells, dfa.n_states), dtype=np.int64), None, 1e-8, "reach")
+    args = [(part, lo, up * (1 + 0.01 * i), UniformNoise([0.05, 0.05]), "joint", {}, dfa, ctrl) for i in range(3)]
+    sched = InProcess(threads=2)
+    with SideLane(1) as lane:
+        busy = lane.submit("time:sleep", 30.0)
+        sched.lane = lane
+        got = dict(advice_stage.spread(sched, margins_mod._margin_task, args))
+        assert sorted(got) == [0, 1, 2] and not busy.done()
+        sched.lane = None

@@ -146,7 +146,8 @@ def spread(sched, fn, args, kwargs=None):
     has: a Dask cluster's workers (``sched.run``); in process on several cores this process *and* the side lane's
     helper processes (``pipeline.parallel.SideLane``, one BLAS and numba thread each), taking the tasks from one
     queue, so independent serial work (the margins' and the advice's re-solves: one topological solve each)
-    runs side by side; else one after the other here.
+    runs side by side (a task still waiting in the lane behind other side work, e.g. the figures, is taken back
+    when this process has nothing else to do); else one after the other here.
 
     ``fn`` must be a module-level function of pure tasks: the caller assembles the results by index, so they do
     not depend on where each task ran (the solvers' and the abstraction's bits do not depend on the thread
@@ -156,6 +157,7 @@ def spread(sched, fn, args, kwargs=None):
     """
     import queue
     import threading
+    from concurrent.futures import CancelledError
 
     from robust_imdp.pipeline.parallel import InProcess, SideLaneError
 
@@ -167,6 +169,7 @@ def spread(sched, fn, args, kwargs=None):
     todo = list(range(len(args)))
     lock = threading.Lock()
     done: queue.Queue = queue.Queue()
+    sent: dict = {}  # task index -> its future in the lane, while it waits or runs there
 
     def take():
         with lock:
@@ -178,13 +181,31 @@ def spread(sched, fn, args, kwargs=None):
             if i is None:
                 return
             try:
-                done.put((i, True, lane.submit(fn, *args[i], threads=1, **kw).result()))
+                fut = lane.submit(fn, *args[i], threads=1, **kw)
+                with lock:
+                    sent[i] = fut
+                value = fut.result()
+            except CancelledError:  # taken back by this process (the helper was busy with other side work)
+                continue
             except SideLaneError:  # the lane is gone: the task goes back to this process
                 with lock:
+                    sent.pop(i, None)
                     todo.insert(0, i)
                 return
             except BaseException as exc:  # the task's own failure: raised in the caller
                 done.put((i, False, exc))
+                continue
+            done.put((i, True, value))
+
+    def take_back():
+        """A task still waiting in the lane (its helper busy with other side work, e.g. the figures), cancelled
+        there to run here; None when every sent task has started."""
+        with lock:
+            waiting = [(i, f) for i, f in sent.items() if not f.running() and not f.done()]
+        for i, f in waiting:
+            if f.cancel():
+                return i
+        return None
 
     feeders = [threading.Thread(target=feed, name="robust-imdp spread", daemon=True) for _ in lane.helpers]
     for t in feeders:
@@ -196,6 +217,8 @@ def spread(sched, fn, args, kwargs=None):
                 item = done.get_nowait()
             except queue.Empty:
                 i = take()
+                if i is None:
+                    i = take_back()
                 if i is None:  # everything started: wait for the helpers' last tasks
                     if not any(t.is_alive() for t in feeders) and done.empty():
                         with lock:
