@@ -386,3 +386,24 @@ def test_on_the_starved_problem_the_loop_finds_the_path_the_untargeted_rule_miss
     u = improve(start, b["system"], 240, progress=False, allow_outside=True, seed=2, targeted=False)
     assert len(t.rounds) == 9 and t.rounds[0].counts["yes"] <= 25
     assert t.rounds[-1].counts["yes"] >= 180 > 2 * u.rounds[-1].counts["yes"]
+
+
+def test_requested_counts_only_the_loop_s_own_samples_per_mode_and_cell():
+    """Oracle: each sample's cell found by comparing it with every cell's bounds (not Partition.locate)."""
+    import types
+
+    from robust_imdp.improve import _requested
+    from robust_imdp.models.geometry import Box, Partition
+
+    p = _problem()
+    part = Partition(Box(p.space_lower, p.space_upper), p.cell_size)
+    rng = np.random.default_rng(5)
+    rounds = rng.integers(0, 3, p.data.u.shape[0])
+    got = _requested(types.SimpleNamespace(problem=p, data_rounds=rounds), 2, part)
+    want = np.zeros((2, part.n_cells))
+    for x, u, r in zip(p.data.x, p.data.u, rounds):
+        inside = np.flatnonzero(np.all((part.cells_lower <= x) & (x < part.cells_upper), axis=1))
+        if r >= 1:
+            want[u, inside[0]] += 1
+    np.testing.assert_array_equal(got, want)
+    assert got.sum() == np.sum(rounds >= 1) > 0

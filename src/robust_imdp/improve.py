@@ -67,6 +67,9 @@ MAX_POWER_POINTS = 2000
 #: The look-ahead (docs/sampling.md, "Look-ahead targets"): the fractions of the undecided cells' RKHS terms kept in
 #: its solves, largest first; a Q_? cell's target is the largest at which the solve makes it Q_yes.
 LOOKAHEAD_LEVELS = (0.75, 0.5, 0.25, 0.0)
+#: Most undecided cells for the look-ahead (each level rebuilds their rows and solves); beyond it the round's
+#: requests come from the undecided cells' summed radius change (suggest's own frontier rule).
+LOOKAHEAD_MAX_CELLS = 4096
 #: Precision of the look-ahead solves (their values only rank requests).
 LOOKAHEAD_PRECISION = 1e-6
 #: A target's predicted shrink must exceed this fraction of its cell's smallest half-width (else its box is at
@@ -77,6 +80,10 @@ TARGET_TOL = 0.01
 FRONTIER_WEIGHT = 10.0
 #: Cap of a target's expected steps to Q_yes (``_hops``); its extra weight halves with every step beyond the first.
 MAX_HOPS = 12
+#: A target's weight is divided by ``1 + (the loop's samples in its cell and mode so far) / SPENT_SCALE``: under
+#: bounded noise the worst-case bound does not average repeated samples, so a target that stays undecided after
+#: several of them is at its noise floor more likely than the look-ahead says.
+SPENT_SCALE = 3.0
 HOPS_SWEEPS = 500
 #: Default rounds (:func:`auto_rounds`): at most this many, of at least MIN_ROUND samples each.
 AUTO_ROUNDS = 8
@@ -638,7 +645,7 @@ def _update(loop: _Loop, data, n_old: int, rnd: int, timer: dict) -> int:
 
 def _targets(loop):
     """The look-ahead's value-of-information targets (``synthesis.suggest.Targets``), or None when no undecided
-    cell turns Q_yes even without RKHS terms.
+    cell turns Q_yes even without RKHS terms (or more than :data:`LOOKAHEAD_MAX_CELLS` are undecided).
 
     Every undecided cell's box is shrunk on each side by ``(1 - a)`` times its predicted shrink
     (:func:`_predicted_shrink`: the RKHS term, down to the noise floor), for ``a`` in :data:`LOOKAHEAD_LEVELS`;
@@ -658,7 +665,7 @@ def _targets(loop):
 
     problem, part = loop.problem, loop.partition
     maybe = np.flatnonzero(np.asarray(loop.result.class_names) == "maybe")
-    if maybe.size == 0:
+    if maybe.size == 0 or maybe.size > LOOKAHEAD_MAX_CELLS:
         return None
     M = len(problem.mode_names)
     lo_c, up_c = np.asarray(part.cells_lower)[maybe], np.asarray(part.cells_upper)[maybe]
@@ -712,14 +719,28 @@ def _targets(loop):
     hops = _hops(part.n_cells, np.asarray(loop.result.class_names) == "yes", maybe[k], mode[k],
                  [models[level_of[float(a)]] for a in keep[k]])
     near = np.where(front, 1.0, 0.5 ** np.maximum(hops - 1.0, 0.0))
+    spent = _requested(loop, M, part)[mode[k], maybe[k]]
     weights, keeps = np.zeros((M, part.n_cells)), np.zeros((M, part.n_cells))
-    weights[mode[k], maybe[k]] = 1.0 + FRONTIER_WEIGHT * near
+    weights[mode[k], maybe[k]] = (1.0 + FRONTIER_WEIGHT * near) / (1.0 + spent / SPENT_SCALE)
     keeps[mode[k], maybe[k]] = keep[k]
     reason = {int(maybe[i]): f"undecided (Q_?), Q_yes in the look-ahead keeping {keep[i]:.2f} of its RKHS term, "
               f"{h:.1f} steps from Q_yes" + ("; frontier: its own smaller box turns it Q_yes on today's values"
                                              if f else "")
               for i, f, h in zip(k, front, hops)}
     return Targets(weights, keeps, reason)
+
+
+def _requested(loop, M: int, part) -> np.ndarray:
+    """``(M, n_cells)``: the loop's samples so far (rounds >= 1) per mode and cell."""
+    data = loop.problem.data
+    out = np.zeros((M, part.n_cells))
+    if loop.data_rounds is None:
+        return out
+    mine = np.flatnonzero(np.asarray(loop.data_rounds)[:data.u.shape[0]] >= 1)
+    q = np.asarray(part.locate(data.x[mine])) if mine.size else np.zeros(0, np.int64)
+    inside = q >= 0
+    np.add.at(out, (np.asarray(data.u)[mine][inside], q[inside]), 1.0)
+    return out
 
 
 def _hops(n_cells: int, yes: np.ndarray, cells: np.ndarray, modes: np.ndarray, models: list) -> np.ndarray:
