@@ -1,8 +1,8 @@
 """Where to sample next: Q_yes against added samples, for the incremental ``improve`` loop and for the same
 number of samples drawn uniformly at random.
 
-    python benchmarks/sampling.py [--cases three_mode_linear four_mode_nonlinear unicycle_3d_known
-                                   family:d2-rl0.125-nz0.15-dn2 ...] [--start 30] [--budget 90]
+    python benchmarks/sampling.py [--cases three_mode_linear four_mode_nonlinear starved:20 starved:40 starved:80
+                                   unicycle_3d_known family:d2-rl0.125-nz0.15-dn2 ...] [--start 30] [--budget 90]
                                   [--round-size 10] [--uniform-steps 3] [--seeds 3] [--validate 20]
                                   [--out benchmarks/results/sampling] [--render]
 
@@ -361,7 +361,6 @@ def write(outs: list, where: Path) -> None:
              "with <= N/3 samples; a round costs <= 3 x (bound + solve) of the round; Monte-Carlo containment "
              "after every round. Machine: 2 cores, shared; load averages (1, 5, 15 min) before / after each case.",
              ""]
-    lines += _write_starved(sorted(starved_outs, key=lambda o: o["start_per_mode"]))
     summary = [] if not outs else [
         "| case | cells | N | uniform median Q_yes at N | improve samples to reach it (<= N/3) | worst round "
         "ratio (round) | median ratio | median s per round | max check s | MC every round |",
@@ -375,7 +374,8 @@ def write(outs: list, where: Path) -> None:
             f"{'met' if t['round_time_met'] else 'NOT met'}) | {t['median_round_over_bound_plus_solve']:.2f} | "
             f"{t['median_round_s']:.2f} | {t['max_check_s']:.3f} | "
             f"{'passed' if t['validation_all_passed'] else 'NOT all passed'} ({t['validated_rounds']} rounds) |")
-    lines += summary + [""]
+    lines += summary + [""] if summary else []
+    lines += _write_starved(sorted(starved_outs, key=lambda o: o["start_per_mode"]))
     for out in outs:
         imp = out["curves"]["improve"]
         uni = [v for k, v in out["curves"].items() if k.startswith("uniform")]
@@ -459,7 +459,8 @@ def _write_atomic(path: Path, text: str) -> None:
 def main(argv=None) -> int:
     global UNICYCLE_CELLS
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cases", nargs="+", default=["three_mode_linear", "four_mode_nonlinear"])
+    ap.add_argument("--cases", nargs="+",
+                    default=["three_mode_linear", "four_mode_nonlinear", "starved:20", "starved:40", "starved:80"])
     ap.add_argument("--start", type=int, default=30)
     ap.add_argument("--budget", type=int, default=90)
     ap.add_argument("--round-size", type=int, default=10)
