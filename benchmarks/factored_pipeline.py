@@ -400,12 +400,13 @@ def render(data: dict) -> str:
           if "error" not in run and "estimate_mb" in run and run["form"] in run["estimate_mb"]]
     if pf:
         lines += ["", "## Pre-flight", "",
-                  "The pre-flight's estimate of the run's form against its peak RSS (target: within 25 %).", "",
+                  "The pre-flight's estimate of the run's form (the code of the run) against its peak RSS, both in MB "
+                  "of 10^6 bytes (the runs' `peak_mb` is ru_maxrss in MiB; target: within 25 %).", "",
                   "| run | form | estimate MB | peak MB | estimate / peak |", "|---|---|---|---|---|"]
         for name, label, run in pf:
             e = run["estimate_mb"][run["form"]]
-            lines.append(f"| {name} ({label}) | {run['form']} | {e:,.0f} | {run['peak_mb']:,.0f} | "
-                         f"{e / run['peak_mb']:.2f} |")
+            peak = run["peak_mb"] * 1.048576  # MiB -> MB
+            lines.append(f"| {name} ({label}) | {run['form']} | {e:,.0f} | {peak:,.0f} | {e / peak:.2f} |")
     return "\n".join(lines) + "\n"
 
 

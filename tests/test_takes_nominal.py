@@ -71,3 +71,14 @@ def test_unbounded_factored_run_still_builds_it():
 
     res = synthesize_from_data(_car(None), progress=False, advice=False, margins=False)
     assert res.parameters.get("form") == "factored" and "nominal" in res.timings
+
+
+def test_preflight_counts_the_nominal_model_of_an_unbounded_factored_run():
+    """The pre-flight's cap on the nominal mixture is the nominal stage's, and an unbounded factored run with
+    several modes is estimated above the same run with a horizon (its synthesis holds a nominal model)."""
+    from robust_imdp.pipeline.nominal_stage import MAX_NOMINAL_ENTRIES
+    from robust_imdp.pipeline.preflight import NOMINAL_ENTRIES, estimate_resources
+
+    assert NOMINAL_ENTRIES == MAX_NOMINAL_ENTRIES
+    unbounded, bounded = _car(None), _car(4)
+    assert estimate_resources(unbounded, 3)["bytes"] > estimate_resources(bounded, 3)["bytes"]

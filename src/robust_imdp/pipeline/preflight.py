@@ -92,15 +92,48 @@ def estimate_resources(problem: Problem, n_dfa_states: int = 4, form: str | None
            "available": _available_memory()}
     if form == "factored":
         k = factored_lengths(problem)
-        out.update(bytes=factored_bytes(N, M, k, n_dfa_states), listed_per_axis=list(k))
+        # the synthesis of a factored model takes a nominal model only without a horizon, with several modes and
+        # under the reach reading (synthesis.ties.takes_nominal; "auto" counted as reach: the larger estimate)
+        takes = problem.horizon is None and M > 1 and getattr(problem, "semantics", "auto") != "safety"
+        out.update(bytes=factored_bytes(N, M, k, n_dfa_states, nominal=_nominal_bytes(problem, k) if takes else 0),
+                   listed_per_axis=list(k))
     return out
+
+
+#: ``pipeline.nominal_stage.MAX_NOMINAL_ENTRIES`` (that module is listed after this one in docs/ARCHITECTURE.md;
+#: tests/test_takes_nominal.py checks that the two agree).
+NOMINAL_ENTRIES = 30_000_000
+
+
+def _nominal_bytes(problem: Problem, k) -> int:
+    """Bytes of the nominal model (``pipeline.nominal_stage.nominal_model``) held through a factored synthesis:
+    the joint mixture of ``s^d`` points per cell where its entries fit ``MAX_NOMINAL_ENTRIES`` (24 bytes each, held
+    twice while it is assembled; ``abstraction.nominal.row_entries`` on the grid's cell widths; the cap
+    :data:`NOMINAL_ENTRIES`), else the factored
+    model of the centres (the robust model's size)."""
+    from robust_imdp.abstraction.marginals import AXIS_TOL
+    from robust_imdp.abstraction.nominal import points_per_axis
+
+    N, M = problem.n_grid_cells, len(problem.mode_names)
+    w = np.asarray(problem.cell_size, float).reshape(-1) * np.ones(np.size(problem.space_lower))
+    R = np.asarray(problem.noise.listing_radius(AXIS_TOL), float)
+    s = points_per_axis(w.size)
+    while True:
+        entries = M * N * (int(np.prod(np.floor(((1.0 - 1.0 / s) * w + 2.0 * R) / w) + 2.0)) + 1)
+        if entries <= NOMINAL_ENTRIES or s == 1:
+            break
+        s -= 1
+    if entries <= NOMINAL_ENTRIES:
+        return int(2 * 24 * entries)
+    return int(N * M * np.sum(16 * np.asarray(k, dtype=np.int64) + 32))
 
 
 #: Bytes of the process before the run's arrays (Python, numpy, scipy, numba and the package imported), and the
 #: factored form's multipliers, fitted to the peak RSS of benchmarks/factored_pipeline.py's runs
-#: (benchmarks/results/factored_pipeline.md, "Pre-flight").
-FACTORED_BASE = 2.5e8
-FACTORED_MODEL_COPIES = 3.0
+#: (benchmarks/results/factored_pipeline.md, "Pre-flight": small runs peak at 191-195 MB; linear 5-D / 6-D at 8 per
+#: axis 247 / 802 MB, the model held about twice while it is assembled).
+FACTORED_BASE = 1.95e8
+FACTORED_MODEL_COPIES = 2.0
 FACTORED_TREE_BYTES = 8 * 9
 
 
@@ -115,14 +148,15 @@ def factored_lengths(problem: Problem, tol: float = 1e-9) -> tuple:
     return tuple(int(min(n, np.ceil((hj + 2 * r) / hj) + 1)) for n, hj, r in zip(n_j, h, R))
 
 
-def factored_bytes(n_cells: int, n_modes: int, k, n_dfa_states: int = 4) -> int:
+def factored_bytes(n_cells: int, n_modes: int, k, n_dfa_states: int = 4, nominal: int = 0) -> int:
     """Estimated peak bytes of a factored run (docs/factored.md, "In the pipeline").
 
-    The model's arrays (per (cell, mode) and axis: a start, ``k_i`` lower and ``k_i`` upper bounds and three
-    scalars, ``16 k_i + 32`` bytes) held :data:`FACTORED_MODEL_COPIES` times at the assembly's peak (the chunks, the
-    concatenation, the validated copy); the solver's traversal tree (about ``n_cells x d`` nodes of
-    :data:`FACTORED_TREE_BYTES` bytes and ``d`` box ends per mode); the partition's corners and labels; the image
-    boxes; the value iteration's vectors (per DFA state and mode); :data:`FACTORED_BASE` for the process."""
+    :data:`FACTORED_BASE` for the process, the partition's corners and labels and the image boxes, and the larger
+    of two stages' peaks: the assembly (the model's arrays -- per (cell, mode) and axis a start, ``k_i`` lower and
+    ``k_i`` upper bounds and three scalars, ``16 k_i + 32`` bytes -- held :data:`FACTORED_MODEL_COPIES` times:
+    the chunks and the concatenation) and the synthesis (the model, the solver's traversal tree: about
+    ``n_cells x d`` nodes of :data:`FACTORED_TREE_BYTES` bytes and ``d`` box ends per mode, the value iteration's
+    vectors per DFA state and mode, and the ``nominal`` model's bytes where the synthesis takes one)."""
     k = np.asarray(k, dtype=np.int64)
     d = int(k.size)
     R = int(n_cells) * int(n_modes)
@@ -131,7 +165,8 @@ def factored_bytes(n_cells: int, n_modes: int, k, n_dfa_states: int = 4) -> int:
     part = int(n_cells) * d * 8 * 4
     boxes = R * d * 8 * 4
     values = int(n_cells) * max(int(n_dfa_states), 1) * 8 * 8 + R * 8 * 4
-    return int(FACTORED_BASE + FACTORED_MODEL_COPIES * model + tree + part + boxes + values)
+    stage = max(FACTORED_MODEL_COPIES * model, model + tree + values + int(nominal))
+    return int(FACTORED_BASE + part + boxes + stage)
 
 
 def load_text(cores_used: int) -> str:
