@@ -82,6 +82,9 @@ def test_spread_order_errors_and_close():
     args = [(part, lo * (1 + 0.01 * i), up * (1 + 0.01 * i), noise, "joint", {}, dfa, ctrl) for i in range(5)]
     plain = [margins_mod._margin_task(*a) for a in args]
     sched = InProcess(threads=2)
+    threads_only = dict(advice_stage.spread(sched, margins_mod._margin_task, args))  # no lane: two threads here
+    for i, (p_low, p_up) in enumerate(plain):
+        assert np.array_equal(threads_only[i][0], p_low) and np.array_equal(threads_only[i][1], p_up)
     with SideLane(1) as lane:
         sched.lane = lane
         got = dict(advice_stage.spread(sched, margins_mod._margin_task, args))

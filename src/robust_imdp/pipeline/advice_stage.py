@@ -141,13 +141,18 @@ def _sub_box_terms(problem: Problem):
 
 
 # ---------------------------------------------------------------------------------------------- every core
+#: Tasks of :func:`spread` that run at once in this process (threads; each holds one re-solve's rows in memory).
+LOCAL_TASKS = 2
+
+
 def spread(sched, fn, args, kwargs=None):
     """Yield ``(index, fn(*args[index], **kwargs))`` for every task, in order of completion, on every core the run
-    has: a Dask cluster's workers (``sched.run``); in process on several cores this process *and* the side lane's
-    helper processes (``pipeline.parallel.SideLane``, one BLAS and numba thread each), taking the tasks from one
-    queue, so independent serial work (the margins' and the advice's re-solves: one topological solve each)
-    runs side by side (a task still waiting in the lane behind other side work, e.g. the figures, is taken back
-    when this process has nothing else to do); else one after the other here.
+    has: a Dask cluster's workers (``sched.run``); in process on several cores :data:`LOCAL_TASKS` threads of this
+    process *and* the side lane's helper processes if it has one (``pipeline.parallel.SideLane``, one BLAS and
+    numba thread each), taking the tasks from one queue, so independent serial work (the margins' and the
+    advice's re-solves: numpy's exact rows, one topological solve each) runs side by side (a task still waiting
+    in the lane behind other side work, e.g. the figures, is taken back when this process has nothing else to
+    do); on one core one after the other here.
 
     ``fn`` must be a module-level function of pure tasks: the caller assembles the results by index, so they do
     not depend on where each task ran (the solvers' and the abstraction's bits do not depend on the thread
@@ -162,10 +167,12 @@ def spread(sched, fn, args, kwargs=None):
     from robust_imdp.pipeline.parallel import InProcess, SideLaneError
 
     kw = dict(kwargs or {})
-    lane = getattr(sched, "lane", None) if isinstance(sched, InProcess) else None
-    if lane is None or len(args) < 2:
+    local = isinstance(sched, InProcess) and sched.threads > 1
+    lane = sched.lane if local else None
+    if not local or len(args) < 2:
         yield from sched.run(fn, args, kw)
         return
+    threads = sched.threads
     todo = list(range(len(args)))
     lock = threading.Lock()
     done: queue.Queue = queue.Queue()
@@ -207,7 +214,20 @@ def spread(sched, fn, args, kwargs=None):
                 return i
         return None
 
-    feeders = [threading.Thread(target=feed, name="robust-imdp spread", daemon=True) for _ in lane.helpers]
+    def work():  # a second thread of this process: numpy's loops and the solver kernels release the GIL
+        while True:
+            i = take()
+            if i is None:
+                return
+            try:
+                done.put((i, True, fn(*args[i], threads=threads, **kw)))
+            except BaseException as exc:
+                done.put((i, False, exc))
+
+    feeders = [threading.Thread(target=feed, name="robust-imdp spread", daemon=True)
+               for _ in (lane.helpers if lane is not None else ())]
+    feeders += [threading.Thread(target=work, name="robust-imdp spread", daemon=True)
+                for _ in range(min(LOCAL_TASKS, threads, len(args)) - 1)]
     for t in feeders:
         t.start()
     got = 0
@@ -230,7 +250,7 @@ def spread(sched, fn, args, kwargs=None):
                     except queue.Empty:
                         continue
                 else:
-                    item = (i, True, fn(*args[i], threads=getattr(sched, "threads", 1), **kw))
+                    item = (i, True, fn(*args[i], threads=threads, **kw))
             i, ok, value = item
             if not ok:
                 raise value
@@ -241,10 +261,12 @@ def spread(sched, fn, args, kwargs=None):
             todo.clear()  # a consumer that stopped: nothing more starts
 
 
-def side_by_side(sched, cell_modes: int) -> bool:
+def side_by_side(sched, cell_modes: int, *, need_lane: bool = False) -> bool:
     """Whether independent re-solves of ``cell_modes`` (cell, mode) pairs each run side by side (:func:`spread`):
-    on a Dask cluster, or in process on several cores with a side lane (started here from
-    ``pipeline.parallel.SIDE_MIN_CELL_MODES`` pairs on, where a helper's start-up is small against a re-solve)."""
+    on a Dask cluster, or in process on several cores (threads, and the side lane's helpers: the lane is started
+    here from ``pipeline.parallel.SIDE_MIN_CELL_MODES`` pairs on, where a helper's start-up is small against a
+    re-solve); with ``need_lane`` in process only with a lane (smaller re-solves: one after the other, in the
+    order the caller's budget and interrupt handling expect)."""
     from robust_imdp.pipeline.parallel import SIDE_MIN_CELL_MODES, DaskScheduler, InProcess
 
     if isinstance(sched, DaskScheduler):
@@ -253,7 +275,7 @@ def side_by_side(sched, cell_modes: int) -> bool:
         return False
     if not sched.concurrent_side and cell_modes >= SIDE_MIN_CELL_MODES:
         sched.use_side_lane()
-    return sched.concurrent_side
+    return sched.concurrent_side or not need_lane
 
 
 # ---------------------------------------------------------------------------------------------- re-solves
@@ -293,7 +315,8 @@ def _scheduled_solver(problem: Problem, dfa, run: _Run, log: _Log):
 
     def solve(jobs, deadline):
         sched = run.scheduler(log)
-        if len(jobs) > 1 and side_by_side(sched, max(j.partition.n_cells for j in jobs) * len(problem.mode_names)):
+        if len(jobs) > 1 and side_by_side(sched, max(j.partition.n_cells for j in jobs) * len(problem.mode_names),
+                                          need_lane=True):
             # whole re-solves as tasks, side by side on every core (spread); the same rows and solves, so the
             # same shares; past the deadline no further one is waited for
             yield from _side_by_side_jobs(sched, jobs, deadline)
