@@ -266,6 +266,17 @@ def test_form_selection_and_its_messages(capsys):
     narrow = p.replace(noise=GaussianNoise([0.05, 0.05]))
     form, why = narrow.form_choice()
     assert form == "joint" and "short" in why
+    # no horizon and joint rows at most FACTORED_MIN_RATIO x the factored numbers (car parking: about 3.4 x): the
+    # joint form, whose unbounded solve goes component by component; with a horizon, factored
+    from robust_imdp.abstraction.factored import row_sizes
+    from robust_imdp.pipeline.problem import FACTORED_MIN_RATIO
+
+    joint, numbers = row_sizes(p.space_lower, p.space_upper, p.cell_size, p.noise)
+    assert numbers < joint <= FACTORED_MIN_RATIO * numbers
+    form, why = p.replace(horizon=None).form_choice()
+    assert form == "joint" and "no horizon" in why
+    assert p.replace(horizon=3).form_choice()[0] == "factored"
+    assert p.replace(horizon=None, form="factored").form_choice()[0] == "factored"
     # the run prints the form and why
     q = p.replace(horizon=2)
     _run(q, progress=True)

@@ -25,6 +25,10 @@ DEFAULT_TRANSITIONS = "exact"
 #: ``[abstraction].form``: the factored model (per-axis marginals, docs/factored.md) where it applies ("auto"),
 #: always ("factored"), or the joint IMDP ("joint"); the values of ``abstraction.factored.FORMS``.
 FORMS = ("auto", "factored", "joint")
+#: Without a horizon, "auto" takes the factored form only where the joint exact rows are expected more than this
+#: many times longer than the factored rows' stored numbers (Problem.form_choice: below it the joint form's
+#: component-wise unbounded solves are far faster); with a horizon, wherever the joint rows are longer.
+FACTORED_MIN_RATIO = 4
 #: How the unknown part is bounded over a cell (see :class:`Problem`): the method registry's names.
 ERROR_BOUNDS = methods.ERROR_BOUNDS
 #: Failure probability allowed to the assumption check's noise bound when the noise is unbounded.
@@ -469,14 +473,18 @@ class Problem:
         """``(form, why)``: the form the run's grid abstraction takes ("factored" or "joint") and why, in words.
 
         "auto" takes the factored form where it applies and its rows are expected smaller than the joint exact
-        rows (``abstraction.factored.row_sizes``: a joint row lists about ``prod_i`` of the per-axis successors,
-        a factored one stores ``sum_i (2 k_i + 4)`` numbers): there its pessimistic value is never below the
-        joint IMDP's (docs/factored.md, Theorem 2) and it costs less. Where the joint rows are short (noise
-        narrower than a cell, as in the case studies) the joint form is kept: as fast there, and its unbounded
-        solves have the end-component deflation that makes p_up tight (docs/factored.md, "In the pipeline";
-        measured in benchmarks/results/factored_pipeline.md). The choice depends on the problem only (not on the
-        horizon or the machine), so a cached abstraction is reused when only the formula, threshold or horizon
-        change.
+        rows (``abstraction.factored.row_sizes``: a joint row lists about ``prod_i`` of the per-axis successors, a
+        factored one stores ``sum_i (2 k_i + 4)`` numbers) -- without a horizon, more than
+        :data:`FACTORED_MIN_RATIO` times smaller: there its pessimistic value is never below the joint IMDP's
+        (docs/factored.md, Theorem 2) and it costs less. Where the joint rows are short (noise narrower than a
+        cell, as in the case studies) the joint form is kept: as fast there, and its unbounded solves have the
+        end-component deflation that makes p_up tight. Without a horizon the joint form is also kept where its
+        rows are only a little longer: its unbounded solve goes component by component, where the factored solver
+        sweeps the whole product until its values settle (the 4-D vehicle at 24^4, 81 successors against 40
+        numbers: synthesis 25 s joint, over 2,100 s factored; docs/factored.md, "In the pipeline";
+        benchmarks/results/factored_pipeline.md). The choice depends on the problem (whether it has a horizon,
+        not which) and not on the machine, so a cached abstraction is reused when only the formula, threshold or
+        horizon length change.
         """
         why_not = self.factored_reason()
         if self.form == "joint":
@@ -488,11 +496,18 @@ class Problem:
         from robust_imdp.abstraction.factored import row_sizes
 
         joint, numbers = row_sizes(self.space_lower, self.space_upper, self.cell_size, self.noise)
-        if joint > numbers:
+        unbounded_short = self.horizon is None and joint <= FACTORED_MIN_RATIO * numbers
+        if joint > numbers and not unbounded_short:
             return "factored", (f"auto: it applies (a grid, exact per-axis bounds, independent noise components, image "
                                 f"boxes that hold the whole error) and stores about {numbers} numbers per row where "
                                 f"the joint IMDP would list about {joint:,} successors; its value is never below the "
                                 "joint IMDP's")
+        if unbounded_short and joint > numbers:
+            return "joint", (f"auto: no horizon and the joint rows are not much longer (about {joint:,} successors per "
+                             f"row against {numbers} numbers factored, at most {FACTORED_MIN_RATIO} x): the joint "
+                             "form's unbounded solve goes component by component and deflates end components, far "
+                             "faster than the factored sweeps; [abstraction].form = 'factored' forces the factored "
+                             "form")
         return "joint", (f"auto: the joint rows are short (about {joint:,} successors per row against {numbers} "
                          "numbers factored): the joint form is as fast, and its unbounded solves deflate end "
                          "components; [abstraction].form = 'factored' forces the factored form")
