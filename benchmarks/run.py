@@ -62,6 +62,7 @@ SUITES = (
         Step("parallel_sweep.py", writes="parallel_sweep"),
         Step("storm_check.py", quick=("--sizes", "1000", "--repeat", "1"), writes="storm_check"),
         Step("factored_solver.py", quick=("--dims", "4", "--n", "6"), writes="factored_solver"),
+        Step("finite_horizon.py", quick=("--repeat", "1"), writes="finite_horizon"),
     )),
     Suite("stages", "the bound and abstraction stages alone; exact transitions against Thm 1", (
         Step("abstraction.py", quick=("--quick",), writes="abstraction"),
@@ -78,6 +79,7 @@ SUITES = (
     )),
     Suite("newcomer", "the newcomer problems through `robust-imdp run` (the README's newcomer table)", (
         Step("newcomer.py", quick=("--only", "robot2d_16", "robot2d_32"), writes="newcomer"),
+        Step("controller_quality.py", quick=("--only", "robot2d_16"), writes="controller_quality"),
     )),
     Suite("advice", "the advice's cost and its levers' estimates against real runs", (
         Step("advice_cost.py", ("--label", "after"), writes="advice_cost"),
@@ -94,6 +96,7 @@ SUITES = (
     )),
     Suite("arch", "the field's benchmarks (ARCH-COMP, IMPaCT, HSCC 2025) beside the published numbers", (
         Step("arch/run.py", quick=("--quick",), writes="arch (arch_quick with --quick)"),
+        Step("factored_pipeline.py", quick=("--suite", "car", "bas4d"), writes="factored_pipeline"),
         Step("input_grid_scale.py", writes="input_grid_scale"),
     )),
     Suite("scale", "large problems: chunked stages on workers, the 3-D study at 64^3, serial parts", (
