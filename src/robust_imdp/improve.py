@@ -70,6 +70,9 @@ LOOKAHEAD_LEVELS = (0.75, 0.5, 0.25, 0.0)
 #: Most undecided cells for the look-ahead (each level rebuilds their rows and solves); beyond it the round's
 #: requests come from the undecided cells' summed radius change (suggest's own frontier rule).
 LOOKAHEAD_MAX_CELLS = 4096
+#: Steps of the look-ahead solves of a factored model without a horizon (a k-step value is a lower bound of the
+#: unbounded one: a ranking that errs towards fewer targets).
+LOOKAHEAD_FACTORED_HORIZON = 64
 #: Precision of the look-ahead solves (their values only rank requests).
 LOOKAHEAD_PRECISION = 1e-6
 #: A target's predicted shrink must exceed this fraction of its cell's smallest half-width (else its box is at
@@ -676,6 +679,11 @@ def _targets(loop):
     keep = np.full(maybe.size, -1.0)
     mode = np.zeros(maybe.size, dtype=np.int64)
     models = []
+    # factored models: a bounded look-ahead (the factored solver's unbounded iteration has no deflation and can run
+    # to its sweep cap on the shrunk model: 46 s per solve on benchmarks/starved.py against 0.7 s for the loop's own)
+    horizon = problem.horizon
+    if horizon is None and problem.form_choice()[0] == "factored":
+        horizon = LOOKAHEAD_FACTORED_HORIZON
     values = np.append(np.clip(np.asarray(loop.result.p_low, float), 0.0, 1.0), 0.0)  # cells, then outside
     for a in LOOKAHEAD_LEVELS:
         todo = keep < 0  # every level is solved: the frontier below may need a deeper one
@@ -684,7 +692,7 @@ def _targets(loop):
         hi2[:, maybe] = np.maximum(hi2[:, maybe] - (1.0 - a) * shrink, lo2[:, maybe])
         abstraction = _assemble(part, _rebuild(part, loop.rows, CellBounds(lo2, hi2, None), [maybe] * M, problem))
         syn = synthesize(abstraction_model(abstraction), part.labels, part.atoms, loop.dfa,
-                         threshold=problem.threshold, horizon=problem.horizon, outside_state=part.outside_state,
+                         threshold=problem.threshold, horizon=horizon, outside_state=part.outside_state,
                          semantics=problem.semantics, precision=LOOKAHEAD_PRECISION)
         cls = np.asarray(_class_names(syn.classes, syn, problem.threshold))
         strategy = np.asarray(syn.strategy)
