@@ -199,3 +199,16 @@ def test_result_reports_the_synthesis_of_its_own_abstraction(run):
                        nominal=nominal_model(res.problem, part))
     for name in ("p_low", "p_up", "p_up_star", "strategy"):
         np.testing.assert_array_equal(getattr(res.synthesis, name), getattr(again, name), err_msg=name)
+
+
+def test_a_scalar_cell_size_in_replace_means_every_axis():
+    # Problem.replace(cell_size=0.5) (the dataclass, not from_arrays) crashed in the bound stage's diagnostics;
+    # one number is the same width on every axis: the same problem, key and result as the per-axis list
+    from robust_imdp.pipeline.cache import abstraction_key
+
+    p = tiny_problem()
+    q = p.replace(cell_size=float(p.cell_size[0]))
+    np.testing.assert_array_equal(q.cell_size, p.cell_size)
+    assert abstraction_key(q) == abstraction_key(p)
+    r = synthesize_from_data(q, progress=False, advice=False, margins=False)
+    assert r.partition.n_cells == 64

@@ -338,6 +338,9 @@ class Problem:
     form: str = "auto"
 
     def __post_init__(self):
+        if np.ndim(self.cell_size) == 0:  # one number: the same width on every axis (as from_arrays reads it)
+            n = int(np.size(self.space_lower))
+            object.__setattr__(self, "cell_size", np.full(n, float(self.cell_size)))
         if self.periodic is not None:
             from robust_imdp.models.geometry import check_periodic
 
