@@ -168,9 +168,14 @@ def _changes(before, after) -> dict:
     return {"yes_lost": int(np.count_nonzero(yes_b & ~yes_a)), "yes_gained": int(np.count_nonzero(~yes_b & yes_a)),
             "min_plow_change_yes": float(dp[yes_b].min()) if yes_b.any() else 0.0,
             "strategy_entries_changed": int(np.count_nonzero(np.asarray(a.strategy) != np.asarray(b.strategy))),
-            "initial_modes_changed": int(np.count_nonzero(
-                np.asarray(a.strategy)[np.arange(b.n_cells), b.initial_dfa_state]
-                != np.asarray(b.strategy)[np.arange(b.n_cells), b.initial_dfa_state]))}
+            "initial_modes_changed": int(np.count_nonzero(_first(a)[np.arange(b.n_cells), b.initial_dfa_state]
+                                                          != _first(b)[np.arange(b.n_cells), b.initial_dfa_state]))}
+
+
+def _first(syn):
+    """The strategy's first decision per (cell, DFA state): a k-step strategy's time 0 layer."""
+    st = np.asarray(syn.strategy)
+    return st[0] if st.ndim == 3 else st
 
 
 def measure(name: str, make, work: Path, runs: int, seed: int) -> dict:
