@@ -140,9 +140,18 @@ def row_value(j0, j1, col, lower, upper, f, w, use_rank, rank, sv, hi, lo, adv_m
             m += 1
     if rem <= 0.0:
         return val, 0.0  # sum(lower) >= 1 (within the model tolerance): p = lower
+    return _fill_in_order(val, rem, idx, 0, 0, m, col, lower, upper, f, w, floor_row, rank, sv, hi, lo)
+
+
+@njit(cache=True, inline="always")
+def _fill_in_order(val, rem, order, off, base, m, col, lower, upper, f, w, floor_row, rank, sv, hi, lo):
+    """The greedy part of :func:`row_value` and :func:`row_value_sorted`: the mass ``rem`` left above the
+    lower bounds given to the row's entries in adversary order (entry ``base + order[off + t]`` t-th, ``m``
+    entries), with the floor mass of unlisted states between them on a floor row; returns (value, mass left)."""
+    n = w.shape[0]
     pos = 0
     for t in range(m):
-        j = idx[t]
+        j = base + order[off + t]
         if floor_row:
             p = rank[col[j]]
             cnt = p - pos
@@ -153,6 +162,7 @@ def row_value(j0, j1, col, lower, upper, f, w, use_rank, rank, sv, hi, lo, adv_m
                 val += f * _block(hi, lo, pos, p)
                 rem -= mass
             pos = p + 1
+        # entries with upper == lower (which row_value leaves out of its order) have cap 0: no-op
         cap = upper[j] - lower[j]
         if cap > 0.0:
             if cap >= rem:
@@ -369,36 +379,8 @@ def row_value_sorted(j0, j1, sl, col, lower, upper, f, vals, use_rank, adv_max):
         rem -= lj
     if rem <= 0.0:
         return val, 0.0  # sum(lower) >= 1 (within the model tolerance): p = lower
-    pos = 0
-    rank, sv, hi, lo = vals.rank, vals.sv, vals.hi, vals.lo
-    for t in range(j1 - j0):
-        j = j0 + sl[j0 + t]
-        if floor_row:
-            p = rank[col[j]]
-            cnt = p - pos
-            if cnt > 0:
-                mass = cnt * f
-                if mass >= rem:
-                    return _fill_floors(val, rem, f, cnt, pos, hi, lo, sv), 0.0
-                val += f * _block(hi, lo, pos, p)
-                rem -= mass
-            pos = p + 1
-        # entries with upper == lower (which row_value leaves out of its order) have cap 0: no-op
-        cap = upper[j] - lower[j]
-        if cap > 0.0:
-            if cap >= rem:
-                val += rem * w[col[j]]
-                return val, 0.0
-            val += cap * w[col[j]]
-            rem -= cap
-    if floor_row and pos < n:
-        cnt = n - pos
-        mass = cnt * f
-        if mass >= rem:
-            return _fill_floors(val, rem, f, cnt, pos, hi, lo, sv), 0.0
-        val += f * _block(hi, lo, pos, n)
-        rem -= mass
-    return val, rem
+    return _fill_in_order(val, rem, sl, j0, j0, j1 - j0, col, lower, upper, f, w, floor_row, vals.rank, vals.sv,
+                          vals.hi, vals.lo)
 
 
 #: The bucketed sweep sorts the evaluated entries of a block by counting instead of walking the block's
