@@ -30,8 +30,6 @@ with them and :func:`assemble_factored` concatenates the chunks: the same bytes 
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,7 +39,7 @@ from robust_imdp._fp import down, up
 from robust_imdp.abstraction.cell_bounds import CellBounds
 from robust_imdp.abstraction.marginals import AXIS_TOL, axis_data, axis_runs
 from robust_imdp.errors import DimensionError, InvalidInputError, InvalidModelError
-from robust_imdp.models.factored import AxisMarginals, FactoredIMDP
+from robust_imdp.models.factored import AXIS_ARRAYS, AxisMarginals, FactoredIMDP, save_npz
 from robust_imdp.models.geometry import Partition, partition_from_dict
 from robust_imdp.models.noise import NoiseModel
 
@@ -53,7 +51,6 @@ __all__ = ["FORMS", "FactoredAbstraction", "FactoredRows", "factored_reason", "r
 FORMS = ("auto", "factored", "joint")
 #: Format of :meth:`FactoredAbstraction.save`'s meta record (the arrays are those of ``FactoredIMDP.save``).
 _META_FORMAT = "robust_imdp.FactoredAbstraction/1"
-_ARRAYS = ("start", "lower", "upper", "out_lower", "out_upper", "rest_upper")
 
 
 def factored_reason(partition, noise, *, transitions: str = "exact", combine: str = "product",
@@ -238,27 +235,9 @@ class FactoredAbstraction:
         """Write an ``.npz`` file (no pickle): the model's arrays (as ``FactoredIMDP.save`` writes them, so
         ``FactoredIMDP.load`` reads the model back) and a JSON record of the partition; written beside the
         target and renamed into place."""
-        path = Path(path)
-        m = self.model
-        arrays = {"format": np.array("robust_imdp.FactoredIMDP/1"), "shape": np.array(m.shape, dtype=np.int64),
-                  "periodic": np.array(m.periodic, dtype=bool),
-                  "abstraction_meta": np.array(json.dumps({"format": _META_FORMAT,
-                                                           "partition": self.partition.to_dict(),
-                                                           "tol": self.tol, "combine": self.combine,
-                                                           "transitions": self.transitions}))}
-        for i, ax in enumerate(m.axes):
-            for a in _ARRAYS:
-                arrays[f"axis{i}_{a}"] = getattr(ax, a)
-        fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent or ".")
-        try:
-            with os.fdopen(fd, "wb") as f:
-                np.savez(f, **arrays)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        meta = {"format": _META_FORMAT, "partition": self.partition.to_dict(), "tol": self.tol,
+                "combine": self.combine, "transitions": self.transitions}
+        save_npz(path, {**self.model.npz_arrays(), "abstraction_meta": np.array(json.dumps(meta))})
 
     @classmethod
     def load(cls, path) -> "FactoredAbstraction":
@@ -403,7 +382,7 @@ def assemble_factored(partition: Partition, chunks) -> FactoredAbstraction:
     axes = []
     for j in range(partition.dim):
         arrays = {name: (np.concatenate([c.axes[j][t] for c in chunks], axis=1) if len(chunks) > 1
-                         else first.axes[j][t]) for t, name in enumerate(_ARRAYS)}
+                         else first.axes[j][t]) for t, name in enumerate(AXIS_ARRAYS)}
         axes.append(AxisMarginals(n=partition.shape[j], periodic=_periodic(partition, j), axis=j, **arrays))
     return FactoredAbstraction(model=FactoredIMDP(shape=partition.shape, axes=tuple(axes)), partition=partition,
                                tol=first.tol)

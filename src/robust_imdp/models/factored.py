@@ -38,7 +38,7 @@ import numpy as np
 from robust_imdp.errors import DimensionError, InvalidIntervalError, InvalidModelError, ResourceError
 from robust_imdp.models.imdp import IMDP, ROW_SUM_TOL
 
-__all__ = ["AxisMarginals", "FactoredIMDP", "MAX_JOINT_ENTRIES"]
+__all__ = ["AxisMarginals", "FactoredIMDP", "MAX_JOINT_ENTRIES", "AXIS_ARRAYS", "save_npz"]
 
 #: Largest number of stored entries :meth:`FactoredIMDP.to_joint` builds (about 1.2 GB of
 #: arrays); beyond it the joint model is refused with a ``ResourceError`` rather than swapping.
@@ -171,7 +171,7 @@ class AxisMarginals:
     @property
     def nbytes(self) -> int:
         """Bytes of the arrays."""
-        return int(sum(getattr(self, a).nbytes for a in _ARRAYS))
+        return int(sum(getattr(self, a).nbytes for a in AXIS_ARRAYS))
 
     def positions(self) -> np.ndarray:
         """(n_modes, n_cells, k) int64: grid interval of every listed entry (``(start + j) mod n`` on a
@@ -182,7 +182,8 @@ class AxisMarginals:
         return np.where(p < self.n, p, -1)
 
 
-_ARRAYS = ("start", "lower", "upper", "out_lower", "out_upper", "rest_upper")
+#: The arrays of every axis of a model, in AxisMarginals' field order (what the files store per axis).
+AXIS_ARRAYS = ("start", "lower", "upper", "out_lower", "out_upper", "rest_upper")
 
 
 def _where(flat: int, N: int) -> str:
@@ -501,25 +502,16 @@ class FactoredIMDP:
     def save(self, path) -> None:
         """Write the model to an ``.npz`` file (no pickle), atomically: a temporary file in the
         same folder renamed into place, so a failure leaves an older file as it was."""
-        path = Path(path)
+        save_npz(path, self.npz_arrays())
+
+    def npz_arrays(self) -> dict:
+        """The arrays :meth:`save` writes (and :meth:`load` reads): format, shape, periodic, every axis's arrays."""
         arrays = {"format": np.array("robust_imdp.FactoredIMDP/1"), "shape": np.array(self.shape, dtype=np.int64),
                   "periodic": np.array(self.periodic, dtype=bool)}
         for i, ax in enumerate(self.axes):
-            for a in _ARRAYS:
+            for a in AXIS_ARRAYS:
                 arrays[f"axis{i}_{a}"] = getattr(ax, a)
-        fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent or ".")
-        try:
-            with os.fdopen(fd, "wb") as f:
-                np.savez(f, **arrays)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            try:
-                os.unlink(tmp)
-            except FileNotFoundError:
-                pass
-            raise
+        return arrays
 
     @classmethod
     def load(cls, path) -> "FactoredIMDP":
@@ -543,14 +535,28 @@ class FactoredIMDP:
         periodic = data["periodic"]
         axes = []
         for i in range(len(shape)):
-            missing = [a for a in _ARRAYS if f"axis{i}_{a}" not in data]
+            missing = [a for a in AXIS_ARRAYS if f"axis{i}_{a}" not in data]
             if missing:
                 raise InvalidModelError(f"{path}: axis {i} lacks {', '.join(missing)}")
             try:
                 axes.append(AxisMarginals(n=shape[i], periodic=bool(periodic[i]), axis=i,
-                                          **{a: data[f"axis{i}_{a}"] for a in _ARRAYS}))
+                                          **{a: data[f"axis{i}_{a}"] for a in AXIS_ARRAYS}))
             except (InvalidModelError, InvalidIntervalError, DimensionError) as exc:
                 raise type(exc)(f"{path}: {exc}") from None
         return cls(shape=shape, axes=tuple(axes))
 
 
+def save_npz(path, arrays: dict) -> None:
+    """``np.savez`` of ``arrays`` to ``path`` atomically: a temporary file in the same folder, flushed to disk and
+    renamed into place, so a failure leaves an older file as it was."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent or ".")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, **arrays)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
