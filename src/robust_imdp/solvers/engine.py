@@ -149,7 +149,8 @@ from robust_imdp.solvers.sweep import Sweeper
 
 
 def solve_layered(imdp, nxt, target, zero, *, ctrl, adv_max, horizon=None, precision=1e-8,
-                  max_iterations=100_000, strategy=None, method="vi", tie_break=None) -> ReachabilityResult:
+                  max_iterations=100_000, strategy=None, method="vi", tie_break=None,
+                  keep_steps=False) -> ReachabilityResult:
     """Engine shared by :func:`~robust_imdp.solvers.api.solve_reachability`,
     :func:`~robust_imdp.solvers.api.evaluate_strategy` and the lazy product.
 
@@ -174,7 +175,8 @@ def solve_layered(imdp, nxt, target, zero, *, ctrl, adv_max, horizon=None, preci
         The algorithm of the unbounded values (checked by the callers,
         :func:`robust_imdp.solvers.api.check_method`).
 
-    Returns a ReachabilityResult with (L, n) arrays and a (L, n) or (k, L, n) strategy.
+    Returns a ReachabilityResult with (L, n) arrays and a (L, n) or (k, L, n) strategy (a
+    :class:`BoundedResult` with ``keep_steps``).
     """
     if horizon is not None:
         horizon = int(horizon)
@@ -193,7 +195,7 @@ def solve_layered(imdp, nxt, target, zero, *, ctrl, adv_max, horizon=None, preci
         tie_break = _check_tie_break(tie_break, imdp, L, n, ctrl, horizon)
     sw = Sweeper(imdp, nxt, active, ctrl, adv_max, strategy)
     if horizon is not None:
-        return _bounded(sw, V0, horizon, ctrl, strategy, tie_break)
+        return _bounded(sw, V0, horizon, ctrl, strategy, tie_break, keep_steps)
     return _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, precision, max_iterations,
                       method, tie_break)
 
@@ -216,12 +218,68 @@ class EngineTies:
         Per key, whether its adversary maximises the row value.
     strategy : (L, n) int array or None
         The row of every node the attractor never reaches (-1 or None: none given); unbounded only.
+    steps : tuple of (StepRows or None), optional
+        k-step: per key, the row values of its iteration kept by an earlier solve (:class:`StepRows`);
+        a key whose record does not match (:meth:`StepRows.serves`) or is None is iterated alongside.
     """
 
     models: tuple
     values: tuple
     adv_max: tuple
     strategy: np.ndarray | None = None
+    steps: tuple = ()
+
+
+#: The most numbers (k x layers x rows) a k-step solve keeps of its upper sweeps' row values
+#: (``keep_steps``): 16 M float64, 128 MB; beyond it the keys of later solves are iterated again.
+STEP_ROWS_MAX = 1 << 24
+
+
+@dataclass(frozen=True, eq=False)
+class StepRows:
+    """The row values of the upper iteration of a k-step solve (``keep_steps``), for the tie keys of later
+    solves of the same product: ``rows[t - 1]`` (layer-major, ``l * R + r``, -inf for rows of nodes not
+    swept) is ``B_row(u_{t-1})``, rounded up, with ``u_0`` the target's indicator and ``u_t`` the solve's
+    t-step upper values.  A key of another solve that values the rows of the same ``model`` under the same
+    controller and adversary, on the same nodes (``nxt``, ``active``) from the same start ``V0``, iterates
+    exactly these values -- the same sweep (same kernel arithmetic) of the same vectors -- so reading them
+    gives the same bits as sweeping again (:func:`_bounded`; tests/test_step_reuse.py).
+
+    Attributes
+    ----------
+    model : IMDP
+        The swept model (compared by identity: an IMDP is immutable).
+    nxt : (L, n) int array
+    active : (L, n) bool array
+    V0 : (L, n) float array
+    ctrl : int
+    adv_max : bool
+    rows : (k, L * R) float array
+    """
+
+    model: object
+    nxt: np.ndarray
+    active: np.ndarray
+    V0: np.ndarray
+    ctrl: int
+    adv_max: bool
+    rows: np.ndarray
+
+    def serves(self, model, nxt, active, V0, ctrl, adv_max, k) -> bool:
+        """Whether the key sweep of ``model`` (``ctrl``, ``adv_max``) on these nodes from ``V0`` for ``k``
+        steps is this record's: then its rows are bit for bit the ones the sweeps would compute."""
+        return (self.model is model and self.ctrl == int(ctrl) and self.adv_max == bool(adv_max)
+                and self.rows.shape[0] >= k and np.array_equal(self.nxt, nxt) and np.array_equal(self.active, active)
+                and np.array_equal(self.V0, V0))
+
+
+@dataclass(frozen=True)
+class BoundedResult(ReachabilityResult):
+    """A k-step :class:`~robust_imdp.solvers.common.ReachabilityResult` with the row values of its upper
+    sweeps (``keep_steps``); ``steps`` is None where they were not kept (more than ``STEP_ROWS_MAX``
+    numbers, or a fixed strategy)."""
+
+    steps: StepRows | None = None
 
 
 def _check_tie_break(tie_break, imdp, L, n, ctrl, horizon) -> EngineTies:
@@ -234,7 +292,8 @@ def _check_tie_break(tie_break, imdp, L, n, ctrl, horizon) -> EngineTies:
         raise InvalidInputError("tie_break must be the result of the optimistic solve of the same model (with "
                                 f"'upper' and 'strategy'); got {type(tie_break).__name__}")
     if horizon is not None:
-        return EngineTies(models=(imdp,), values=(None,), adv_max=(True,))
+        return EngineTies(models=(imdp,), values=(None,), adv_max=(True,),
+                          steps=(getattr(tie_break, "steps", None),))
     up = np.asarray(tie_break.upper, dtype=np.float64)
     st = np.asarray(tie_break.strategy)
     if L == 1 and up.shape == (n,):  # a single-layer ReachabilityResult
@@ -275,8 +334,12 @@ def _check_ties(ties: EngineTies, imdp, L, n, ctrl, horizon) -> EngineTies:
         if st.shape != (L, n) or not np.issubdtype(st.dtype, np.integer):
             raise DimensionError(f"tie_break strategy must be an ({L}, {n}) int array; got {st.dtype} {st.shape}")
         st = np.ascontiguousarray(st, dtype=np.int64)
+    steps = tuple(ties.steps) if ties.steps else (None,) * k
+    if len(steps) != k or not all(x is None or isinstance(x, StepRows) for x in steps):
+        raise InvalidInputError(f"tie_break steps must give a StepRows or None for each of the {k} keys; got "
+                                f"{ties.steps!r}")
     return EngineTies(models=tuple(ties.models), values=tuple(values), adv_max=tuple(bool(a) for a in ties.adv_max),
-                      strategy=st)
+                      strategy=st, steps=steps if horizon is not None else (None,) * k)
 
 
 def _key_rows(model, nxt, mask, values, adv_max, ctrl=Control.MAXIMISE):
@@ -346,30 +409,48 @@ def _lex_choice(rows_lo, score, state_ptr, arg, maximise=True):
     return out
 
 
-def _bounded(sw, V0, k, ctrl, strategy, tie_break=None):
+def _bounded(sw, V0, k, ctrl, strategy, tie_break=None, keep_steps=False):
     """k-step values by k exact Bellman steps, rounded down (lower) and up (upper).
 
     With ``tie_break`` (:class:`EngineTies`) the keys' k-step values are iterated alongside (the
     optimistic (max, max) values ``U_t`` for an optimistic result) and the decision with t steps to
     go is, among the rows within ``_TIE_TOL`` of the best lower row value (exactly least for a
     minimising controller), the best by the keys' rows ``B_row(U_{t-1})`` (no cycles to fear: the
-    strategy is time-varying and every chosen row is optimal for the lower recursion).
+    strategy is time-varying and every chosen row is optimal for the lower recursion).  A key whose
+    rows an earlier solve kept (:class:`StepRows` that :meth:`~StepRows.serves` it) reads them instead:
+    the same bits, one sweep per key and step fewer.  ``keep_steps``: keep this solve's upper rows.
     """
     lo = V0.copy()
     up = V0.copy()
-    keys = [] if tie_break is None else [Sweeper(m, sw.nxt, sw.active, ctrl, a, None)
-                                         for m, a in zip(tie_break.models, tie_break.adv_max)]
-    key_values = [V0.copy() for _ in keys]
     R = sw.m.n_choices
+    keys, kept = [], []
+    if tie_break is not None:
+        steps = tie_break.steps or (None,) * len(tie_break.models)
+        for m, a, st in zip(tie_break.models, tie_break.adv_max, steps):
+            if st is not None and st.serves(m, sw.nxt, sw.active, V0, ctrl, a, k):
+                keys.append(None)
+                kept.append(st.rows)
+            else:
+                keys.append(Sweeper(m, sw.nxt, sw.active, ctrl, a, None))
+                kept.append(None)
+    key_values = [None if ks is None else V0.copy() for ks in keys]
+    record = None
+    if keep_steps and ctrl != Control.FIXED and k * V0.shape[0] * R <= STEP_ROWS_MAX:
+        record = np.empty((k, V0.shape[0] * R))
     strat = np.zeros((k,) + V0.shape, dtype=np.int64)
     for t in range(1, k + 1):
         # with t steps to go the decision is the one taken at time k - t
         sl = None if strategy is None else (k - t if strategy.shape[0] == k else 0)
         new_lo, arg, rows_lo = sw.sweep(lo, -1, strat_layer=sl, want_rows=bool(keys))
-        up, _, _ = sw.sweep(up, +1, strat_layer=sl)
+        up, _, rows_up = sw.sweep(up, +1, strat_layer=sl, want_rows=record is not None)
+        if record is not None:
+            record[t - 1] = rows_up
         if keys:
             rows_k = []
             for i, ks in enumerate(keys):
+                if ks is None:  # kept by an earlier solve: B_row(u_{t-1}) of the same sweeps
+                    rows_k.append(kept[i][t - 1])
+                    continue
                 key_values[i], _, rows = ks.sweep(key_values[i], +1, want_rows=True)
                 rows_k.append(rows)
             score = _key_rank(rows_k, ctrl == Control.MAXIMISE).reshape(-1, R)
@@ -379,7 +460,15 @@ def _bounded(sw, V0, k, ctrl, strategy, tie_break=None):
     if ctrl == Control.FIXED:
         strat = np.broadcast_to(strategy, strat.shape).copy() if strategy.shape[0] == k else np.repeat(strategy, k, 0)
     prec = float(np.max(up - lo)) if up.size else 0.0
-    return ReachabilityResult(lower=lo, upper=up, strategy=strat, iterations=k, precision=prec, converged=True)
+    if not keep_steps:
+        return ReachabilityResult(lower=lo, upper=up, strategy=strat, iterations=k, precision=prec, converged=True)
+    steps = None
+    if record is not None:
+        record.setflags(write=False)
+        steps = StepRows(model=sw.m, nxt=sw.nxt.copy(), active=np.array(sw.active, dtype=bool), V0=V0.copy(),
+                         ctrl=int(ctrl), adv_max=bool(sw.adv_max), rows=record)
+    return BoundedResult(lower=lo, upper=up, strategy=strat, iterations=k, precision=prec, converged=True,
+                         steps=steps)
 
 
 def _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, precision, max_iterations, method,
@@ -538,4 +627,4 @@ _TIE_TOL = 1e-12
 _KEY_TOL = 1e-7
 
 
-__all__ = ["solve_layered", "METHODS", "EngineTies"]
+__all__ = ["solve_layered", "METHODS", "EngineTies", "StepRows", "BoundedResult", "STEP_ROWS_MAX"]

@@ -59,6 +59,10 @@ class ProductResult:
     precision : float
         Achieved ``max(upper - lower)``.
     converged : bool
+    steps : engine.StepRows or None
+        A k-step solve with ``keep_steps``: the row values of its upper sweeps, which a tie key of a later
+        solve (:class:`TieKey` with this result) reads instead of iterating the same values again; None
+        otherwise.
     """
 
     lower: np.ndarray
@@ -70,6 +74,7 @@ class ProductResult:
     iterations: int
     precision: float
     converged: bool
+    steps: object = None
 
 
 @dataclass(frozen=True)
@@ -106,7 +111,8 @@ class TieKey:
     e.g. the nominal model of :mod:`robust_imdp.abstraction.nominal`. Unbounded: the rows are valued
     against ``result.upper`` (optimistic) or ``result.lower`` (pessimistic) of the reach value, and under
     the safety reading against the probability of a bad node, one minus them. k steps: the model's k-step
-    values are iterated alongside (``result`` is not read).
+    values are iterated alongside, or read from ``result.steps`` where ``result`` kept the same iteration
+    (``solve_product(model, ..., adversary=adversary, keep_steps=True)``: its upper values are the key's).
     """
 
     model: IMDP
@@ -143,7 +149,7 @@ def _engine_ties(ties, imdp, nxt, safety, horizon):
     if not keys or not all(isinstance(k, TieKey) for k in keys):
         raise InvalidInputError(f"tie_break.keys must be a non-empty sequence of TieKey; got {ties.keys!r}")
     S, n = nxt.shape
-    models, values, adv_max = [], [], []
+    models, values, adv_max, steps = [], [], [], []
     for i, k in enumerate(keys):
         if not isinstance(k.model, IMDP):
             raise InvalidInputError(f"tie_break key {i}: model must be an IMDP; got {type(k.model).__name__}")
@@ -153,6 +159,8 @@ def _engine_ties(ties, imdp, nxt, safety, horizon):
         adv_max.append(optimistic != safety)
         if horizon is not None:
             values.append(None)
+            # the rows the key's solve kept, if it kept them (the engine checks they are this key's)
+            steps.append(getattr(k.result, "steps", None))
             continue
         v = np.asarray(k.result.upper if optimistic else k.result.lower, dtype=np.float64)
         if v.shape != (S, n):
@@ -164,7 +172,8 @@ def _engine_ties(ties, imdp, nxt, safety, horizon):
         st = np.asarray(keys[0].result.strategy)
         st = st if st.shape == (S, n) else None
     return EngineTies(models=tuple(models), values=tuple(values), adv_max=tuple(adv_max),
-                      strategy=None if st is None or horizon is not None else np.asarray(st))
+                      strategy=None if st is None or horizon is not None else np.asarray(st),
+                      steps=tuple(steps) if horizon is not None else ())
 
 
 def _dfa_arrays(imdp: IMDP, letters, dfa, avoid):
@@ -220,7 +229,8 @@ def _result(res, initial_state, safety=False) -> ProductResult:
         lower, upper = complement_down(res.upper), complement_up(res.lower)
     return ProductResult(lower=lower, upper=upper, strategy=res.strategy, initial_state=initial_state,
                          initial_lower=lower[initial_state, ar], initial_upper=upper[initial_state, ar],
-                         iterations=res.iterations, precision=res.precision, converged=res.converged)
+                         iterations=res.iterations, precision=res.precision, converged=res.converged,
+                         steps=getattr(res, "steps", None))
 
 
 def _reading(semantics) -> bool:
@@ -239,7 +249,7 @@ def _safety_nodes(target, zero):
 
 def solve_product(imdp: IMDP, letters, dfa, *, avoid=None, adversary="pessimistic", horizon=None,
                   precision=1e-8, max_iterations=100_000, method="vi", tie_break=None,
-                  semantics="reach") -> ProductResult:
+                  semantics="reach", keep_steps=False) -> ProductResult:
     """Maximal probability of satisfying the specification, on the lazy product.
 
     ``semantics="reach"`` (the paper's reading): the probability of reaching an accepting DFA state.
@@ -274,6 +284,10 @@ def solve_product(imdp: IMDP, letters, dfa, *, avoid=None, adversary="pessimisti
         value), under either reading.  Without it ties go to the first row.
     semantics : {"reach", "safety"}
         The reading of the specification (above).
+    keep_steps : bool
+        With a horizon: keep the row values of the upper iteration (``ProductResult.steps``, at most
+        ``engine.STEP_ROWS_MAX`` numbers), so that a later solve with a :class:`TieKey` of this result (the
+        same model and adversary) reads them instead of iterating them again; the values are the same.
 
     Returns
     -------
@@ -291,11 +305,13 @@ def solve_product(imdp: IMDP, letters, dfa, *, avoid=None, adversary="pessimisti
         target, zero = _safety_nodes(target, zero)
         res = solve_layered(imdp, nxt, target, zero, ctrl=Control.MINIMISE, adv_max=pessimistic, horizon=horizon,
                             precision=precision, max_iterations=max_iterations, method=method,
-                            tie_break=None if tie_break is None else _engine_ties(tie_break, imdp, nxt, True, horizon))
+                            tie_break=None if tie_break is None else _engine_ties(tie_break, imdp, nxt, True, horizon),
+                            keep_steps=keep_steps and horizon is not None)
         return _result(res, init, safety=True)
     res = solve_layered(imdp, nxt, target, zero, ctrl=Control.MAXIMISE, adv_max=not pessimistic, horizon=horizon,
                         precision=precision, max_iterations=max_iterations, method=method,
-                        tie_break=None if tie_break is None else _engine_ties(tie_break, imdp, nxt, False, horizon))
+                        tie_break=None if tie_break is None else _engine_ties(tie_break, imdp, nxt, False, horizon),
+                        keep_steps=keep_steps and horizon is not None)
     return _result(res, init)
 
 

@@ -423,7 +423,10 @@ def _solve(imdp, letters, dfa, n_cells, precision, kw, nominal=None):
     """The product solves of :func:`synthesize`: (optimistic, robust, ev_low, ev_up, strategy,
     strategy_choice, extra runs)."""
     solve_product, evaluate_product_strategy = _solvers(imdp)
-    optimistic = solve_product(imdp, letters, dfa, adversary="optimistic", **kw)
+    # k steps, joint: the optimistic solve keeps its upper rows, which the keys of the nominal and the robust
+    # solve read instead of iterating the same values again (solvers.product.TieKey; the same bits)
+    keep = {} if isinstance(imdp, FactoredIMDP) or kw.get("horizon") is None else {"keep_steps": True}
+    optimistic = solve_product(imdp, letters, dfa, adversary="optimistic", **kw, **keep)
     safety = kw["semantics"] == "safety"
     if isinstance(imdp, FactoredIMDP) and imdp.n_modes == 1:
         # one mode: every strategy is that mode, so the robust solve is its pessimistic evaluation and the

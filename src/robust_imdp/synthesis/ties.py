@@ -84,6 +84,9 @@ def _solve(model, letters, dfa, *, adversary, tie_break, kw):
         kw = {k: v for k, v in kw.items() if k != "method"}
         return solve_factored_product(model, letters, dfa, adversary=adversary, tie_break=tie_break,
                                       control="maximize", **kw)
+    if kw.get("horizon") is not None:
+        # k steps: keep the upper rows, which the robust solve's nominal key reads (solvers.product.TieKey)
+        kw = dict(kw, keep_steps=True)
     return _product.solve_product(model, letters, dfa, adversary=adversary, tie_break=tie_break, **kw)
 
 
