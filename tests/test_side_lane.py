@@ -5,6 +5,7 @@ cvxpy)."""
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import operator
@@ -142,9 +143,21 @@ def test_a_run_with_the_side_lane_gives_the_one_core_result(monkeypatch):
         return out
 
     monkeypatch.setattr(parallel.InProcess, "use_side_lane", spy)
+    from robust_imdp.pipeline import nominal_stage
+
+    pending = []
+    start = nominal_stage.start_nominal
+    monkeypatch.setattr(nominal_stage, "start_nominal", lambda *a: pending.append(start(*a)) or pending[-1])
     beside = synthesize_from_data(p, progress=False, advice=False, margins=False)
     assert lanes and lanes[0] is not None  # the check ran in a helper
+    assert pending and pending[0] is not None and pending[0].future.done()  # so did the nominal model
     assert _arrays(beside) == _arrays(one)
+    # the strategy above ranks modes of equal robust value by the nominal model: the one built beside must be
+    # the one built in process, bit for bit
+    nominal_one = nominal_stage.nominal_model(p, one.partition)
+    nominal_beside = pending[0].future.result()
+    for name in ("state_ptr", "row_ptr", "col", "lower", "upper", "floor", "actions"):
+        assert getattr(nominal_one, name).tobytes() == getattr(nominal_beside, name).tobytes(), name
     with pytest.raises(AssumptionError) as refused_beside:
         synthesize_from_data(_problem(rkhs_bound=0.5), progress=False, advice=False, margins=False)
     with pytest.raises(AssumptionError) as refused_one:
@@ -186,3 +199,49 @@ def test_the_command_line_draws_the_figures_in_helpers_with_the_same_bytes(tmp_p
     for f in pngs:
         assert (tmp_path / "beside" / f).read_bytes() == (tmp_path / "one" / f).read_bytes(), f
     assert (tmp_path / "beside" / "result.npz").exists() and not list((tmp_path / "beside").glob(".*"))
+
+
+class _Unreadable:
+    """Pickles in the helper, fails to unpickle here."""
+
+    def __reduce__(self):
+        return (_refuse, ())
+
+
+def _refuse():
+    raise ValueError("cannot be rebuilt here")
+
+
+def _make_unreadable():
+    return _Unreadable()
+
+
+def test_an_answer_that_cannot_be_read_back_fails_its_task_and_keeps_the_helper(monkeypatch):
+    monkeypatch.setenv("PYTHONPATH", str(Path(__file__).parent))  # the helper imports this module for the task
+    with SideLane(1) as lane:
+        with pytest.raises(SideLaneError, match="could not be read back"):
+            lane.submit(_make_unreadable).result(timeout=60)
+        assert lane.submit(math.factorial, 5).result(timeout=60) == 120  # the helper is still there
+
+
+def test_an_imdp_goes_through_a_helper_and_comes_back_the_same_and_read_only():
+    from robust_imdp.models.imdp import IMDP
+
+    m = IMDP.from_dense(lower=[[[0.5, 0.3]], [[0.0, 1.0]]], upper=[[[0.7, 0.5]], [[0.0, 1.0]]])
+    with SideLane(1) as lane:
+        back = lane.submit(copy.copy, m)  # pickled there and back
+        c = back.result(timeout=60)
+    assert isinstance(c, IMDP) and (c.n_states, c.n_choices) == (m.n_states, m.n_choices)
+    for name in IMDP.__slots__[2:]:
+        assert getattr(c, name).tobytes() == getattr(m, name).tobytes(), name
+    with pytest.raises(ValueError):
+        c.upper[0] = 1.0
+    with pytest.raises(AttributeError):
+        c.n_states = 3
+
+
+def test_a_task_the_helper_cannot_read_fails_and_keeps_the_helper():
+    with SideLane(1) as lane:  # this test module is not importable in the helper
+        with pytest.raises(SideLaneError, match="could not be read by the helper"):
+            lane.submit(_make_unreadable).result(timeout=60)
+        assert lane.submit(math.factorial, 5).result(timeout=60) == 120

@@ -272,6 +272,11 @@ class IMDP:
     def __setattr__(self, name, value):  # invalid objects cannot exist: no mutation
         raise AttributeError(f"IMDP is immutable; cannot set {name!r}")
 
+    def __reduce__(self):
+        """Pickled as its arrays (a side-lane helper or a Dask worker sends models back): the copy is the same
+        validated model, read-only like the original (the default pickling would set the slots one by one)."""
+        return _unpickle_imdp, (type(self), {k: getattr(self, k) for k in self.__slots__})
+
     @property
     def nnz(self) -> int:
         """Number of stored entries."""
@@ -319,3 +324,14 @@ class IMDP:
 
 
 __all__ = ["IMDP", "ROW_SUM_TOL"]
+
+
+def _unpickle_imdp(cls, fields: dict):
+    """The model :meth:`IMDP.__reduce__` pickled: its fields as they were (validated when it was built), the arrays
+    read-only."""
+    self = object.__new__(cls)
+    for k, v in fields.items():
+        if isinstance(v, np.ndarray):
+            v.flags.writeable = False
+        object.__setattr__(self, k, v)
+    return self

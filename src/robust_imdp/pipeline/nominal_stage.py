@@ -17,7 +17,7 @@ import numpy as np
 from robust_imdp.pipeline.bound_stage import _fitted, _residual_data
 from robust_imdp.pipeline.problem import Problem
 
-__all__ = ["nominal_dynamics", "nominal_images", "nominal_model", "run_nominal", "MAX_NOMINAL_ENTRIES"]
+__all__ = ["nominal_dynamics", "nominal_images", "nominal_model", "run_nominal", "start_nominal", "MAX_NOMINAL_ENTRIES"]
 
 #: Points evaluated at once by a dynamics without a lattice (memory only).
 _BLOCK_POINTS = 1 << 15
@@ -101,11 +101,69 @@ def nominal_model(problem: Problem, partition, dynamics=None, per_axis: int | No
     return nominal_abstraction(partition, images, problem.noise, form="factored")
 
 
-def run_nominal(problem: Problem, partition, log, dynamics=None):
+def _nominal_task(problem: Problem, partition, *, threads=1):
+    """:func:`nominal_model` as a side-lane task (a module-level function: it runs in a helper process)."""
+    return nominal_model(problem, partition)
+
+
+def _wanted(problem: Problem, partition, dfa) -> bool:
+    """Whether the synthesis of this run will take a nominal model (``synthesis.ties.takes_nominal`` of the model
+    the run is about to build, read from the problem before it exists: the form of the grid's abstraction
+    (``Problem.form_choice``; refined cells are joint), the modes, the horizon and the reading)."""
+    from robust_imdp.models.geometry import Partition
+    from robust_imdp.spec.api import resolve_semantics
+
+    form = problem.form_choice()[0] if isinstance(partition, Partition) else "joint"
+    if form != "factored":
+        return True
+    return (len(problem.mode_names) > 1 and problem.horizon is None
+            and resolve_semantics(dfa, problem.semantics)[0] != "safety")
+
+
+class _Beside:
+    """A nominal model computed in a side-lane helper process (:func:`start_nominal`): :meth:`result` waits for it
+    and returns ``(True, model or None)``, or ``(False, None)`` when the lane could not run it (the caller then
+    builds it in process); the task's own failure is raised."""
+
+    def __init__(self, future):
+        self.future = future
+
+    def result(self) -> tuple:
+        from robust_imdp.pipeline.parallel import SideLaneError
+
+        try:
+            return True, self.future.result()
+        except SideLaneError:  # the lane is gone (a helper ended): built again in process
+            return False, None
+
+
+def start_nominal(problem: Problem, partition, dfa, run, log):
+    """Start the run's nominal model beside the bound stage (in the side lane's helper process, one numba and
+    BLAS thread: the same bits as in process, ``tests/test_side_lane.py``) where the run has one: on several local
+    cores from ``parallel.SIDE_MIN_CELL_MODES`` (cell, mode) pairs on, when the synthesis will take one
+    (:func:`_wanted`). Returns a pending model for :func:`run_nominal` (``beside=``), or None (built in process
+    when the synthesis asks for it). The nominal model depends on the problem and the cells only, not on the
+    bound stage: run beside it, its seconds leave the run's serial part (README, "Big problems")."""
+    from robust_imdp.pipeline.parallel import SIDE_MIN_CELL_MODES, InProcess, SideLaneError
+
+    if partition.n_cells * len(problem.mode_names) < SIDE_MIN_CELL_MODES or not _wanted(problem, partition, dfa):
+        return None
+    sched = run.scheduler(log)
+    if not isinstance(sched, InProcess) or not sched.use_side_lane():
+        return None
+    try:
+        return _Beside(sched.lane.submit(_nominal_task, problem, partition))
+    except SideLaneError:
+        return None
+
+
+def run_nominal(problem: Problem, partition, log, dynamics=None, beside=None):
     """The run's stage ``nominal``: :func:`nominal_model` of ``partition``, timed, with a line when the run has
-    none (too large)."""
+    none (too large). ``beside``: the pending model of :func:`start_nominal` (its stage time is the wait)."""
     with log.stage("nominal"):
-        model = nominal_model(problem, partition, dynamics)
+        got, model = (False, None) if beside is None else beside.result()
+        if not got:
+            model = nominal_model(problem, partition, dynamics)
     if model is None:
         log.info(f"no nominal model: more than {MAX_NOMINAL_ENTRIES} entries; modes of equal robust value are "
                  "ranked by their optimistic value")

@@ -279,8 +279,9 @@ def _send(stream, obj) -> None:
     stream.flush()
 
 
-def _receive(stream):
-    """The next message, or raise EOFError when the other side has closed the pipe."""
+def _receive(stream, raw: bool = False):
+    """The next message (its pickled bytes with ``raw``), or raise EOFError when the other side has closed the
+    pipe."""
     import pickle
 
     head = stream.read(_HEADER)
@@ -290,7 +291,7 @@ def _receive(stream):
     data = stream.read(n)
     if len(data) < n:
         raise EOFError("the pipe was closed in a message")
-    return pickle.loads(data)
+    return data if raw else pickle.loads(data)
 
 
 class _Helper:
@@ -316,12 +317,19 @@ class _Helper:
         self.reader.start()
 
     def _read(self) -> None:
+        import pickle
+
         while True:
             try:
-                tid, ok, value, text = _receive(self.proc.stdout)
+                data = _receive(self.proc.stdout, raw=True)
             except BaseException as exc:  # the helper died or the lane closed it
                 self.lane._lost(self, exc)
                 return
+            try:
+                tid, ok, value, text = pickle.loads(data)
+            except Exception as exc:  # a whole answer this process cannot unpickle: the task's failure, not the helper's
+                tid, ok, text = None, False, ""  # None: the one task this helper runs
+                value = SideLaneError(f"the answer could not be read back: {type(exc).__name__}: {exc}")
             self.lane._done(self, tid, ok, value, text)
 
 
@@ -396,7 +404,7 @@ class SideLane:
             if not self._closed:
                 self._idle.append(helper)
                 self._dispatch()
-        if current is None or current[0] != tid:
+        if current is None or (tid is not None and current[0] != tid):
             return
         fut = current[1]
         if ok:
@@ -522,11 +530,20 @@ def _helper_main() -> None:
         except Exception:  # the task that needs it will say why
             pass
     source = sys.stdin.buffer
+    import pickle
+
     while True:
         try:
-            tid, fn, args, kwargs = _receive(source)
+            data = _receive(source, raw=True)
         except EOFError:
             return
+        try:
+            tid, fn, args, kwargs = pickle.loads(data)
+        except Exception as exc:  # a task this process cannot unpickle (e.g. its module is not importable here)
+            # its id is inside what could not be read: None stands for the one task a helper runs at a time
+            _send(proto, (None, False, SideLaneError(f"the task could not be read by the helper: "
+                                                     f"{type(exc).__name__}: {exc}"), ""))
+            continue
         try:
             if isinstance(fn, str):  # "module:function"
                 module, _, name = fn.partition(":")

@@ -229,7 +229,9 @@ def _build_abstraction(problem: Problem, partition, log: _Log, cache_dir=None, r
     return abstraction, diagnostics, (cell_bounds if error_models is None else None)
 
 
-def _synthesize(problem: Problem, partition, abstraction, dfa, log: _Log):
+def _synthesize(problem: Problem, partition, abstraction, dfa, log: _Log, nominal_beside=None):
+    """The solve of the run (``synthesis.core.synthesize``) with its nominal model (``nominal_stage.run_nominal``;
+    ``nominal_beside``: the one ``nominal_stage.start_nominal`` started beside the bound stage): ``(syn, classes)``."""
     from robust_imdp.abstraction.factored import abstraction_model
     from robust_imdp.pipeline.nominal_stage import run_nominal
     from robust_imdp.spec.api import resolve_semantics
@@ -239,7 +241,7 @@ def _synthesize(problem: Problem, partition, abstraction, dfa, log: _Log):
     model = abstraction_model(abstraction)
     nominal = None  # ranks modes of equal robust value (synthesis.ties); not built where the synthesis takes none
     if takes_nominal(model, horizon=problem.horizon, semantics=resolve_semantics(dfa, problem.semantics)[0]):
-        nominal = run_nominal(problem, partition, log)
+        nominal = run_nominal(problem, partition, log, beside=nominal_beside)
     with log.stage("synthesize"):
         syn = synthesize(model, partition.labels, partition.atoms, dfa,
                          threshold=problem.threshold, horizon=problem.horizon,
@@ -383,7 +385,7 @@ def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cac
     log.info(f"abstraction form: {form} ({why})")
 
     abstraction, from_cache, diagnostics, cell_bounds = None, False, {}, None
-    cache_file = diag_file = None
+    cache_file = diag_file = nominal = None
     if abstraction_cache is not None:
         cache_file = Path(abstraction_cache) / f"abstraction-{abstraction_key(problem)}.npz"
         diag_file = cache_file.with_suffix(".json")
@@ -395,13 +397,16 @@ def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cac
                 from_cache = True
                 log.info(f"reused abstraction {cache_file.name}")
     if abstraction is None:
+        from robust_imdp.pipeline.nominal_stage import start_nominal
+
+        nominal = start_nominal(problem, partition, dfa, run, log)  # beside the bound stage where it can
         abstraction, diagnostics, cell_bounds = _build_abstraction(problem, partition, log, abstraction_cache, run)
         if cache_file is not None:
             _save_abstraction_entry(cache_file, abstraction, diagnostics)
     why = diagnostics_line(diagnostics)
     if why:
         log.info(why)
-    syn, classes = _synthesize(problem, partition, abstraction, dfa, log)
+    syn, classes = _synthesize(problem, partition, abstraction, dfa, log, nominal)
     _notify_solved(problem, partition, abstraction, dfa, syn, classes, run, from_cache, diagnostics)
     # known dynamics: no data and no assumption, nothing the advice's levers could change
     advice = {} if problem.known else run_advice(problem, partition, abstraction, cell_bounds, dfa, classes, log, run,
