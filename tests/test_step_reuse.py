@@ -18,6 +18,7 @@ from robust_imdp.solvers.common import Control
 from robust_imdp.solvers.sweep import Sweeper
 from robust_imdp.spec.dfa import ltlf_to_dfa
 from robust_imdp._fp import complement_down
+from robust_imdp.errors import InvalidInputError
 from robust_imdp.synthesis.core import remap_letters, synthesize
 
 from test_nominal_ties import ATOMS, LABELS, NORTH, EAST, S, obstacle_models
@@ -122,10 +123,11 @@ def test_synthesis_with_reuse_equals_recomputation(seed, semantics, with_nominal
             np.testing.assert_array_equal(a, b)
     for name in ("p_low", "p_up", "p_up_star", "error", "strategy"):
         np.testing.assert_array_equal(getattr(reused, name), getattr(again, name), err_msg=name)
-    assert [(r.name, r.iterations, r.max_gap) for r in reused.runs] == [(r.name, r.iterations, r.max_gap)
-                                                                        for r in again.runs]
+    assert [(r.name, r.iterations, r.ends) for r in reused.runs] == [(r.name, r.iterations, r.ends)
+                                                                     for r in again.runs]
+    np.testing.assert_array_equal([r.max_gap for r in reused.runs], [r.max_gap for r in again.runs])
     layers = counts[False][0] - counts[True][0]
-    saved_per_layer_step = 3 if with_nominal else 1
+    saved_per_layer_step = 2 if with_nominal else 1
     assert layers > 0 and layers % (saved_per_layer_step * k) == 0, (counts, with_nominal)
 
 
@@ -192,3 +194,71 @@ def test_a_perturbed_record_changes_the_strategy(semantics):
                           ctrl=nom.steps.ctrl, adv_max=nom.steps.adv_max, rows=rows)
     from dataclasses import replace
     assert first_move(replace(nom, steps=bad)) == EAST
+
+
+# --------------------------------------------------------------------------- k steps: only the ends that are read
+def _full_and_part(imdp, letters, dfa, pk, need, **kw):
+    return (product.solve_product(imdp, letters, dfa, **pk, **kw),
+            product.solve_product(imdp, letters, dfa, **pk, **kw, need=need))
+
+
+@pytest.mark.parametrize("semantics", ["reach", "safety"])
+@pytest.mark.parametrize("adversary", ["optimistic", "pessimistic"])
+def test_a_solve_of_some_ends_gives_their_bits_and_trivial_sound_others(semantics, adversary):
+    """With ``need`` a k-step solve gives the needed ends (and the strategy, when needed) bit for bit as the full
+    solve, and the others as their trivial bounds, which bracket the full solve's (0 <= lower, upper <= 1, the
+    fixed nodes exact)."""
+    imdp, _, labels, atoms, dfa, n_cells = _random_case(5, semantics)
+    letters = _letters(labels, atoms, dfa)
+    pk = dict(avoid=np.array([n_cells]), horizon=4, semantics=semantics, adversary=adversary)
+    for need in [("lower",), ("upper",), ("lower", "strategy"), ("upper", "strategy"), ()]:
+        full, part = _full_and_part(imdp, letters, dfa, pk, need)
+        assert full.ends == "both"
+        for end in ("lower", "upper"):
+            if end in need:
+                np.testing.assert_array_equal(getattr(part, end), getattr(full, end))
+        if "strategy" in need:
+            np.testing.assert_array_equal(part.strategy, full.strategy)
+        assert np.all(part.lower <= full.lower) and np.all(part.upper >= full.upper)
+        assert np.all(part.lower >= 0.0) and np.all(part.upper <= 1.0)
+        assert part.ends in ("both", "lower", "upper")
+        if part.ends == "both":
+            assert part.precision == full.precision
+        for end in ("lower", "upper"):
+            if end not in need and part.ends != "both" and part.ends != end:
+                # a trivial end: the fixed nodes' values (0 or 1) and 0 / 1 elsewhere
+                assert set(np.unique(getattr(part, end))) <= {0.0, 1.0}
+    # evaluations of a fixed strategy likewise
+    st = product.solve_product(imdp, letters, dfa, **{**pk, "adversary": "pessimistic"}).strategy
+    for need in [("lower",), ("upper",)]:
+        full = product.evaluate_product_strategy(imdp, letters, dfa, st, **pk)
+        part = product.evaluate_product_strategy(imdp, letters, dfa, st, **pk, need=need)
+        np.testing.assert_array_equal(getattr(part, need[0]), getattr(full, need[0]))
+        assert part.ends == need[0] and np.all(part.lower <= full.lower) and np.all(part.upper >= full.upper)
+
+
+def test_need_names_its_parts():
+    imdp, _, labels, atoms, dfa, n_cells = _random_case(0, "reach")
+    with pytest.raises(InvalidInputError, match="need"):
+        product.solve_product(imdp, _letters(labels, atoms, dfa), dfa, avoid=np.array([n_cells]), horizon=2,
+                              need=("lower", "values"))
+
+
+@pytest.mark.parametrize("semantics", ["reach", "safety"])
+def test_synthesis_runs_say_which_ends_they_iterated(semantics):
+    """k steps: the robust solve iterates its lower end (and under safety, where its strategy comes from the
+    engine's other end, both), the evaluation against the pessimistic adversary both (its width is the safeguard's
+    tolerance); a one-ended run reports max_gap nan, a two-ended one its width. Unbounded: every run both."""
+    imdp, nominal, labels, atoms, dfa, n_cells = _random_case(1, semantics)
+    for horizon in (3, None):
+        res = synthesize(imdp, labels, atoms, dfa, threshold=0.3, horizon=horizon, outside_state=n_cells,
+                         semantics=semantics, nominal=nominal)
+        runs = {r.name: r for r in res.runs}
+        if horizon is None:
+            assert all(r.ends == "both" and np.isfinite(r.max_gap) for r in res.runs)
+            continue
+        assert runs["evaluate_pessimistic"].ends == "both"
+        assert runs["robust"].ends == ("lower" if semantics == "reach" else "both")
+        assert runs["evaluate_optimistic"].ends == "upper" and runs["nominal"].ends != "both"
+        for r in res.runs:
+            assert np.isnan(r.max_gap) == (r.ends != "both")

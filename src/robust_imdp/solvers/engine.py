@@ -150,7 +150,7 @@ from robust_imdp.solvers.sweep import Sweeper
 
 def solve_layered(imdp, nxt, target, zero, *, ctrl, adv_max, horizon=None, precision=1e-8,
                   max_iterations=100_000, strategy=None, method="vi", tie_break=None,
-                  keep_steps=False) -> ReachabilityResult:
+                  keep_steps=False, ends="both") -> ReachabilityResult:
     """Engine shared by :func:`~robust_imdp.solvers.api.solve_reachability`,
     :func:`~robust_imdp.solvers.api.evaluate_strategy` and the lazy product.
 
@@ -195,7 +195,10 @@ def solve_layered(imdp, nxt, target, zero, *, ctrl, adv_max, horizon=None, preci
         tie_break = _check_tie_break(tie_break, imdp, L, n, ctrl, horizon)
     sw = Sweeper(imdp, nxt, active, ctrl, adv_max, strategy)
     if horizon is not None:
-        return _bounded(sw, V0, horizon, ctrl, strategy, tie_break, keep_steps)
+        if ends not in ("both", "lower", "upper"):
+            raise InvalidInputError(f"ends must be 'both', 'lower' or 'upper'; got {ends!r}")
+        return _bounded(sw, V0, horizon, ctrl, strategy, tie_break, keep_steps, lower=ends != "upper",
+                        upper=ends != "lower" or keep_steps)
     return _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, precision, max_iterations,
                       method, tie_break)
 
@@ -276,10 +279,12 @@ class StepRows:
 @dataclass(frozen=True)
 class BoundedResult(ReachabilityResult):
     """A k-step :class:`~robust_imdp.solvers.common.ReachabilityResult` with the row values of its upper
-    sweeps (``keep_steps``); ``steps`` is None where they were not kept (more than ``STEP_ROWS_MAX``
-    numbers, or a fixed strategy)."""
+    sweeps (``keep_steps``; ``steps`` is None where they were not kept: more than ``STEP_ROWS_MAX``
+    numbers, or a fixed strategy) and the ``ends`` of the bracket that were iterated ("both", "lower",
+    "upper"; the other end is its trivial bound)."""
 
     steps: StepRows | None = None
+    ends: str = "both"
 
 
 def _check_tie_break(tie_break, imdp, L, n, ctrl, horizon) -> EngineTies:
@@ -409,7 +414,7 @@ def _lex_choice(rows_lo, score, state_ptr, arg, maximise=True):
     return out
 
 
-def _bounded(sw, V0, k, ctrl, strategy, tie_break=None, keep_steps=False):
+def _bounded(sw, V0, k, ctrl, strategy, tie_break=None, keep_steps=False, lower=True, upper=True):
     """k-step values by k exact Bellman steps, rounded down (lower) and up (upper).
 
     With ``tie_break`` (:class:`EngineTies`) the keys' k-step values are iterated alongside (the
@@ -419,12 +424,15 @@ def _bounded(sw, V0, k, ctrl, strategy, tie_break=None, keep_steps=False):
     strategy is time-varying and every chosen row is optimal for the lower recursion).  A key whose
     rows an earlier solve kept (:class:`StepRows` that :meth:`~StepRows.serves` it) reads them instead:
     the same bits, one sweep per key and step fewer.  ``keep_steps``: keep this solve's upper rows.
+    ``lower``/``upper`` False: that end is not iterated and stays its trivial sound bound (``ends`` of
+    :func:`solve_layered`); without the lower end the strategy is the upper sweeps' rows, keys unread.
     """
     lo = V0.copy()
-    up = V0.copy()
+    # the trivial bounds of the ends not iterated: values are in [0, 1], targets 1 and zero nodes 0 exactly
+    up = V0.copy() if upper else np.where(sw.active, 1.0, V0)
     R = sw.m.n_choices
     keys, kept = [], []
-    if tie_break is not None:
+    if tie_break is not None and lower:
         steps = tie_break.steps or (None,) * len(tie_break.models)
         for m, a, st in zip(tie_break.models, tie_break.adv_max, steps):
             if st is not None and st.serves(m, sw.nxt, sw.active, V0, ctrl, a, k):
@@ -441,10 +449,14 @@ def _bounded(sw, V0, k, ctrl, strategy, tie_break=None, keep_steps=False):
     for t in range(1, k + 1):
         # with t steps to go the decision is the one taken at time k - t
         sl = None if strategy is None else (k - t if strategy.shape[0] == k else 0)
-        new_lo, arg, rows_lo = sw.sweep(lo, -1, strat_layer=sl, want_rows=bool(keys))
-        up, _, rows_up = sw.sweep(up, +1, strat_layer=sl, want_rows=record is not None)
-        if record is not None:
-            record[t - 1] = rows_up
+        if lower:
+            new_lo, arg, rows_lo = sw.sweep(lo, -1, strat_layer=sl, want_rows=bool(keys))
+        if upper:
+            up, arg_up, rows_up = sw.sweep(up, +1, strat_layer=sl, want_rows=record is not None)
+            if record is not None:
+                record[t - 1] = rows_up
+            if not lower:
+                arg = arg_up
         if keys:
             rows_k = []
             for i, ks in enumerate(keys):
@@ -455,12 +467,14 @@ def _bounded(sw, V0, k, ctrl, strategy, tie_break=None, keep_steps=False):
                 rows_k.append(rows)
             score = _key_rank(rows_k, ctrl == Control.MAXIMISE).reshape(-1, R)
             arg = _lex_choice(rows_lo.reshape(-1, R), score, sw.m.state_ptr, arg, ctrl == Control.MAXIMISE)
-        lo = new_lo
+        if lower:
+            lo = new_lo
         strat[k - t] = arg
     if ctrl == Control.FIXED:
         strat = np.broadcast_to(strategy, strat.shape).copy() if strategy.shape[0] == k else np.repeat(strategy, k, 0)
     prec = float(np.max(up - lo)) if up.size else 0.0
-    if not keep_steps:
+    ends = "both" if lower and upper else ("lower" if lower else "upper")
+    if not keep_steps and ends == "both":
         return ReachabilityResult(lower=lo, upper=up, strategy=strat, iterations=k, precision=prec, converged=True)
     steps = None
     if record is not None:
@@ -468,7 +482,7 @@ def _bounded(sw, V0, k, ctrl, strategy, tie_break=None, keep_steps=False):
         steps = StepRows(model=sw.m, nxt=sw.nxt.copy(), active=np.array(sw.active, dtype=bool), V0=V0.copy(),
                          ctrl=int(ctrl), adv_max=bool(sw.adv_max), rows=record)
     return BoundedResult(lower=lo, upper=up, strategy=strat, iterations=k, precision=prec, converged=True,
-                         steps=steps)
+                         steps=steps, ends=ends)
 
 
 def _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, precision, max_iterations, method,

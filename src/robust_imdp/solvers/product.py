@@ -63,6 +63,9 @@ class ProductResult:
         A k-step solve with ``keep_steps``: the row values of its upper sweeps, which a tie key of a later
         solve (:class:`TieKey` with this result) reads instead of iterating the same values again; None
         otherwise.
+    ends : {"both", "lower", "upper"}
+        The ends of the bracket that were iterated: "both", except for a k-step solve with ``need``, where the
+        other end is its trivial sound bound.
     """
 
     lower: np.ndarray
@@ -75,6 +78,7 @@ class ProductResult:
     precision: float
     converged: bool
     steps: object = None
+    ends: str = "both"
 
 
 @dataclass(frozen=True)
@@ -230,7 +234,28 @@ def _result(res, initial_state, safety=False) -> ProductResult:
     return ProductResult(lower=lower, upper=upper, strategy=res.strategy, initial_state=initial_state,
                          initial_lower=lower[initial_state, ar], initial_upper=upper[initial_state, ar],
                          iterations=res.iterations, precision=res.precision, converged=res.converged,
-                         steps=getattr(res, "steps", None))
+                         steps=getattr(res, "steps", None), ends=_SWAP[getattr(res, "ends", "both")] if safety
+                         else getattr(res, "ends", "both"))
+
+
+#: The satisfaction bracket's end of each end of the engine's under the safety reading (one minus it).
+_SWAP = {"both": "both", "lower": "upper", "upper": "lower"}
+
+#: What a k-step solve must compute by default (``need`` of :func:`solve_product`).
+NEED_ALL = ("lower", "upper", "strategy")
+
+
+def _engine_ends(need, safety, keep_steps, fixed=False) -> str:
+    """The engine's ``ends`` (its terms: the reach value, or under the safety reading the probability of a bad
+    node, whose ends are the satisfaction bracket's swapped) for what the caller ``need`` s of the result: the
+    strategy comes from the engine's lower iteration, the kept rows from its upper one."""
+    need = set(need)
+    bad = need - set(NEED_ALL)
+    if bad:
+        raise InvalidInputError(f"need must be a subset of {NEED_ALL}; got {sorted(need)}")
+    lo = ("lower" in need and not safety) or ("upper" in need and safety) or ("strategy" in need and not fixed)
+    up = ("upper" in need and not safety) or ("lower" in need and safety) or keep_steps or not lo
+    return "both" if lo and up else ("lower" if lo else "upper")
 
 
 def _reading(semantics) -> bool:
@@ -249,7 +274,7 @@ def _safety_nodes(target, zero):
 
 def solve_product(imdp: IMDP, letters, dfa, *, avoid=None, adversary="pessimistic", horizon=None,
                   precision=1e-8, max_iterations=100_000, method="vi", tie_break=None,
-                  semantics="reach", keep_steps=False) -> ProductResult:
+                  semantics="reach", keep_steps=False, need=NEED_ALL) -> ProductResult:
     """Maximal probability of satisfying the specification, on the lazy product.
 
     ``semantics="reach"`` (the paper's reading): the probability of reaching an accepting DFA state.
@@ -288,6 +313,11 @@ def solve_product(imdp: IMDP, letters, dfa, *, avoid=None, adversary="pessimisti
         With a horizon: keep the row values of the upper iteration (``ProductResult.steps``, at most
         ``engine.STEP_ROWS_MAX`` numbers), so that a later solve with a :class:`TieKey` of this result (the
         same model and adversary) reads them instead of iterating them again; the values are the same.
+    need : subset of ("lower", "upper", "strategy")
+        With a horizon: what the caller reads of the result (default all). An end not needed (and not
+        iterated for another need) is its trivial sound bound (0 or 1 off the fixed nodes: ``precision`` about
+        1); a strategy not needed may be any (the upper iteration's rows). The needed parts are the same bits
+        as with all. Unbounded: ignored.
 
     Returns
     -------
@@ -306,23 +336,24 @@ def solve_product(imdp: IMDP, letters, dfa, *, avoid=None, adversary="pessimisti
         res = solve_layered(imdp, nxt, target, zero, ctrl=Control.MINIMISE, adv_max=pessimistic, horizon=horizon,
                             precision=precision, max_iterations=max_iterations, method=method,
                             tie_break=None if tie_break is None else _engine_ties(tie_break, imdp, nxt, True, horizon),
-                            keep_steps=keep_steps and horizon is not None)
+                            keep_steps=keep_steps and horizon is not None, ends=_engine_ends(need, True, keep_steps))
         return _result(res, init, safety=True)
     res = solve_layered(imdp, nxt, target, zero, ctrl=Control.MAXIMISE, adv_max=not pessimistic, horizon=horizon,
                         precision=precision, max_iterations=max_iterations, method=method,
                         tie_break=None if tie_break is None else _engine_ties(tie_break, imdp, nxt, False, horizon),
-                        keep_steps=keep_steps and horizon is not None)
+                        keep_steps=keep_steps and horizon is not None, ends=_engine_ends(need, False, keep_steps))
     return _result(res, init)
 
 
 def evaluate_product_strategy(imdp: IMDP, letters, dfa, strategy, *, avoid=None, adversary="pessimistic",
                               horizon=None, precision=1e-8, max_iterations=100_000, method="vi",
-                              semantics="reach") -> ProductResult:
+                              semantics="reach", need=("lower", "upper")) -> ProductResult:
     """Bounds of the satisfaction probability of a fixed product strategy.
 
     ``strategy`` is (S, n) (stationary) or (k, S, n) with ``horizon=k``: the choice index within
     base state q used in DFA state s.  ``adversary="pessimistic"`` minimises the probability,
-    ``"optimistic"`` maximises it.  ``method`` and ``semantics`` as in :func:`solve_product`.
+    ``"optimistic"`` maximises it.  ``method``, ``semantics`` and ``need`` (here a subset of
+    ("lower", "upper")) as in :func:`solve_product`.
     """
     check_method(method)
     safety = _reading(semantics)
@@ -341,7 +372,8 @@ def evaluate_product_strategy(imdp: IMDP, letters, dfa, strategy, *, avoid=None,
     # reaching it (the bad nodes) under the safety reading
     adv_max = (enum_value(Adversary, adversary, "adversary") is Adversary.OPTIMISTIC) != safety
     res = solve_layered(imdp, nxt, target, zero, ctrl=Control.FIXED, adv_max=adv_max, horizon=horizon,
-                        precision=precision, max_iterations=max_iterations, strategy=strat, method=method)
+                        precision=precision, max_iterations=max_iterations, strategy=strat, method=method,
+                        ends=_engine_ends(need, safety, False, fixed=True))
     return _result(res, init, safety=safety)
 
 

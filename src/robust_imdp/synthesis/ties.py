@@ -85,8 +85,9 @@ def _solve(model, letters, dfa, *, adversary, tie_break, kw):
         return solve_factored_product(model, letters, dfa, adversary=adversary, tie_break=tie_break,
                                       control="maximize", **kw)
     if kw.get("horizon") is not None:
-        # k steps: keep the upper rows, which the robust solve's nominal key reads (solvers.product.TieKey)
-        kw = dict(kw, keep_steps=True)
+        # k steps: only the upper rows, which the robust solve's nominal key reads (solvers.product.TieKey): the
+        # nominal strategy is not used with a horizon (tie_break), its bracket is a diagnostic only
+        kw = dict(kw, keep_steps=True, need=())
     return _product.solve_product(model, letters, dfa, adversary=adversary, tie_break=tie_break, **kw)
 
 
