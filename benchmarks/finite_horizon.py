@@ -1,6 +1,7 @@
 """Finite-horizon synthesis against the same number of unbounded sweeps.
 
     python benchmarks/finite_horizon.py [--label NAME] [--repeat 3] [--threads 1 0] [--horizons 10]
+                                        [--before SRC]
 
 The problem: car parking (``benchmarks/arch/problems/car_parking.toml`` with ``form = "joint"``: 1,601
 states, 9 modes, about 325 successors per row, 4.7 M transitions, a floor on the unlisted states,
@@ -10,17 +11,22 @@ built once (not timed). Measured, after one untimed call (numba's compilation), 
 * ``synthesize_s``: :func:`robust_imdp.synthesis.core.synthesize` with the horizon and the nominal model,
   as the pipeline calls it (the optimistic solve, the nominal solve, the robust solve with its two
   tie-break keys, the strategy's two evaluations); ``sweeps``: how many Bellman sweeps of all rows (full)
-  and of a fixed strategy's rows (fixed) it makes, counted in a separate untimed call;
+  and of a fixed strategy's rows (fixed) it makes, counted in a separate untimed call (a key that reads the
+  rows an earlier solve kept and an end of a bracket that is not iterated make none: ``synthesis.core``,
+  "k steps");
 * ``solve_s``: one k-step product solve without keys (pessimistic: a lower and an upper sweep per step);
 * ``sweep_s``: one sweep of the unbounded engine on the same model (``Sweeper.sweep(V, -1, inplace=True)``,
   the Jacobi sweep of :func:`robust_imdp.solvers.ovi._ovi_jacobi`, which solves models with floor rows),
   against the robust k-step lower values; ``insertion_sweep_s``: the same sweep with every row sorted by
   insertion (the kernel before the bucketed one; results identical);
 * ratios: ``synthesize_s / (k sweep_s)`` (the issue's target: within 3 x the time of the same number of
-  unbounded sweeps), ``solve_s / (k sweep_s)``, and ns per transition and step.
+  unbounded sweeps) and the same of CPU seconds (``_cpu``: the comparable one on a shared machine),
+  ``solve_s / (k sweep_s)``, and ns per transition and step.
 
 ``--threads``: numba threads per measurement (0 = all); ``--label`` names the run (rows of other labels in
-the results are kept, so a ``PYTHONPATH=<old tree>/src`` run can stand beside). Wall and CPU seconds are
+the results are kept, so a ``PYTHONPATH=<old tree>/src`` run can stand beside); ``--before SRC`` first
+measures the package in ``SRC`` (e.g. ``git archive <commit> src | tar -x -C /tmp/old``, then
+``/tmp/old/src``) in a child process, labelled ``before``, then this tree, labelled ``--label``, in one run. Wall and CPU seconds are
 recorded with the load average: on the shared 2-core machine the one-thread CPU seconds are the
 load-independent number. Writes ``benchmarks/results/finite_horizon.{json,md}`` (atomically).
 """
@@ -139,6 +145,7 @@ def measure(model, horizon, threads, repeat) -> dict:
             "sweeps_full": sweeps[0], "sweeps_fixed": sweeps[1], "solve_s": sol_w, "solve_cpu_s": sol_c,
             "sweep_s": swp_w, "sweep_cpu_s": swp_c, **ins,
             "synthesize_over_k_sweeps": syn_w / (horizon * swp_w), "solve_over_k_sweeps": sol_w / (horizon * swp_w),
+            "synthesize_over_k_sweeps_cpu": syn_c / (horizon * swp_c),
             "ns_per_transition_step": syn_w / (nnz * horizon) * 1e9, "sweep_ns_per_transition": swp_w / nnz * 1e9,
             "load": list(os.getloadavg()),
             "p_low_digest": float(np.sum(syn.p_low)), "strategy_digest": int(np.sum(syn.strategy))}
@@ -154,14 +161,15 @@ def _md(data: dict) -> list[str]:
              "number). *k sweeps* = k sweeps of the unbounded engine on the same model (its Jacobi sweep, which "
              "solves floor models); target: synthesis within 3 x that.", "",
              "| label | source | k | threads | synthesize s (CPU) | sweeps full + fixed | k-step solve s | "
-             "unbounded sweep s | insertion sweep s | synthesize / k sweeps | solve / k sweeps | ns / transition step "
-             "| load |",
+             "unbounded sweep s (CPU) | insertion sweep s | synthesize / k sweeps (CPU) | solve / k sweeps | "
+             "ns / transition step | load |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in data["rows"]:
         ins = f"{r['insertion_sweep_s']:.3f}" if "insertion_sweep_s" in r else ""
         lines.append(f"| {r['label']} | {r['source']} | {r['horizon']} | {r['threads']} | {r['synthesize_s']:.2f} "
                      f"({r['synthesize_cpu_s']:.2f}) | {r['sweeps_full']} + {r['sweeps_fixed']} | {r['solve_s']:.3f} | "
-                     f"{r['sweep_s']:.4f} | {ins} | {r['synthesize_over_k_sweeps']:.1f} | "
+                     f"{r['sweep_s']:.4f} ({r['sweep_cpu_s']:.4f}) | {ins} | {r['synthesize_over_k_sweeps']:.1f} "
+                     f"({r['synthesize_cpu_s'] / (r['horizon'] * r['sweep_cpu_s']):.1f}) | "
                      f"{r['solve_over_k_sweeps']:.1f} | {r['ns_per_transition_step']:.0f} | {r['load'][0]:.1f} |")
     lines += ["", "Identical results across rows: the p_low sum and strategy sum of every row of one k agree: "
               + ("**yes**" if _identical(data["rows"]) else "**no**") + "."]
@@ -192,7 +200,17 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 0], help="numba threads per row (0: all)")
     ap.add_argument("--horizons", type=int, nargs="+", default=[10])
     ap.add_argument("--notes", default=None, help="a paragraph under the table")
+    ap.add_argument("--before", default=None, help="a src folder measured first (label 'before', child process)")
     args = ap.parse_args(argv)
+    if args.before:
+        import subprocess
+
+        env = dict(os.environ, PYTHONPATH=str(Path(args.before).resolve()))
+        cmd = [sys.executable, __file__, "--label", "before", "--repeat", str(args.repeat), "--threads",
+               *map(str, args.threads), "--horizons", *map(str, args.horizons)]
+        if args.notes is not None:
+            cmd += ["--notes", args.notes]
+        subprocess.run(cmd, env=env, check=True)
     import robust_imdp
 
     source = str(Path(robust_imdp.__file__).resolve().parents[1])
