@@ -245,3 +245,26 @@ def test_a_task_the_helper_cannot_read_fails_and_keeps_the_helper():
         with pytest.raises(SideLaneError, match="could not be read by the helper"):
             lane.submit(_make_unreadable).result(timeout=60)
         assert lane.submit(math.factorial, 5).result(timeout=60) == 120
+
+
+def test_the_margins_beside_the_advice_give_the_one_core_margins(monkeypatch):
+    """The margins' factors go to the helpers when the solve is done and run beside the advice (this process takes
+    back those still waiting when the advice ends): the same b_margin and counts, bit for bit, as one core."""
+    from robust_imdp.pipeline import margins as margins_stage
+    from robust_imdp.pipeline.run import synthesize_from_data
+
+    p = _problem()
+    one = synthesize_from_data(p, progress=False, workers=1, advice=True, margins=True)
+    monkeypatch.setattr(parallel, "SIDE_MIN_CELL_MODES", 0)
+    monkeypatch.setattr(parallel, "local_cores", lambda: 2)
+    started = []
+    start = margins_stage.start_margins
+    monkeypatch.setattr(margins_stage, "start_margins", lambda *a: started.append(start(*a)) or started[-1])
+    beside = synthesize_from_data(p, progress=False, advice=True, margins=True)
+    assert started and started[0] is not None  # submitted to the lane beside the advice
+    pending = started[0]
+    assert all(f.done() for f in pending.futures) and len(pending.futures) == len(margins_stage.bound_scales())
+    assert np.asarray(beside.b_margin).tobytes() == np.asarray(one.b_margin).tobytes()
+    keep = ("scales", "kept_yes", "kept_no", "solved")
+    assert {k: beside.margins[k] for k in keep} == {k: one.margins[k] for k in keep}
+    assert _arrays(beside) == _arrays(one)

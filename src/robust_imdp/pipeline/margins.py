@@ -18,6 +18,7 @@ so the grid cell's box at ``beta B`` contains its image: sound, looser; its marg
 
 from __future__ import annotations
 
+from concurrent.futures import CancelledError
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,7 +29,7 @@ from robust_imdp.pipeline.cache import _load_npz, _savez, bounds_key, read_cache
 from robust_imdp.pipeline.problem import Problem
 from robust_imdp.pipeline.runtime import _Log, _Run
 
-__all__ = ["skip_reason", "bound_scales", "run_margins"]
+__all__ = ["skip_reason", "bound_scales", "run_margins", "start_margins", "PendingMargins"]
 
 
 def bound_scales() -> tuple:
@@ -156,8 +157,74 @@ def _margin_task(partition, lower, upper, noise, form, options, dfa, controller,
                            outside_state=partition.outside_state)
 
 
+class PendingMargins:
+    """Every factor's task of the margins submitted to the side lane's helpers (:func:`start_margins`), to run
+    beside the advice; :func:`run_margins` (``pending=``) reads them."""
+
+    def __init__(self, scales, futures: list, args: list):
+        self.scales, self.futures, self.args = tuple(scales), futures, args
+        self.local: dict = {}  # factor -> its value, computed in this process
+
+    def take_back(self) -> None:
+        """Run here, last first, the factors still waiting in the lane (its helpers busy with the first ones or with
+        other side work), so that this process, done with the advice, shares the rest."""
+        for j in reversed(range(len(self.futures))):
+            if j not in self.local and self.futures[j].cancel():
+                self.local[j] = _margin_task(*self.args[j])
+
+    def value(self, j: int):
+        """Factor ``j``'s ``(p_low, p_up)``: the helper's answer, or computed here (taken back, or the lane could not
+        run it: the same task, the same bits)."""
+        from robust_imdp.pipeline.parallel import SideLaneError
+
+        if j in self.local:
+            return self.local[j]
+        try:
+            return self.futures[j].result()
+        except (SideLaneError, CancelledError):
+            self.local[j] = _margin_task(*self.args[j])
+            return self.local[j]
+
+    def cancel(self) -> None:
+        for f in self.futures:
+            f.cancel()
+
+
+def start_margins(problem: Problem, grid, synthesis, classes, dfa, log: _Log, run: _Run, cache_dir):
+    """Submit the margins' factors of an unrefined run to the side lane's helper processes, so that they run beside
+    the advice (the advice keeps this process's cores, as on one core, so its time budget and the levers it
+    estimates are those of the run without margins beside it); None where the run has no lane (one core, a
+    Dask cluster, a problem below ``parallel.SIDE_MIN_CELL_MODES`` pairs), has no margins, or the boxes at the
+    larger factors are not at hand (from the cache: :func:`run_margins` bounds them)."""
+    from robust_imdp.pipeline.parallel import SIDE_MIN_CELL_MODES, InProcess, SideLaneError
+
+    if skip_reason(problem) is not None or grid.n_cells * len(problem.mode_names) < SIDE_MIN_CELL_MODES:
+        return None
+    got = getattr(run, "scaled_bounds", None)
+    if got is None or tuple(got[0]) != bound_scales():
+        return None
+    sched = run.scheduler(log)
+    if not isinstance(sched, InProcess) or not sched.use_side_lane():
+        return None
+    scales, lower, upper = got
+    ctrl = _Controller(np.asarray(synthesis.strategy), synthesis.horizon, float(synthesis.precision),
+                       getattr(synthesis, "semantics", "reach"))
+    form = _abstraction_form(problem, grid)
+    args = [(grid, lower[j], upper[j], problem.noise, form, problem.abstraction_options(), dfa, ctrl)
+            for j in range(len(scales))]
+    futures = []
+    try:
+        for a in args:
+            futures.append(sched.lane.submit(_margin_task, *a))
+    except SideLaneError:
+        for f in futures:
+            f.cancel()
+        return None
+    return PendingMargins(scales, futures, args)
+
+
 def run_margins(problem: Problem, grid, partition, synthesis, classes, dfa, log: _Log, run: _Run, cache_dir, *,
-                abstract, learn_and_bound) -> tuple:
+                abstract, learn_and_bound, pending: "PendingMargins | None" = None) -> tuple:
     """The margins of a run: ``(b_margin (n_cells,) float array or None, Result.margins' dict)``.
 
     Parameters
@@ -177,6 +244,9 @@ def run_margins(problem: Problem, grid, partition, synthesis, classes, dfa, log:
         The pipeline's abstraction function (the run's options).
     learn_and_bound : callable(problem, partition, log, run, cache_dir)
         The run's bound stage (used only when no boxes at larger B are at hand).
+    pending : PendingMargins, optional
+        The factors :func:`start_margins` submitted beside the advice (an unrefined run: ``partition`` is
+        ``grid``); the stage then waits for their answers.
 
     Returns
     -------
@@ -194,6 +264,14 @@ def run_margins(problem: Problem, grid, partition, synthesis, classes, dfa, log:
         log.info(f"assumption margins: not computed ({why})")
         return None, {"skipped": why}
     with log.stage("margins"):
+        if pending is not None:  # submitted beside the advice: read the helpers' answers
+            _scaled_bounds(problem, grid, log, run, cache_dir, learn_and_bound)  # the run's, saved in the cache
+            pending.take_back()
+            index = {s: j for j, s in enumerate(pending.scales)}
+            margins = assumption_margins(classes, lambda scale: pending.value(index[float(scale)]),
+                                         problem.threshold, (1.0,) + pending.scales)
+            pending.cancel()  # factors past the last one read are not needed
+            return _margins_result(margins, 0, log)
         scales, lower, upper = _scaled_bounds(problem, grid, log, run, cache_dir, learn_and_bound)
         lower, upper, fallback = _cell_boxes(partition, lower, upper, getattr(run, "scaled_new_cells", {}))
         index = {s: j for j, s in enumerate(scales)}
@@ -220,6 +298,11 @@ def run_margins(problem: Problem, grid, partition, synthesis, classes, dfa, log:
                                        synthesis, outside_state=partition.outside_state)
 
         margins = assumption_margins(classes, evaluate, problem.threshold, (1.0,) + tuple(scales))
+    return _margins_result(margins, fallback, log)
+
+
+def _margins_result(margins, fallback: int, log: _Log) -> tuple:
+    """:func:`run_margins`' return value from ``synthesis.margins.assumption_margins``' margins (and its line)."""
     doc = margins.to_dict()
     doc["statement"] = ("b_margin: per cell the largest factor beta of (1, 1.25, 1.5, 2, 3, 4) such that the run's "
                         "controller keeps the cell's class (Q_yes: p_low >= threshold; Q_no: p_up < threshold) with "

@@ -408,15 +408,22 @@ def _synthesize_run(problem: Problem, dfa, log: _Log, run: _Run, abstraction_cac
         log.info(why)
     syn, classes = _synthesize(problem, partition, abstraction, dfa, log, nominal)
     _notify_solved(problem, partition, abstraction, dfa, syn, classes, run, from_cache, diagnostics)
-    # known dynamics: no data and no assumption, nothing the advice's levers could change
-    advice = {} if problem.known else run_advice(problem, partition, abstraction, cell_bounds, dfa, classes, log, run,
-                                                 abstraction_cache, diagnostics)
+    # without refinement the margins read the solve's cells: started now, in helpers, beside the advice
+    pending = _start_margins(problem, partition, syn, classes, dfa, log, run, abstraction_cache)
+    try:
+        # known dynamics: no data and no assumption, nothing the advice's levers could change
+        advice = {} if problem.known else run_advice(problem, partition, abstraction, cell_bounds, dfa, classes, log,
+                                                     run, abstraction_cache, diagnostics)
+    except BaseException:
+        if pending is not None:
+            pending.cancel()
+        raise
     parameters = _parameters(problem, abstraction)
     grid = partition
     if problem.refine is not None:  # adaptive refinement of the undecided cells (see docs/refinement.md)
         partition, abstraction, syn, classes, diagnostics, parameters["abstraction_key"] = _refine(
             problem, partition, abstraction, syn, cell_bounds, dfa, log, run, abstraction_cache, diagnostics)
-    b_margin, margins_doc = _margins(problem, grid, partition, syn, classes, dfa, log, run, abstraction_cache)
+    b_margin, margins_doc = _margins(problem, grid, partition, syn, classes, dfa, log, run, abstraction_cache, pending)
     log.timings["total"] = time.perf_counter() - log.t0
     result = Result(problem=problem, partition=partition, abstraction=abstraction, dfa=dfa,
                     synthesis=syn, class_names=classes, timings=dict(log.timings),
@@ -437,9 +444,21 @@ def _notify_solved(problem: Problem, partition, abstraction, dfa, syn, classes, 
                     from_cache=from_cache, diagnostics=diagnostics))
 
 
-def _margins(problem: Problem, grid, partition, syn, classes, dfa, log: _Log, run: _Run, cache_dir):
+def _start_margins(problem: Problem, partition, syn, classes, dfa, log: _Log, run: _Run, cache_dir):
+    """The margins' factors submitted to the side lane beside the advice (``pipeline.margins.start_margins``) when
+    the run asks for margins, has no refinement (whose rounds change the cells) and an advice to run beside;
+    else None."""
+    if not getattr(run, "margins", False) or problem.refine is not None or problem.known or run.advice is False:
+        return None
+    from robust_imdp.pipeline.margins import start_margins
+
+    return start_margins(problem, partition, syn, classes, dfa, log, run, cache_dir)
+
+
+def _margins(problem: Problem, grid, partition, syn, classes, dfa, log: _Log, run: _Run, cache_dir, pending=None):
     """The assumption margins (``pipeline.margins.run_margins``) when the run asks for them: ``(b_margin or None,
-    Result.margins' dict or {})``; the margins' abstractions go through :func:`_chunked_abstract`, as the run's."""
+    Result.margins' dict or {})``; the margins' abstractions go through :func:`_chunked_abstract`, as the run's
+    (``pending``: the factors :func:`_start_margins` submitted)."""
     if not getattr(run, "margins", False):
         return None, {}
     from robust_imdp.pipeline.margins import run_margins
@@ -450,7 +469,7 @@ def _margins(problem: Problem, grid, partition, syn, classes, dfa, log: _Log, ru
         return _chunked_abstract(problem, part, cell_bounds, quiet, run, _chunk_cells(run, part.n_cells, MAX_ROW_CELLS))
 
     return run_margins(problem, grid, partition, syn, classes, dfa, log, run, cache_dir, abstract=abstract,
-                       learn_and_bound=_learn_and_bound)
+                       learn_and_bound=_learn_and_bound, pending=pending)
 
 
 def _refine(problem: Problem, partition, abstraction, syn, cell_bounds, dfa, log: _Log, run: _Run, cache_dir,
