@@ -291,6 +291,11 @@ MUTATIONS = [
     dict(name="vi-kstep-lower-shrink-1e-3", file=_SOLVE, original=_VI_K_RETURN,
          replacement=_VI_K_RETURN.replace("lower=lo,", "lower=np.minimum(lo * (1 + 1e-3), 1.0),"),
          description="k-step value iteration: lower end of every bracket x (1 + 1e-3) (capped at 1)"),
+    dict(name="kstep-trivial-upper-shrink-1e-3", file=_SOLVE,
+         original="    up = V0.copy() if upper else np.where(sw.active, 1.0, V0)",
+         replacement="    up = V0.copy() if upper else np.where(sw.active, 1.0 - 1e-3, V0)",
+         description="k-step solve of some ends (need): the upper end not iterated is 1 - 1e-3 instead of 1",
+         tests=["tests/test_step_reuse.py"]),
     # ------------------------------------------------------------------ synthesis (what the pipeline reports)
     dict(name="p_low-x1.01", file=_SYN, original=_SYN_CHECK,
          replacement="    p_low = np.minimum(p_low * 1.01, p_up); " + _SYN_CHECK.strip(),

@@ -137,7 +137,7 @@ strategy.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -197,8 +197,12 @@ def solve_layered(imdp, nxt, target, zero, *, ctrl, adv_max, horizon=None, preci
     if horizon is not None:
         if ends not in ("both", "lower", "upper"):
             raise InvalidInputError(f"ends must be 'both', 'lower' or 'upper'; got {ends!r}")
-        return _bounded(sw, V0, horizon, ctrl, strategy, tie_break, keep_steps, lower=ends != "upper",
-                        upper=ends != "lower" or keep_steps)
+        out = {}
+        res = _bounded(sw, V0, horizon, ctrl, strategy, tie_break, keep_steps, lower=ends != "upper",
+                       upper=ends != "lower" or keep_steps, out=out)
+        if not keep_steps and out["ends"] == "both":
+            return res
+        return BoundedResult(**{f.name: getattr(res, f.name) for f in fields(res)}, **out)
     return _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, precision, max_iterations,
                       method, tie_break)
 
@@ -414,7 +418,7 @@ def _lex_choice(rows_lo, score, state_ptr, arg, maximise=True):
     return out
 
 
-def _bounded(sw, V0, k, ctrl, strategy, tie_break=None, keep_steps=False, lower=True, upper=True):
+def _bounded(sw, V0, k, ctrl, strategy, tie_break=None, keep_steps=False, lower=True, upper=True, out=None):
     """k-step values by k exact Bellman steps, rounded down (lower) and up (upper).
 
     With ``tie_break`` (:class:`EngineTies`) the keys' k-step values are iterated alongside (the
@@ -426,6 +430,7 @@ def _bounded(sw, V0, k, ctrl, strategy, tie_break=None, keep_steps=False, lower=
     the same bits, one sweep per key and step fewer.  ``keep_steps``: keep this solve's upper rows.
     ``lower``/``upper`` False: that end is not iterated and stays its trivial sound bound (``ends`` of
     :func:`solve_layered`); without the lower end the strategy is the upper sweeps' rows, keys unread.
+    ``out`` (a dict): receives the iterated ``ends`` and the kept ``steps`` (:class:`BoundedResult`).
     """
     lo = V0.copy()
     # the trivial bounds of the ends not iterated: values are in [0, 1], targets 1 and zero nodes 0 exactly
@@ -472,17 +477,14 @@ def _bounded(sw, V0, k, ctrl, strategy, tie_break=None, keep_steps=False, lower=
         strat[k - t] = arg
     if ctrl == Control.FIXED:
         strat = np.broadcast_to(strategy, strat.shape).copy() if strategy.shape[0] == k else np.repeat(strategy, k, 0)
+    if out is not None:  # what solve_layered adds to the result (a BoundedResult)
+        out["ends"] = "both" if lower and upper else ("lower" if lower else "upper")
+        if record is not None:
+            record.setflags(write=False)
+            out["steps"] = StepRows(model=sw.m, nxt=sw.nxt.copy(), active=np.array(sw.active, dtype=bool),
+                                    V0=V0.copy(), ctrl=int(ctrl), adv_max=bool(sw.adv_max), rows=record)
     prec = float(np.max(up - lo)) if up.size else 0.0
-    ends = "both" if lower and upper else ("lower" if lower else "upper")
-    if not keep_steps and ends == "both":
-        return ReachabilityResult(lower=lo, upper=up, strategy=strat, iterations=k, precision=prec, converged=True)
-    steps = None
-    if record is not None:
-        record.setflags(write=False)
-        steps = StepRows(model=sw.m, nxt=sw.nxt.copy(), active=np.array(sw.active, dtype=bool), V0=V0.copy(),
-                         ctrl=int(ctrl), adv_max=bool(sw.adv_max), rows=record)
-    return BoundedResult(lower=lo, upper=up, strategy=strat, iterations=k, precision=prec, converged=True,
-                         steps=steps, ends=ends)
+    return ReachabilityResult(lower=lo, upper=up, strategy=strat, iterations=k, precision=prec, converged=True)
 
 
 def _unbounded(sw, imdp, nxt, target, zero, active, ctrl, adv_max, strategy, precision, max_iterations, method,
