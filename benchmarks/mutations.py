@@ -90,7 +90,7 @@ _LOCAL_RIDGE_UP = ("                        val[q, jv, o, 0] = _certified_value(
                    "a2[o], G, 1.0)[0]")
 _LOCAL_RIDGE_LO = ("                        val[q, jv, o, 1] = _certified_value(idx, w, k, ys, l1, l2, rr, a1[o], "
                    "a2[o], G, -1.0)[0]")
-_LOCAL_COMBINE = "        lo_i, up_i, taylor = _combine_vertices(lin_v, lin_err, su, sl, t_max, G_eff, tau)"
+_LOCAL_COMBINE = "    lo_all, up_all, taylor = _combine_vertices(lin_v, lin_err, su, sl, t_max, G_eff, tau)"
 
 #: The mutations, in the order they are run. Keep each ``original`` unique in its file.
 MUTATIONS = [
@@ -272,8 +272,8 @@ MUTATIONS = [
          replacement="        upper_c = upper_c[starts]",
          description="global weights: a split cell's upper bound from its first sub-box only (not the hull)"),
     dict(name="rkhs-split-local-hull-first-box", file=_RKHS_LOCAL,
-         original='        out["upper"][:, i] = np.maximum.reduceat(up_i, starts)',
-         replacement='        out["upper"][:, i] = up_i[starts]',
+         original='           "upper": np.ascontiguousarray(np.maximum.reduceat(up_all, starts, axis=1).T),',
+         replacement='           "upper": np.ascontiguousarray(up_all[:, starts].T),',
          description="local weights: a split cell's upper bound from its first sub-box only (not the hull)"),
     # ------------------------------------------------------------------ value iteration (solve.py)
     dict(name="vi-upper-x0.99", file=_SOLVE, original=_VI_RETURN,

@@ -3,13 +3,16 @@ so a cell's cost no longer grows with the data and no m x m kernel matrix is bui
 
 from __future__ import annotations
 
+import hashlib
+import threading
+from collections import OrderedDict
 
 import numba
 import numpy as np
 
 from robust_imdp._fp import U as _U, up as _up
 from robust_imdp._kernels import inv_l2_up as _inv_l2, kernel_matrix as _kernel_matrix, kernel_rel_err_nb as _kernel_rel_err_nb, norm_inflation as _norm_inflation
-from robust_imdp.bounds.rkhs_model import (CELL_BLOCK, _blocks, _certified_norms, _certified_value, _certify, _certify_parts,
+from robust_imdp.bounds.rkhs_model import (CELL_BLOCK, _blocks, _lanes, _certified_norms, _certified_value, _certify, _certify_parts,
                                            _check_cells, _weight_parts,
                                            _combine_vertices, _known_at_vertices, _vertex_functional, _writable, cell_centres,
                                            scaled_norm_bound, scaled_ranges, split_counts, sub_boxes, t_max_up,
@@ -136,13 +139,13 @@ def _local_group_optimal(Xp, Yp, inv_l2, c, r, signs, q0, q1, lin, Kp, K_err, a1
 def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_iter, tol, ptr, group, lin):
     """:func:`_local_cells_coef` without the coefficients: ``val, support``."""
     val, sup, _ = _local_cells_coef(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_iter, tol, ptr,
-                                    group, lin)
+                                    group, lin, _lanes())
     return val, sup
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, parallel=True, nogil=True)  # nogil: the chunk writer runs beside it
 def _local_cells_coef(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_iter, tol, ptr, group,
-                      lin):  # pragma: no cover
+                      lin, lanes):  # pragma: no cover
     """Certified bounds of ``<h, phi_v>`` (eq. W) with weights on each cell's pool of data points.
 
     ``pools[q]`` are the data points allowed to carry weight for cell q (any weights are sound;
@@ -153,7 +156,7 @@ def _local_cells_coef(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal,
     one kernel matrix and factorisation, and the warm starts run on through them; with ``optimal``
     they are pruned as in ``rkhs_weights._optimal_cells`` (:func:`_local_group_optimal`, using
     ``lin (n, V, n_out)``, the float known part at the vertices). Boxes ``ptr[j] .. ptr[j+1]-1``
-    form one parallel work unit. Returns ``val (n, V, n_out, 2)`` (side 0 upper, 1 lower), the support
+    form one parallel work unit; ``lanes`` threads take them cyclically (``rkhs_model._lanes``). Returns ``val (n, V, n_out, 2)`` (side 0 upper, 1 lower), the support
     sizes and ``coef`` (like ``val``): the upper bound of ``||phi_v - Phi* w||`` each value used (its
     coefficient of G, for ``rkhs_model.rescale_vertex_values``).
     """
@@ -165,90 +168,92 @@ def _local_cells_coef(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal,
     sup = np.zeros((n, V, n_out, 2), dtype=np.int64)
     coef = np.empty((n, V, n_out, 2))
     n_chunks = ptr.shape[0] - 1
-    for ch in numba.prange(n_chunks):
-        Xp = np.empty((k, d))
-        Yp = np.empty((k, n_out))
-        L = np.empty((k, k))
-        b = np.empty(k)
-        eb = np.empty(k)
-        w = np.empty(k)
-        idx = np.arange(k)
-        v = np.empty(d)
-        ys = np.empty(k)
-        S = np.zeros((n_out, 2, k), dtype=np.int64)
-        sg = np.zeros((n_out, 2, k))
-        ws = np.zeros((n_out, 2, k))
-        nS = np.zeros((n_out, 2), dtype=np.int64)
-        bidx = np.zeros(k, dtype=np.int64)
-        bw = np.zeros(k)
-        Pw = np.empty((k, k))  # workspaces of _active_set, once per chunk
-        Lw = np.empty((k, k))
-        Kp = np.empty((k, k))
-        K_err = 0.0
-        ok = True
-        done_to = -1
-        for q in range(ptr[ch], ptr[ch + 1]):
-            if q < done_to:  # a sub-box already bounded with its group
-                continue
-            if not (q == ptr[ch] or group[q] != group[q - 1]):
-                pass  # the same pool as the previous box: keep its kernel matrix, factor and warm starts
-            else:
-                for p in range(k):
-                    for a in range(d):
-                        Xp[p, a] = X[pools[q, p], a]
-                    for o in range(n_out):
-                        Yp[p, o] = Y[pools[q, p], o]
-                Kp, zmax = _kernel_matrix(Xp, Xp, inv_l2)
-                K_err = _kernel_rel_err_nb(zmax, d)
-                ok = True
-                if not optimal:
-                    ok = _chol_factor(Kp, k, L, lam)
-                for o in range(n_out):
-                    for sd in range(2):
-                        nS[o, sd] = 0  # a new pool: restart the warm starts
-                if optimal:
-                    q1 = q + 1
-                    while q1 < ptr[ch + 1] and group[q1] == group[q]:
-                        q1 += 1
-                    if q1 - q > 1:  # the sub-boxes of one cell: bounded together, pruned
-                        _local_group_optimal(Xp, Yp, inv_l2, c, r, signs, q, q1, lin, Kp, K_err, a1, G, max_iter, tol,
-                                             S, sg, ws, nS, bidx, bw, Pw, Lw, val, sup, coef)
-                        done_to = q1
-                        continue
-            for jv in range(V):
-                s0 = _vertex_functional(Xp, inv_l2, c[q], r[q], signs[jv], v, b, eb)
-                if not optimal:
-                    if ok:
-                        _chol_solve(L, k, b, w)
-                    else:
-                        for i in range(k):
-                            w[i] = 0.0
-                    l1, l2, rr = _certified_norms(idx, w, k, b, eb, Kp, K_err, s0)
-                    for o in range(n_out):
-                        for i in range(k):
-                            ys[i] = Yp[i, o]
-                        val[q, jv, o, 0] = _certified_value(idx, w, k, ys, l1, l2, rr, a1[o], a2[o], G, 1.0)[0]
-                        val[q, jv, o, 1] = _certified_value(idx, w, k, ys, l1, l2, rr, a1[o], a2[o], G, -1.0)[0]
-                        sup[q, jv, o, 0] = k
-                        sup[q, jv, o, 1] = k
-                        coef[q, jv, o, 0] = rr  # both sides: the same weights and functional
-                        coef[q, jv, o, 1] = rr
+    nt = max(1, min(lanes, n_chunks))  # cyclic blocks per thread (rkhs_model._lanes): balance, same bits
+    for t in numba.prange(nt):
+        for ch in range(t, n_chunks, nt):
+            Xp = np.empty((k, d))
+            Yp = np.empty((k, n_out))
+            L = np.empty((k, k))
+            b = np.empty(k)
+            eb = np.empty(k)
+            w = np.empty(k)
+            idx = np.arange(k)
+            v = np.empty(d)
+            ys = np.empty(k)
+            S = np.zeros((n_out, 2, k), dtype=np.int64)
+            sg = np.zeros((n_out, 2, k))
+            ws = np.zeros((n_out, 2, k))
+            nS = np.zeros((n_out, 2), dtype=np.int64)
+            bidx = np.zeros(k, dtype=np.int64)
+            bw = np.zeros(k)
+            Pw = np.empty((k, k))  # workspaces of _active_set, once per chunk
+            Lw = np.empty((k, k))
+            Kp = np.empty((k, k))
+            K_err = 0.0
+            ok = True
+            done_to = -1
+            for q in range(ptr[ch], ptr[ch + 1]):
+                if q < done_to:  # a sub-box already bounded with its group
+                    continue
+                if not (q == ptr[ch] or group[q] != group[q - 1]):
+                    pass  # the same pool as the previous box: keep its kernel matrix, factor and warm starts
                 else:
+                    for p in range(k):
+                        for a in range(d):
+                            Xp[p, a] = X[pools[q, p], a]
+                        for o in range(n_out):
+                            Yp[p, o] = Y[pools[q, p], o]
+                    Kp, zmax = _kernel_matrix(Xp, Xp, inv_l2)
+                    K_err = _kernel_rel_err_nb(zmax, d)
+                    ok = True
+                    if not optimal:
+                        ok = _chol_factor(Kp, k, L, lam)
                     for o in range(n_out):
                         for sd in range(2):
-                            sgn = 1.0 if sd == 0 else -1.0
+                            nS[o, sd] = 0  # a new pool: restart the warm starts
+                    if optimal:
+                        q1 = q + 1
+                        while q1 < ptr[ch + 1] and group[q1] == group[q]:
+                            q1 += 1
+                        if q1 - q > 1:  # the sub-boxes of one cell: bounded together, pruned
+                            _local_group_optimal(Xp, Yp, inv_l2, c, r, signs, q, q1, lin, Kp, K_err, a1, G, max_iter, tol,
+                                                 S, sg, ws, nS, bidx, bw, Pw, Lw, val, sup, coef)
+                            done_to = q1
+                            continue
+                for jv in range(V):
+                    s0 = _vertex_functional(Xp, inv_l2, c[q], r[q], signs[jv], v, b, eb)
+                    if not optimal:
+                        if ok:
+                            _chol_solve(L, k, b, w)
+                        else:
                             for i in range(k):
-                                ys[i] = sgn * Yp[i, o]
-                            res = _active_set(Kp, ys, b, s0, a1[o], G, S[o, sd], sg[o, sd], ws[o, sd], nS[o, sd], k,
-                                              max_iter, tol, bidx, bw, Pw, Lw)
-                            nS[o, sd] = res[0] if (res[3] != 2 and res[3] != 3) else 0
-                            nb = res[1]
+                                w[i] = 0.0
+                        l1, l2, rr = _certified_norms(idx, w, k, b, eb, Kp, K_err, s0)
+                        for o in range(n_out):
                             for i in range(k):
                                 ys[i] = Yp[i, o]
-                            cert = _certify(bidx, bw, nb, ys, b, eb, Kp, K_err, s0, a1[o], 0.0, G, sgn)
-                            val[q, jv, o, sd] = cert[0]
-                            coef[q, jv, o, sd] = cert[2]
-                            sup[q, jv, o, sd] = nb
+                            val[q, jv, o, 0] = _certified_value(idx, w, k, ys, l1, l2, rr, a1[o], a2[o], G, 1.0)[0]
+                            val[q, jv, o, 1] = _certified_value(idx, w, k, ys, l1, l2, rr, a1[o], a2[o], G, -1.0)[0]
+                            sup[q, jv, o, 0] = k
+                            sup[q, jv, o, 1] = k
+                            coef[q, jv, o, 0] = rr  # both sides: the same weights and functional
+                            coef[q, jv, o, 1] = rr
+                    else:
+                        for o in range(n_out):
+                            for sd in range(2):
+                                sgn = 1.0 if sd == 0 else -1.0
+                                for i in range(k):
+                                    ys[i] = sgn * Yp[i, o]
+                                res = _active_set(Kp, ys, b, s0, a1[o], G, S[o, sd], sg[o, sd], ws[o, sd], nS[o, sd], k,
+                                                  max_iter, tol, bidx, bw, Pw, Lw)
+                                nS[o, sd] = res[0] if (res[3] != 2 and res[3] != 3) else 0
+                                nb = res[1]
+                                for i in range(k):
+                                    ys[i] = Yp[i, o]
+                                cert = _certify(bidx, bw, nb, ys, b, eb, Kp, K_err, s0, a1[o], 0.0, G, sgn)
+                                val[q, jv, o, sd] = cert[0]
+                                coef[q, jv, o, sd] = cert[2]
+                                sup[q, jv, o, sd] = nb
     return val, sup, coef
 
 
@@ -266,14 +271,40 @@ def local_pools(X, cells_lower, cells_upper, lengthscale, k: int) -> np.ndarray:
     -------
     (n_cells, min(k, m)) int array, sorted by distance
     """
-    from scipy.spatial import cKDTree
-
     X = np.asarray(X, float)
     scale = np.sqrt(_inv_l2(lengthscale, X.shape[1]))
     k = int(min(max(int(k), 1), X.shape[0]))
     c = 0.5 * (np.asarray(cells_lower, float) + np.asarray(cells_upper, float))
-    _, idx = cKDTree(X * scale).query(c * scale, k=k)
+    # the query points are independent: split over the caller's numba threads, the same indices on any count
+    _, idx = _tree(X * scale).query(c * scale, k=k, workers=_lanes())
     return np.ascontiguousarray(np.asarray(idx, dtype=np.int64).reshape(c.shape[0], k))
+
+
+#: k-d trees of the scaled data kept per process (every chunk of a mode queries the same points).
+_TREE_CACHE = 4
+_TREES: OrderedDict = OrderedDict()
+_TREES_LOCK = threading.Lock()
+
+
+def _tree(points: np.ndarray):
+    """The ``cKDTree`` of ``points`` (n, d), built once per process for the same bytes (a small LRU keyed by
+    a digest of the array): the bound stage's chunks of one mode query the same scaled data, and a tree
+    built from equal bytes is the same tree, so the pools are the same as with a fresh one."""
+    from scipy.spatial import cKDTree
+
+    points = np.ascontiguousarray(points, float)
+    key = (points.shape, hashlib.blake2b(points.tobytes(), digest_size=20).digest())
+    with _TREES_LOCK:
+        tree = _TREES.get(key)
+        if tree is not None:
+            _TREES.move_to_end(key)
+            return tree
+    tree = cKDTree(points)
+    with _TREES_LOCK:
+        _TREES[key] = tree
+        while len(_TREES) > _TREE_CACHE:
+            _TREES.popitem(last=False)
+    return tree
 
 
 #: Ridge regularisers tried by :func:`local_lambda`.
@@ -343,39 +374,37 @@ def _local_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_boun
     known = [_known_at_vertices(c, r, signs, A[i], float(b[i])) for i in range(n)]  # (lin_v, lin_err) per output
     lin = np.ascontiguousarray(np.stack([kv[0] for kv in known], axis=-1))  # (N, V, n): orders and prunes only
     val, sup, coef = _local_cells_coef(X, Y, inv_l2, c, r, signs, pools, float(lam or 0.0), np.ascontiguousarray(dbar),
-                                       np.zeros(n), G_eff, method == "optimal", 2000, 1e-9, ptr, parent, lin)
+                                       np.zeros(n), G_eff, method == "optimal", 2000, 1e-9, ptr, parent, lin,
+                                       _lanes())
     if iid_factor is not None:
         th = np.broadcast_to(np.asarray(iid_theta, float), (n,))
         a2 = _up(float(iid_factor) * th * (1 + 4 * _U))
         lam2 = local_lambda(X, lower, upper, lengthscale=lengthscale, rkhs_bound=rkhs_bound, noise_l1=tau,
                             noise_l2=float(a2.max()), k=k)
         iv, _, icoef = _local_cells_coef(X, Y, inv_l2, c, r, signs, pools, lam2, np.full(n, tau),
-                                         np.ascontiguousarray(a2), G_eff, False, 0, 0.0, ptr, parent, lin)
+                                         np.ascontiguousarray(a2), G_eff, False, 0, 0.0, ptr, parent, lin,
+                                         _lanes())
         # the certificate kept per vertex and side carries its own coefficient of G (for scales)
         coef[..., 0] = np.where(iv[..., 0] < val[..., 0], icoef[..., 0], coef[..., 0])
         coef[..., 1] = np.where(iv[..., 1] > val[..., 1], icoef[..., 1], coef[..., 1])
         val[..., 0] = np.minimum(val[..., 0], iv[..., 0])  # both intervals hold: intersect
         val[..., 1] = np.maximum(val[..., 1], iv[..., 1])
     t_max = t_max_up(r, inv_l2)
-    out = {key: np.empty((n_cells, n)) for key in ("lower", "upper", "eps")}
-    for i in range(n):
-        lin_v, lin_err = known[i]
-        su, sl = val[:, :, i, 0], val[:, :, i, 1]
-        lo_i, up_i, taylor = _combine_vertices(lin_v, lin_err, su, sl, t_max, G_eff, tau)
-        eps_i = np.max(0.5 * (su - sl), axis=1) + taylor
-        # hull of each cell's sub-boxes (eq. C holds on every sub-box; reduceat is the identity unsplit)
-        out["lower"][:, i] = np.minimum.reduceat(lo_i, starts)
-        out["upper"][:, i] = np.maximum.reduceat(up_i, starts)
-        out["eps"][:, i] = np.maximum.reduceat(eps_i, starts)
+    # every output in one call (n, N, V): element by element the same operations as one output at a time
+    lin_v, lin_err = np.stack([kv[0] for kv in known]), np.stack([kv[1] for kv in known])
+    su, sl = np.moveaxis(val[..., 0], 2, 0), np.moveaxis(val[..., 1], 2, 0)
+    lo_all, up_all, taylor = _combine_vertices(lin_v, lin_err, su, sl, t_max, G_eff, tau)
+    eps_all = np.max(0.5 * (su - sl), axis=-1) + taylor
+    # hull of each cell's sub-boxes (eq. C holds on every sub-box; reduceat is the identity unsplit)
+    out = {"lower": np.ascontiguousarray(np.minimum.reduceat(lo_all, starts, axis=1).T),
+           "upper": np.ascontiguousarray(np.maximum.reduceat(up_all, starts, axis=1).T),
+           "eps": np.ascontiguousarray(np.maximum.reduceat(eps_all, starts, axis=1).T)}
     out["support"] = np.maximum.reduceat(sup.max(axis=(1, 3)), starts, axis=0)
     out["n_unconverged"] = 0
     if scales is not None:  # the same weights at scale * B (docs/rkhs_bounds.md, "Assumption margins")
         G_s = [scaled_norm_bound(rkhs_bound, sc, d) for sc in scales]
-        out["scaled_lower"] = np.empty((len(G_s), n_cells, n))
-        out["scaled_upper"] = np.empty((len(G_s), n_cells, n))
-        for i in range(n):
-            lin_v, lin_err = known[i]
-            out["scaled_lower"][:, :, i], out["scaled_upper"][:, :, i] = scaled_ranges(
-                lin_v, lin_err, val[:, :, i, 0], val[:, :, i, 1], coef[:, :, i, 0], coef[:, :, i, 1], t_max, G_eff,
-                tau, G_s, starts)
+        s_lo, s_up = scaled_ranges(lin_v, lin_err, su, sl, np.moveaxis(coef[..., 0], 2, 0),
+                                   np.moveaxis(coef[..., 1], 2, 0), t_max, G_eff, tau, G_s, starts)  # (S, n, cells)
+        out["scaled_lower"] = np.ascontiguousarray(np.swapaxes(s_lo, 1, 2))
+        out["scaled_upper"] = np.ascontiguousarray(np.swapaxes(s_up, 1, 2))
     return out

@@ -23,6 +23,16 @@ from robust_imdp.errors import DimensionError, InvalidInputError
 CELL_BLOCK = 16
 
 
+def _lanes() -> int:
+    """Parallel lanes of the bound kernels (``lanes`` of ``_optimal_cells_coef`` / ``_local_cells_coef``): the numba
+    threads of the caller. Lane ``t`` of ``nt`` takes the work units (blocks of :data:`CELL_BLOCK` cells) ``t, t + nt,
+    t + 2 nt, ...`` (cyclic): numba's ``prange`` hands each thread one contiguous range, and the blocks' costs differ
+    (active-set iterations), so a contiguous half can hold most of the work; interleaved, every thread gets a mix.
+    Every unit allocates its own workspaces and restarts its warm starts, so the bits do not depend on the lanes.
+    (Passed in, not read in the kernel: ``numba.get_num_threads`` there would keep numba from caching it.)"""
+    return int(numba.get_num_threads())
+
+
 def _writable(a) -> np.ndarray:
     """A writable C-contiguous float64 array (a copy only when needed)."""
     return np.require(np.asarray(a, dtype=np.float64), requirements=["C", "W"])
@@ -449,23 +459,32 @@ def _combine_vertices(lin_v, lin_err, su, sl, t_max, G: float, tau: float):
     ``a = 1`` is the plain Taylor bound (eq. T); ``a = e^{-t_max/2}`` shrinks the remainder by
     about ``sqrt(2/3)``. Both intervals hold, so their intersection does. Then add tau.
 
+    Parameters
+    ----------
+    lin_v, lin_err, su, sl : (..., n, V) float arrays
+        The known part at the vertices, its error, the vertex bounds; leading axes (e.g. the outputs of one
+        chunk) are combined each on its own, element by element as one at a time (the same bits), in one call.
+    t_max : (n,) float array
+    G, tau : float
+
     Returns
     -------
-    lower, upper : (n,) float arrays
-    taylor : (n,) float array
+    lower, upper : (..., n) float arrays
+    taylor : (..., n) float array
         The remainder-plus-tau term of the scaling that gave the narrower interval.
     """
-    best_lo = np.full(su.shape[0], -np.inf)
-    best_up = np.full(su.shape[0], np.inf)
-    best_tay = np.full(su.shape[0], np.inf)
-    best_w = np.full(su.shape[0], np.inf)
+    shape = np.shape(su)[:-1]
+    best_lo = np.full(shape, -np.inf)
+    best_up = np.full(shape, np.inf)
+    best_tay = np.full(shape, np.inf)
+    best_w = np.full(shape, np.inf)
     for a in (np.ones_like(t_max), np.exp(-0.5 * t_max)):
         rho = taylor_remainder_sqrt_up(t_max) if np.all(a == 1.0) else _scaled_remainder_sqrt_up(a, t_max)
         tay = _up(_up(G * rho) + tau, 4 * _U * (G * rho + tau))
         asu = _up(a[:, None] * su, 2 * _U * np.abs(a[:, None] * su))
         asl = _down(a[:, None] * sl, 2 * _U * np.abs(a[:, None] * sl))
-        vu = _up(lin_v + asu, lin_err + 2 * _U * (np.abs(lin_v) + np.abs(asu))).max(axis=1)
-        vl = _down(lin_v + asl, lin_err + 2 * _U * (np.abs(lin_v) + np.abs(asl))).min(axis=1)
+        vu = _up(lin_v + asu, lin_err + 2 * _U * (np.abs(lin_v) + np.abs(asu))).max(axis=-1)
+        vl = _down(lin_v + asl, lin_err + 2 * _U * (np.abs(lin_v) + np.abs(asl))).min(axis=-1)
         up = _up(vu + tay, 4 * _U * (np.abs(vu) + tay))
         lo = _down(vl - tay, 4 * _U * (np.abs(vl) + tay))
         width = up - lo
@@ -534,8 +553,9 @@ def scaled_ranges(lin_v, lin_err, su, sl, cu, cl, t_max, G: float, tau: float, G
 
     Parameters
     ----------
-    lin_v, lin_err, su, sl, cu, cl : (N, V) float arrays
-        The known part at the vertices and its error, the vertex bounds at ``G`` and their coefficients.
+    lin_v, lin_err, su, sl, cu, cl : (..., N, V) float arrays
+        The known part at the vertices and its error, the vertex bounds at ``G`` and their coefficients (leading
+        axes, e.g. the outputs, each on its own as in :func:`_combine_vertices`).
     t_max : (N,) float array
     G, tau : float
     G_scaled : sequence (S) of float, each >= G
@@ -543,19 +563,19 @@ def scaled_ranges(lin_v, lin_err, su, sl, cu, cl, t_max, G: float, tau: float, G
 
     Returns
     -------
-    lower, upper : (S, n_cells) float arrays
+    lower, upper : (S, ..., n_cells) float arrays
     """
     rows_lo, rows_up = [], []
     for Gs in G_scaled:
         su_s, sl_s = rescale_vertex_values(su, sl, cu, cl, G, Gs)
         lo, up, _ = _combine_vertices(lin_v, lin_err, su_s, sl_s, t_max, float(Gs), tau)
         if starts is not None:  # the hull of each cell's sub-boxes (eq. C holds on every sub-box)
-            lo = np.minimum.reduceat(lo, starts)
-            up = np.maximum.reduceat(up, starts)
+            lo = np.minimum.reduceat(lo, starts, axis=-1)
+            up = np.maximum.reduceat(up, starts, axis=-1)
         rows_lo.append(lo)
         rows_up.append(up)
-    n = su.shape[0] if starts is None else len(starts)
-    shape = (len(rows_lo), n)
+    n = np.shape(su)[-2] if starts is None else len(starts)
+    shape = (len(rows_lo), *np.shape(su)[:-2], n)
     return (np.reshape(np.array(rows_lo, float), shape), np.reshape(np.array(rows_up, float), shape))
 
 
