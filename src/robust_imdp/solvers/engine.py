@@ -176,7 +176,7 @@ def solve_layered(imdp, nxt, target, zero, *, ctrl, adv_max, horizon=None, preci
         :func:`robust_imdp.solvers.api.check_method`).
 
     Returns a ReachabilityResult with (L, n) arrays and a (L, n) or (k, L, n) strategy (a
-    :class:`BoundedResult` with ``keep_steps``).
+    :class:`BoundedResult` with ``keep_steps`` or one end of a k-step bracket).
     """
     if horizon is not None:
         horizon = int(horizon)
