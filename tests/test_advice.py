@@ -536,6 +536,34 @@ def test_the_re_solves_on_a_two_process_cluster_give_the_same_estimates(tiny_run
     assert res.advice == tiny_runs[0].advice  # the same rows, in any order of completion: the same estimates
 
 
+def test_the_re_solves_spread_over_threads_and_helpers_give_the_one_core_estimates(tiny_runs, monkeypatch):
+    """In process on several cores a lever's rows are chunks run side by side (threads of this process and the side
+    lane's helper processes, ``advice_stage.spread``); on one core one after the other: the same estimates."""
+    import sys
+    from pathlib import Path
+
+    from robust_imdp.pipeline import advice_stage, parallel
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_pipeline import tiny_problem
+
+    one = synthesize_from_data(tiny_problem(), progress=False, workers=1, advice=True)
+    assert one.advice == tiny_runs[0].advice
+    monkeypatch.setattr(parallel, "SIDE_MIN_CELL_MODES", 0)  # helpers even for this small problem
+    monkeypatch.setattr(parallel, "local_cores", lambda: 2)
+    spread_calls = []
+    original = advice_stage.spread
+
+    def spy(sched, fn, args, kwargs=None):
+        spread_calls.append((fn.__name__, len(args), getattr(getattr(sched, "lane", None), "helpers", None)))
+        yield from original(sched, fn, args, kwargs)
+
+    monkeypatch.setattr(advice_stage, "spread", spy)
+    res = synthesize_from_data(tiny_problem(), progress=False, advice=True, margins=False)
+    assert any(c[0] in ("_rows_task", "_job_task") and c[2] for c in spread_calls)  # with helpers
+    assert res.advice == one.advice
+
+
 # =========================================================================== assumptions per component
 def test_advice_with_a_known_component_and_a_periodic_axis():
     # The cylinder of test_periodic_pipeline: rkhs_bound [0.3, 0] (the heading is known) and a periodic

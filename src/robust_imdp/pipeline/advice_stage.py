@@ -12,9 +12,10 @@ and its re-solves on the run's scheduler.
   how many estimates are kept).
 * **Scheduler.** Where the run has several cores (a Dask cluster, or in process with the side lane's helper
   processes: :func:`side_by_side`) each lever's whole re-solve (rows and solve) is one task (:func:`_job_task`) and
-  they run side by side (:func:`spread`: this process and the helpers take them from one queue). Otherwise the
-  re-solves' rows are tasks of the run's scheduler (:func:`_rows_task`), every lever's at once, and each solve runs
-  in this process as soon as its rows are in. The shares are the same either way.
+  they run side by side (:func:`spread`: this process and the helpers take them from one queue). Otherwise (one
+  lever at a time, or no lane) the re-solves' rows are tasks (:func:`_rows_task`), every lever's at once, on
+  every core the run has (:func:`spread`: the scheduler's workers, or in process threads and the lane's
+  helpers), and each solve runs in this process as soon as its rows are in. The shares are the same either way.
 * **Assumptions per mode and component** (known components, periodic axes): the fit, the noise floor and
   the sub-box terms are per component; B is never a lever (``premise`` says what the guarantee needs).
 """
@@ -333,7 +334,9 @@ def _scheduled_solver(problem: Problem, dfa, run: _Run, log: _Log):
         need = {j: sum(1 for t in tasks if t[0] == j) for j in range(len(jobs))}
         pieces: dict = {j: {} for j in range(len(jobs))}
         finished = set()
-        stream = sched.run(_rows_task, args, opts)
+        # in process on several cores the chunks run side by side (spread: threads and the lane's helpers); the
+        # pieces are assembled by position, so the rows are the same bits in any order
+        stream = spread(sched, _rows_task, args, opts)
         try:
             for i, rows in stream:
                 j, s0 = tasks[i]
