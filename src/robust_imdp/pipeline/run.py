@@ -60,7 +60,7 @@ from robust_imdp.pipeline.bound_stage import (
     _learn_and_bound,
     _residual_data,
 )
-from robust_imdp.pipeline.advice_stage import run_advice
+from robust_imdp.pipeline.advice_stage import run_advice, spread
 
 
 __all__ = ["Problem", "Result", "synthesize_from_data", "resynthesize", "abstraction_key",
@@ -164,7 +164,9 @@ def _chunked_abstract(problem: Problem, partition, cell_bounds, log: _Log, run: 
     pieces = [None] * len(args)
     t0 = time.perf_counter()
     runner = sched if sched is not None else _serial()
-    for i, piece in runner.run(task, args, opts):
+    # in process on several cores the chunks run side by side (threads and the side lane's helpers); the pieces
+    # are assembled by position: the same model in any order
+    for i, piece in spread(runner, task, args, opts):
         pieces[i] = piece
         log.progress("abstract", sum(p is not None for p in pieces), len(pieces), t0)
     return assemble(partition, pieces)
