@@ -76,6 +76,7 @@ _EXR = "src/robust_imdp/abstraction/exact_rows.py"
 _MT = ["tests/test_marginals.py"]
 _FAC = "src/robust_imdp/solvers/factored.py"
 _FAC_K = "src/robust_imdp/solvers/factored_kernels.py"
+_FAC_O = "src/robust_imdp/solvers/factored_order.py"
 _FAC_M = "src/robust_imdp/models/factored.py"
 
 _VI_RETURN = ("    return ReachabilityResult(lower=lo, upper=up, strategy=strat, iterations=it, "
@@ -544,6 +545,26 @@ MUTATIONS = [
          replacement="    w_rest = float(w.max() if (adv_max or support) else w.mean())",
          description="factored operator: unlisted mass valued at the mean successor value, not the least (minimising)",
          tests=["tests/test_factored.py"]),
+    dict(name="factored-order-lower-raise-1e-3", file=_FAC_O,
+         original="        val += mg.lower[e0 + j] * x",
+         replacement="        val += mg.lower[e0 + j] * 1.001 * x",
+         description="factored ordered pass, one row: listed lower bounds x (1 + 1e-3)",
+         tests=["tests/test_factored_order.py"]),
+    dict(name="factored-order-rounding-off", file=_FAC_O,
+         original="    return _finish(val, rem, k, direction)",
+         replacement="    return _finish(val, rem, k, 0)",
+         description="factored ordered pass, one row: no LEVEL_ERR margin on either side (round to nearest)",
+         tests=["tests/test_factored_order.py"]),
+    dict(name="factored-order-rest-shrink-1e-3", file=_FAC_O,
+         original="        m = _insert(keys, caps, m, -w_rest if adv_max else w_rest, mg.rcap[mm])",
+         replacement="        m = _insert(keys, caps, m, -w_rest if adv_max else w_rest, mg.rcap[mm] * (1 - 1e-3))",
+         description="factored ordered pass, one row: rest_upper (unlisted in-grid mass) x (1 - 1e-3)",
+         tests=["tests/test_factored_order.py"]),
+    dict(name="factored-order-stale-rest-wrong-side", file=_FAC,
+         original="    pick = np.max if lay.adv_max else np.min",
+         replacement="    pick = np.min if lay.adv_max else np.max",
+         description="factored ordered pass: the unlisted rest valued at the layer's max for a minimising adversary "
+                     "(min for a maximising one)", tests=["tests/test_factored_order.py"]),
     dict(name="factored-level-rounding-down-off", file=_FAC_K,
          original="        val -= level_err(k)",
          replacement="        val -= 0.0 * level_err(k)",

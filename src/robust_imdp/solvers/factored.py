@@ -77,6 +77,9 @@ class FactoredOperator:
         Distinct interval vectors per axis.
     groups : tuple of int
         Tree nodes per level 1 .. d (level l: distinct tuples of the last l axes' marginals).
+    ids : (n_modes, n_cells, d) int32 array
+        Marginal id (into ``marginals``) of every (mode, cell, axis): the rows one at a time
+        (:mod:`robust_imdp.solvers.factored_order`).
     work : int
         Listed entries read by one full sweep of one layer (``sum`` over tree nodes of box
         volume x k): the sweep's cost, against ``n_modes * n_cells * prod(k)`` without sharing.
@@ -88,6 +91,7 @@ class FactoredOperator:
     grid: Grid
     marginals: Marginals
     tree: Tree
+    ids: np.ndarray
     n_marginals: tuple
     groups: tuple
     work: int
@@ -173,9 +177,10 @@ def _prepare(model: FactoredIMDP) -> FactoredOperator:
     en = st + kk
     en = np.where(grid.periodic, en, np.minimum(en, shape))
     tree, work = _build_tree(ids, st, en, kk, d, M, N)
-    nbytes = sum(a.nbytes for a in mg) + sum(a.nbytes for a in tree) + sum(a.nbytes for a in grid)
+    ids32 = np.ascontiguousarray(ids, dtype=np.int32)
+    nbytes = sum(a.nbytes for a in mg) + sum(a.nbytes for a in tree) + sum(a.nbytes for a in grid) + ids32.nbytes
     groups = tuple(int(tree.level_start[l + 1] - tree.level_start[l]) for l in range(1, d + 1))
-    return FactoredOperator(model=model, grid=grid, marginals=mg, tree=tree, n_marginals=tuple(n_marg),
+    return FactoredOperator(model=model, grid=grid, marginals=mg, tree=tree, ids=ids32, n_marginals=tuple(n_marg),
                             groups=groups, work=int(work), nbytes=int(nbytes))
 
 
@@ -295,7 +300,8 @@ def _rows(op, w, need, adv_max, direction, support=False):
     return out
 
 
-def factored_bellman(model: FactoredIMDP, values, *, adversary="pessimistic", rounding="down") -> np.ndarray:
+def factored_bellman(model: FactoredIMDP, values, *, adversary="pessimistic", rounding="down",
+                     kernel="tree") -> np.ndarray:
     """One application of the factored Bellman operator to every row: the value of each (mode, cell).
 
     Parameters
@@ -308,6 +314,11 @@ def factored_bellman(model: FactoredIMDP, values, *, adversary="pessimistic", ro
     rounding : {"down", "up", "nearest"}
         "down": a lower bound of the exact operator, "up": an upper bound (outward rounding per
         level, :mod:`robust_imdp.solvers.factored_kernels`), "nearest": plain floating point.
+    kernel : {"tree", "rows"}
+        "tree": the shared sweep of :func:`~robust_imdp.solvers.factored_kernels.factored_rows` (the
+        whole-model iteration's); "rows": one row at a time, as the component-ordered pass evaluates them
+        (:mod:`robust_imdp.solvers.factored_order`).  Both are outward rounded; they may differ in the last
+        bits.
 
     Returns
     -------
@@ -324,6 +335,17 @@ def factored_bellman(model: FactoredIMDP, values, *, adversary="pessimistic", ro
     if direction is None:
         raise InvalidInputError(f"rounding must be one of 'down', 'up', 'nearest'; got {rounding!r}")
     adv_max = enum_value(Adversary, adversary, "adversary") is Adversary.OPTIMISTIC
+    if kernel == "rows":
+        from robust_imdp.solvers.factored_order import ProductRows, row_values
+
+        n = model.n_states
+        pr = ProductRows(ids=op.ids, nxt=np.zeros(n, dtype=np.int64), n=n, ctrl=0, strat=np.zeros(1, dtype=np.int64))
+        out = np.empty((model.n_modes, model.n_cells))
+        row_values(op.grid, op.marginals, pr, np.ascontiguousarray(v), float(v.max() if adv_max else v.min()),
+                   adv_max, direction, out)
+        return out
+    if kernel != "tree":
+        raise InvalidInputError(f"kernel must be 'tree' or 'rows'; got {kernel!r}")
     return _rows(op, v, np.ones((model.n_modes, model.n_cells), dtype=bool), adv_max, direction)
 
 
@@ -475,6 +497,51 @@ def _reach_set(lay, target, active):
         R = new
 
 
+#: Run the component-ordered pass (:func:`_ordered_pass`) before the whole-model sweeps of an unbounded solve.
+ORDERED = True
+
+#: An end of a cyclic component that moves by at most ``ORDER_STALL * precision`` in one sweep of the ordered
+#: pass is not swept again in that pass (the whole-model sweeps after it decide convergence).
+ORDER_STALL = 1e-3
+
+
+def _ordered_pass(lay, lo, up, active, precision, max_iterations):
+    """The product's components in reverse topological order, each swept in place until its bracket is
+    within ``precision`` (:mod:`robust_imdp.solvers.factored_order`); ``lo``/``up`` (S, n) are improved in
+    place (every update is a directed Bellman update of the current vectors: sound in any order).
+    Returns (largest number of sweeps of one component, number of components, number of cyclic ones)."""
+    from robust_imdp.solvers.factored_order import ProductRows, product_sccs, solve_components
+
+    op = lay.op
+    S, n = lo.shape
+    N = lay.N
+    strat = np.zeros(1, dtype=np.int64) if lay.ctrl != Control.FIXED else \
+        np.ascontiguousarray(lay.strategy[0], dtype=np.int64).reshape(-1)
+    nxt = np.ascontiguousarray(lay.nxt, dtype=np.int64).reshape(-1)
+    pr = ProductRows(ids=op.ids, nxt=nxt, n=n, ctrl=int(lay.ctrl), strat=strat)
+    act = np.ascontiguousarray(active, dtype=np.bool_).reshape(-1).copy()
+    act[N::n] = False  # the outside state is left to the whole-model sweeps (its own self-loop update)
+    if not act.any():
+        return 0, 0, 0
+    comp, cyclic, rank = product_sccs(op.grid, op.marginals, pr, act)
+    nodes = np.flatnonzero(act)
+    nodes = nodes[np.argsort(rank[nodes], kind="stable")]  # components in order, Tarjan's pop order inside
+    counts = np.bincount(comp[nodes], minlength=cyclic.size)
+    comp_ptr = np.zeros(cyclic.size + 1, dtype=np.int64)
+    np.cumsum(counts, out=comp_ptr[1:])
+    # the rest entry's value per layer, from the vectors before the pass (module docstring of factored_order:
+    # lower iterates only rise, upper ones only fall, so these stay on the safe side during the pass)
+    ar = np.arange(n)
+    pick = np.max if lay.adv_max else np.min
+    wr_lo = np.array([pick(lo[lay.nxt[s], ar]) for s in range(S)], dtype=np.float64)
+    wr_up = np.array([pick(up[lay.nxt[s], ar]) for s in range(S)], dtype=np.float64)
+    sweeps = np.zeros(cyclic.size, dtype=np.int64)
+    lof, upf = lo.reshape(-1), up.reshape(-1)
+    solve_components(op.grid, op.marginals, pr, lof, upf, nodes, comp_ptr, cyclic, wr_lo, wr_up, bool(lay.adv_max),
+                     float(precision), float(ORDER_STALL * precision), int(max_iterations), sweeps)
+    return int(sweeps.max()) if sweeps.size else 0, int(cyclic.size), int(cyclic.sum())
+
+
 def _unbounded(lay, target, zero, active, precision, max_iterations, tie_break):
     S, n = target.shape
     strat0 = None if lay.strategy is None else lay.strategy[0]
@@ -485,6 +552,9 @@ def _unbounded(lay, target, zero, active, precision, max_iterations, tie_break):
     up = np.where(zero_all, 0.0, 1.0)
     layers = [s for s in range(S) if active2[s].any()]
     it = 0
+    pre = 0  # sweeps of the ordered pass (the largest count of one component)
+    if ORDERED:
+        pre, _, _ = _ordered_pass(lay, lo, up, active2, precision, max_iterations)
     gap = float(np.max(up - lo)) if up.size else 0.0
     while gap > precision and it < max_iterations:
         it += 1
@@ -499,6 +569,7 @@ def _unbounded(lay, target, zero, active, precision, max_iterations, tie_break):
         if np.array_equal(lo, before_lo) and np.array_equal(up, before_up):
             break  # a fixed point of both directed iterations: further sweeps change nothing (an end component
             # keeps the upper side above the lower one: no deflation, docs/factored.md)
+    it += pre
     converged = gap <= precision
     if not converged:
         warnings.warn(f"factored value iteration stopped after {it} iterations with max(upper - lower) = {gap:.3g} > "
