@@ -43,10 +43,14 @@ from __future__ import annotations
 
 from collections import namedtuple
 
+import numba
 import numpy as np
 from numba import njit
 
 from robust_imdp.solvers.factored_kernels import _finish, _insert
+
+#: The fewest nodes of a cyclic component whose two ends are swept side by side on numba's threads.
+PAR_MIN_NODES = 256
 
 #: Controller codes of the kernels (the values of :class:`robust_imdp.solvers.common.Control`).
 _MAX, _MIN, _FIXED = 0, 1, 2
@@ -130,16 +134,39 @@ def _omax_local(buf, off, kk, mg, mm, w_out, w_rest, adv_max, direction, keys, c
 
 
 @njit(cache=True)
-def _row_value(grid, mg, pr, V, s, u, q, w_out, w_rest, adv_max, direction, buf, keys, caps, st, ke):
+def _row_value(grid, mg, pr, V, s, u, q, w_out, w_rest, adv_max, direction, buf, keys, caps, st, ke, offs, idx):
     """The factored value of row (cell q, mode u) in layer s against the flat values ``V`` (S * n,):
-    successor q' reads ``V[nxt[s * n + q'] * n + q']``; outward rounded by ``direction``."""
+    successor q' reads ``V[nxt[s * n + q'] * n + q']``; outward rounded by ``direction``.  ``buf`` (>= box
+    volume), ``keys``/``caps`` (k + 2), ``st``/``ke``/``idx`` (d,) and ``offs`` (d, kmax): scratch."""
     d = grid.shape.shape[0]
     n = pr.n
     tot = _box(grid, mg, pr.ids, u, q, st, ke)
     base = s * n
-    for t in range(tot):
-        q2 = _cell(grid, st, ke, t)
-        buf[t] = V[pr.nxt[base + q2] * n + q2]
+    if tot > 0:
+        # gather in C order over the box: an odometer over axes 0 .. d-2 (offsets of the wrapped positions in
+        # ``offs``), a run along the last axis
+        for i in range(d):
+            for j in range(ke[i]):
+                p = st[i] + j
+                if p >= grid.shape[i]:
+                    p -= grid.shape[i]
+                offs[i, j] = p * grid.strides[i]
+            idx[i] = 0
+        kl = ke[d - 1]
+        for o in range(tot // kl):
+            qb = 0
+            for i in range(d - 1):
+                qb += offs[i, idx[i]]
+            for j in range(kl):
+                q2 = qb + offs[d - 1, j]
+                buf[o * kl + j] = V[pr.nxt[base + q2] * n + q2]
+            i = d - 2
+            while i >= 0:
+                idx[i] += 1
+                if idx[i] < ke[i]:
+                    break
+                idx[i] = 0
+                i -= 1
     # reduce the last axis first: after axis a the buffer holds prod(ke[:a]) values in C order
     outer = tot
     for a in range(d - 1, -1, -1):
@@ -158,7 +185,7 @@ def _row_value(grid, mg, pr, V, s, u, q, w_out, w_rest, adv_max, direction, buf,
 
 
 @njit(cache=True)
-def _node_value(grid, mg, pr, V, node, w_out, w_rest, adv_max, direction, buf, keys, caps, st, ke):
+def _node_value(grid, mg, pr, V, node, w_out, w_rest, adv_max, direction, buf, keys, caps, st, ke, offs, idx):
     """The controller's value of node ``s * n + q`` (a cell): max / min over the modes, or the
     strategy's mode."""
     n = pr.n
@@ -167,10 +194,11 @@ def _node_value(grid, mg, pr, V, node, w_out, w_rest, adv_max, direction, buf, k
     M = pr.ids.shape[0]
     if pr.ctrl == _FIXED:
         return _row_value(grid, mg, pr, V, s, pr.strat[node], q, w_out, w_rest, adv_max, direction, buf, keys, caps,
-                          st, ke)
+                          st, ke, offs, idx)
     best = -1.0 if pr.ctrl == _MAX else 2.0
     for u in range(M):
-        v = _row_value(grid, mg, pr, V, s, u, q, w_out, w_rest, adv_max, direction, buf, keys, caps, st, ke)
+        v = _row_value(grid, mg, pr, V, s, u, q, w_out, w_rest, adv_max, direction, buf, keys, caps, st, ke, offs,
+                       idx)
         if (pr.ctrl == _MAX and v > best) or (pr.ctrl == _MIN and v < best):
             best = v
     return best
@@ -298,44 +326,8 @@ def product_sccs(grid, mg, pr, active):
 
 
 @njit(cache=True)
-def _sweep(grid, mg, pr, lo, up, nodes, c0, c1, wr_lo, wr_up, adv_max, buf, keys, caps, st, ke, lower, upper):
-    """One in-place sweep over ``nodes[c0:c1]``: ``lo <- max(lo, B_down(lo))``, ``up <- min(up,
-    B_up(up))``.  Returns (largest rise of lo, largest fall of up, largest up - lo after)."""
-    n = pr.n
-    d_lo = 0.0
-    d_up = 0.0
-    gap = 0.0
-    for i in range(c0, c1):
-        node = nodes[i]
-        s = node // n
-        if lower:
-            wo = lo[pr.nxt[s * n + n - 1] * n + n - 1]
-            v = _node_value(grid, mg, pr, lo, node, wo, wr_lo[s], adv_max, -1, buf, keys, caps, st, ke)
-            if v > lo[node]:
-                if v - lo[node] > d_lo:
-                    d_lo = v - lo[node]
-                lo[node] = v
-        if upper:
-            wo = up[pr.nxt[s * n + n - 1] * n + n - 1]
-            v = _node_value(grid, mg, pr, up, node, wo, wr_up[s], adv_max, 1, buf, keys, caps, st, ke)
-            if v < up[node]:
-                if up[node] - v > d_up:
-                    d_up = up[node] - v
-                up[node] = v
-        g = up[node] - lo[node]
-        if g > gap:
-            gap = g
-    return d_lo, d_up, gap
-
-
-@njit(cache=True)
-def solve_components(grid, mg, pr, lo, up, nodes, comp_ptr, cyclic, wr_lo, wr_up, adv_max, precision, stall,
-                     max_sweeps, sweeps):
-    """Every component in order (``nodes[comp_ptr[c]:comp_ptr[c + 1]]``, reverse topological): one
-    update of an acyclic one, in-place sweeps of a cyclic one until its bracket is within
-    ``precision``, both ends stop moving by more than ``stall`` per sweep, or ``max_sweeps``.
-    ``lo``/``up`` (S * n,) are updated in place; ``sweeps[c]`` receives each component's count.
-    Returns the number of components that stopped at ``max_sweeps`` with a gap above ``precision``."""
+def _scratch(grid, mg):
+    """Scratch arrays of :func:`_row_value`: (buf, keys, caps, st, ke, offs, idx)."""
     d = grid.shape.shape[0]
     kmax = 1
     for m in range(mg.k.shape[0]):
@@ -344,18 +336,52 @@ def solve_components(grid, mg, pr, lo, up, nodes, comp_ptr, cyclic, wr_lo, wr_up
     vol = 1
     for i in range(d):
         vol *= kmax
-    buf = np.empty(vol)
-    keys = np.empty(kmax + 2)
-    caps = np.empty(kmax + 2)
-    st = np.empty(d, dtype=np.int64)
-    ke = np.empty(d, dtype=np.int64)
+    return (np.empty(vol), np.empty(kmax + 2), np.empty(kmax + 2), np.empty(d, dtype=np.int64),
+            np.empty(d, dtype=np.int64), np.empty((d, kmax), dtype=np.int64), np.empty(d, dtype=np.int64))
+
+
+@njit(cache=True)
+def _sweep_end(grid, mg, pr, V, nodes, c0, c1, wr, adv_max, direction):
+    """One in-place sweep of one end over ``nodes[c0:c1]``: ``V <- max(V, B_down(V))`` (direction -1) or
+    ``V <- min(V, B_up(V))`` (+1).  Returns the largest change."""
+    buf, keys, caps, st, ke, offs, idx = _scratch(grid, mg)
+    n = pr.n
+    change = 0.0
+    for i in range(c0, c1):
+        node = nodes[i]
+        s = node // n
+        wo = V[pr.nxt[s * n + n - 1] * n + n - 1]
+        v = _node_value(grid, mg, pr, V, node, wo, wr[s], adv_max, direction, buf, keys, caps, st, ke, offs, idx)
+        if direction < 0:
+            if v > V[node]:
+                if v - V[node] > change:
+                    change = v - V[node]
+                V[node] = v
+        elif v < V[node]:
+            if V[node] - v > change:
+                change = V[node] - v
+            V[node] = v
+    return change
+
+
+@njit(cache=True, parallel=True)
+def solve_components(grid, mg, pr, lo, up, nodes, comp_ptr, cyclic, wr_lo, wr_up, adv_max, precision, stall,
+                     max_sweeps, sweeps):
+    """Every component in order (``nodes[comp_ptr[c]:comp_ptr[c + 1]]``, reverse topological): one
+    update of an acyclic one, in-place sweeps of a cyclic one until its bracket is within
+    ``precision``, both ends stop moving by more than ``stall`` per sweep, or ``max_sweeps``.
+    The two ends of a sweep are independent iterations: they run side by side on numba's threads.
+    ``lo``/``up`` (S * n,) are updated in place; ``sweeps[c]`` receives each component's count.
+    Returns the number of components that stopped at ``max_sweeps`` with a gap above ``precision``."""
     capped = 0
     nc = comp_ptr.shape[0] - 1
+    change = np.zeros(2)
     for c in range(nc):
         c0 = comp_ptr[c]
         c1 = comp_ptr[c + 1]
         if not cyclic[c]:
-            _sweep(grid, mg, pr, lo, up, nodes, c0, c1, wr_lo, wr_up, adv_max, buf, keys, caps, st, ke, True, True)
+            _sweep_end(grid, mg, pr, lo, nodes, c0, c1, wr_lo, adv_max, -1)
+            _sweep_end(grid, mg, pr, up, nodes, c0, c1, wr_up, adv_max, 1)
             sweeps[c] = 1
             continue
         k = 0
@@ -363,14 +389,30 @@ def solve_components(grid, mg, pr, lo, up, nodes, comp_ptr, cyclic, wr_lo, wr_up
         do_up = True
         while k < max_sweeps:
             k += 1
-            d_lo, d_up, gap = _sweep(grid, mg, pr, lo, up, nodes, c0, c1, wr_lo, wr_up, adv_max, buf, keys, caps,
-                                     st, ke, do_lo, do_up)
+            change[0] = 0.0
+            change[1] = 0.0
+            if c1 - c0 < PAR_MIN_NODES:  # a small component: one thread (a parallel launch waits for both)
+                if do_lo:
+                    change[0] = _sweep_end(grid, mg, pr, lo, nodes, c0, c1, wr_lo, adv_max, -1)
+                if do_up:
+                    change[1] = _sweep_end(grid, mg, pr, up, nodes, c0, c1, wr_up, adv_max, 1)
+            else:
+                for e in numba.prange(2):
+                    if e == 0 and do_lo:
+                        change[0] = _sweep_end(grid, mg, pr, lo, nodes, c0, c1, wr_lo, adv_max, -1)
+                    elif e == 1 and do_up:
+                        change[1] = _sweep_end(grid, mg, pr, up, nodes, c0, c1, wr_up, adv_max, 1)
+            gap = 0.0
+            for i in range(c0, c1):
+                g = up[nodes[i]] - lo[nodes[i]]
+                if g > gap:
+                    gap = g
             if gap <= precision:
                 break
             # an end that stopped moving is not swept again in this pass (sound: no update is needed)
-            if do_lo and d_lo <= stall:
+            if do_lo and change[0] <= stall:
                 do_lo = False
-            if do_up and d_up <= stall:
+            if do_up and change[1] <= stall:
                 do_up = False
             if not (do_lo or do_up):
                 break
@@ -386,25 +428,13 @@ def row_values(grid, mg, pr, V, w_rest, adv_max, direction, out):
     against the flat values ``V`` (S * n,) with the rest valued ``w_rest``.  The independent check of the
     per-row reduction against :func:`robust_imdp.solvers.factored_kernels.factored_rows` and exact
     arithmetic (tests)."""
-    d = grid.shape.shape[0]
-    kmax = 1
-    for m in range(mg.k.shape[0]):
-        if mg.k[m] > kmax:
-            kmax = mg.k[m]
-    vol = 1
-    for i in range(d):
-        vol *= kmax
-    buf = np.empty(vol)
-    keys = np.empty(kmax + 2)
-    caps = np.empty(kmax + 2)
-    st = np.empty(d, dtype=np.int64)
-    ke = np.empty(d, dtype=np.int64)
+    buf, keys, caps, st, ke, offs, idx = _scratch(grid, mg)
     n = pr.n
     w_out = V[pr.nxt[n - 1] * n + n - 1]
     for u in range(out.shape[0]):
         for q in range(out.shape[1]):
             out[u, q] = _row_value(grid, mg, pr, V, 0, u, q, w_out, w_rest, adv_max, direction, buf, keys, caps, st,
-                                   ke)
+                                   ke, offs, idx)
 
 
 __all__ = ["ProductRows", "product_sccs", "row_values", "solve_components"]
