@@ -142,3 +142,43 @@ def test_part_writer_keeps_every_chunk_and_raises_a_failed_write(tmp_path, monke
     with pytest.raises(OSError, match="disk full"):
         w.put(tmp_path / "z.npz", {"lower": np.zeros((1, 1))})
     w.close(raise_error=False)  # a stage already stopping by another error keeps that one
+
+
+def test_grid_chunk_larger_in_process_only():
+    from robust_imdp.pipeline import bound_rkhs
+    from robust_imdp.pipeline.runtime import _Run, _chunk_cells
+
+    assert bound_rkhs._grid_chunk(_Run()) == bound_rkhs.CHUNK_CELLS_IN_PROCESS  # all cores, in process
+    assert bound_rkhs._grid_chunk(_Run(workers=1)) == bound_rkhs.CHUNK_CELLS_IN_PROCESS
+    assert bound_rkhs._grid_chunk(_Run(workers=2)) == bound_rkhs.CHUNK_CELLS  # a local Dask cluster
+    assert bound_rkhs._grid_chunk(_Run(scheduler="tcp://h:8786")) == bound_rkhs.CHUNK_CELLS
+    assert bound_rkhs._grid_chunk(_Run(client=object())) == bound_rkhs.CHUNK_CELLS
+    run = _Run(chunk_cells=48)  # the run's own chunk_cells wins
+    assert _chunk_cells(run, 10_000, bound_rkhs._grid_chunk(run)) == 48
+    assert bound_rkhs.CHUNK_CELLS_IN_PROCESS % rkhs.CELL_BLOCK == 0  # whole blocks: the same bits as any chunking
+
+
+@pytest.mark.parametrize("method", ["optimal", "ridge"])
+def test_local_chunk_in_pieces_same_bits_as_in_one(monkeypatch, method):
+    # on several threads a chunk's eq. C runs piece by piece beside the next piece's kernel (rkhs_local._cells_piece);
+    # forced here with 3 lanes and pieces of 2 blocks, with sub-boxes, the iid event and the margins' scales
+    rng = np.random.default_rng(4)
+    d, m = 2, 150
+    X = rng.uniform(-1.5, 1.5, (m, d))
+    Y = np.column_stack([np.sin(2 * X[:, 0]), X[:, 1] ** 2]) + rng.uniform(-0.01, 0.01, (m, 2))
+    lo, up = _cells(rng, 90, d, 0.4)
+    kw = dict(lengthscale=0.7, rkhs_bound=2.0, noise_bound=0.01, misspecification=1e-3, method=method,
+              iid_factor=2.5, iid_theta=0.005, local_points=12, local_lambda=1e-4, split_tol=2e-3,
+              scales=(1.5, 3.0))
+    A, b = np.eye(2), np.array([0.1, -0.2])
+    monkeypatch.setattr(rkhs_local, "_lanes", lambda: 1)
+    one = rkhs.bound_chunk(X, Y, A, b, lo, up, **kw)
+    monkeypatch.setattr(rkhs_local, "_lanes", lambda: 3)
+    monkeypatch.setattr(rkhs_local, "PIECE_BLOCKS", 2)
+    calls = []
+    real = rkhs_local._cells_piece
+    monkeypatch.setattr(rkhs_local, "_cells_piece", lambda *a: (calls.append(1), real(*a))[1])
+    pieces = rkhs.bound_chunk(X, Y, A, b, lo, up, **kw)
+    assert len(calls) == 3  # 90 cells: blocks of 16 -> 6 blocks -> 3 pieces
+    for key in ("lower", "upper", "eps", "support", "scaled_lower", "scaled_upper"):
+        np.testing.assert_array_equal(pieces[key], one[key], err_msg=key)

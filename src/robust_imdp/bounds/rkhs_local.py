@@ -373,25 +373,91 @@ def _local_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_boun
     b = np.asarray(b, float)
     known = [_known_at_vertices(c, r, signs, A[i], float(b[i])) for i in range(n)]  # (lin_v, lin_err) per output
     lin = np.ascontiguousarray(np.stack([kv[0] for kv in known], axis=-1))  # (N, V, n): orders and prunes only
-    val, sup, coef = _local_cells_coef(X, Y, inv_l2, c, r, signs, pools, float(lam or 0.0), np.ascontiguousarray(dbar),
-                                       np.zeros(n), G_eff, method == "optimal", 2000, 1e-9, ptr, parent, lin,
-                                       _lanes())
-    if iid_factor is not None:
+    lin_v, lin_err = np.stack([kv[0] for kv in known]), np.stack([kv[1] for kv in known])  # (n, N, V)
+    t_max = t_max_up(r, inv_l2)
+    iid = None
+    if iid_factor is not None:  # the iid event's weights (ridge, one lambda for the chunk)
         th = np.broadcast_to(np.asarray(iid_theta, float), (n,))
         a2 = _up(float(iid_factor) * th * (1 + 4 * _U))
         lam2 = local_lambda(X, lower, upper, lengthscale=lengthscale, rkhs_bound=rkhs_bound, noise_l1=tau,
                             noise_l2=float(a2.max()), k=k)
-        iv, _, icoef = _local_cells_coef(X, Y, inv_l2, c, r, signs, pools, lam2, np.full(n, tau),
-                                         np.ascontiguousarray(a2), G_eff, False, 0, 0.0, ptr, parent, lin,
-                                         _lanes())
+        iid = (lam2, a2)
+    G_s = None if scales is None else [scaled_norm_bound(rkhs_bound, sc, d) for sc in scales]
+    lanes = _lanes()
+
+    def vertex_values(p_ptr):  # eq. W at the vertices of the boxes p_ptr[0] .. p_ptr[-1] - 1 (whole blocks)
+        val, sup, coef = _local_cells_coef(X, Y, inv_l2, c, r, signs, pools, float(lam or 0.0),
+                                           np.ascontiguousarray(dbar), np.zeros(n), G_eff, method == "optimal", 2000,
+                                           1e-9, p_ptr, parent, lin, lanes)
+        iv = icoef = None
+        if iid is not None:
+            iv, _, icoef = _local_cells_coef(X, Y, inv_l2, c, r, signs, pools, iid[0], np.full(n, tau),
+                                             np.ascontiguousarray(iid[1]), G_eff, False, 0, 0.0, p_ptr, parent, lin,
+                                             lanes)
+        return val, sup, coef, iv, icoef
+
+    n_blocks = ptr.shape[0] - 1
+    if lanes == 1 or n_blocks <= PIECE_BLOCKS:  # one piece: the kernel, then eq. C
+        return _cells_piece(*vertex_values(ptr), lin_v, lin_err, t_max, starts, G_eff, tau, G_s)
+    # Pieces of PIECE_BLOCKS blocks: eq. C of a piece (numpy, one thread) runs in a thread beside the next piece's
+    # kernel (every lane, without the GIL), so no core waits for it; each piece's numbers are its own, so the
+    # concatenated arrays are those of one piece (the same bits).
+    parts = []
+    pool = _piece_thread()
+    try:
+        for j0 in range(0, n_blocks, PIECE_BLOCKS):
+            j1 = min(j0 + PIECE_BLOCKS, n_blocks)
+            qa, qb = int(ptr[j0]), int(ptr[j1])  # its boxes
+            ca, cb = j0 * CELL_BLOCK, min(j1 * CELL_BLOCK, n_cells)  # its cells
+            val, sup, coef, iv, icoef = vertex_values(np.ascontiguousarray(ptr[j0:j1 + 1]))
+            parts.append(pool.submit(_cells_piece, val[qa:qb], sup[qa:qb], coef[qa:qb],
+                                     None if iv is None else iv[qa:qb], None if icoef is None else icoef[qa:qb],
+                                     lin_v[:, qa:qb], lin_err[:, qa:qb], t_max[qa:qb], starts[ca:cb] - qa, G_eff,
+                                     tau, G_s))
+    except BaseException:  # an interrupted chunk: its pieces not yet started are dropped
+        for f in parts:
+            f.cancel()
+        raise
+    parts = [f.result() for f in parts]
+    out = {key: np.concatenate([q[key] for q in parts], axis=0) for key in ("lower", "upper", "eps", "support")}
+    out["n_unconverged"] = 0
+    if G_s is not None:
+        for key in ("scaled_lower", "scaled_upper"):
+            out[key] = np.concatenate([q[key] for q in parts], axis=1)
+    return out
+
+
+#: Blocks of :data:`CELL_BLOCK` cells per piece of a chunk on several threads (:func:`_local_chunk`).
+PIECE_BLOCKS = 16
+_PIECE_POOL = None
+_PIECE_LOCK = threading.Lock()
+
+
+def _piece_thread():
+    """The process's one thread for eq. C of the pieces (started on first use, kept: no thread start per chunk)."""
+    global _PIECE_POOL
+    with _PIECE_LOCK:
+        if _PIECE_POOL is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            _PIECE_POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="robust-imdp eq. C")
+        return _PIECE_POOL
+
+
+def _cells_piece(val, sup, coef, iv, icoef, lin_v, lin_err, t_max, starts, G_eff: float, tau: float, G_s) -> dict:
+    """The cell ranges of (eq. C) from the vertex values of a piece of a chunk: :func:`bound_chunk`'s dict.
+
+    ``val``, ``sup``, ``coef`` (N, V, n, 2): the kernel's values, supports and coefficients of G; ``iv``, ``icoef``:
+    those of the iid event's weights or None; ``lin_v``, ``lin_err`` (n, N, V); ``t_max`` (N,); ``starts`` the first
+    box of every cell; ``G_s``: the norm bounds of the margins' scales or None.
+    """
+    if iv is not None:
         # the certificate kept per vertex and side carries its own coefficient of G (for scales)
         coef[..., 0] = np.where(iv[..., 0] < val[..., 0], icoef[..., 0], coef[..., 0])
         coef[..., 1] = np.where(iv[..., 1] > val[..., 1], icoef[..., 1], coef[..., 1])
         val[..., 0] = np.minimum(val[..., 0], iv[..., 0])  # both intervals hold: intersect
         val[..., 1] = np.maximum(val[..., 1], iv[..., 1])
-    t_max = t_max_up(r, inv_l2)
     # every output in one call (n, N, V): element by element the same operations as one output at a time
-    lin_v, lin_err = np.stack([kv[0] for kv in known]), np.stack([kv[1] for kv in known])
     su, sl = np.moveaxis(val[..., 0], 2, 0), np.moveaxis(val[..., 1], 2, 0)
     lo_all, up_all, taylor = _combine_vertices(lin_v, lin_err, su, sl, t_max, G_eff, tau)
     eps_all = np.max(0.5 * (su - sl), axis=-1) + taylor
@@ -401,8 +467,7 @@ def _local_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_boun
            "eps": np.ascontiguousarray(np.maximum.reduceat(eps_all, starts, axis=1).T)}
     out["support"] = np.maximum.reduceat(sup.max(axis=(1, 3)), starts, axis=0)
     out["n_unconverged"] = 0
-    if scales is not None:  # the same weights at scale * B (docs/rkhs_bounds.md, "Assumption margins")
-        G_s = [scaled_norm_bound(rkhs_bound, sc, d) for sc in scales]
+    if G_s is not None:  # the same weights at scale * B (docs/rkhs_bounds.md, "Assumption margins")
         s_lo, s_up = scaled_ranges(lin_v, lin_err, su, sl, np.moveaxis(coef[..., 0], 2, 0),
                                    np.moveaxis(coef[..., 1], 2, 0), t_max, G_eff, tau, G_s, starts)  # (S, n, cells)
         out["scaled_lower"] = np.ascontiguousarray(np.swapaxes(s_lo, 1, 2))

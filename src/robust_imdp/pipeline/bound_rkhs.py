@@ -32,6 +32,10 @@ from robust_imdp.pipeline.runtime import _Log, _Run, _chunk_cells
 
 #: Cells per bound task unless the run says otherwise (``chunk_cells``; rounded to rkhs.CELL_BLOCK).
 CHUNK_CELLS = 256
+#: The same in process (one task at a time on every core): a task's Python (pools, eq. C) runs on one thread and its
+#: last block of cells leaves the other threads idle, so larger tasks leave less of the stage serial (the result
+#: does not depend on the chunking); on a Dask cluster the tasks are spread over the workers: :data:`CHUNK_CELLS`.
+CHUNK_CELLS_IN_PROCESS = 1024
 #: Without a data failure budget (bounded noise) the noise bound is taken at this level (it does not use it).
 _NO_BUDGET_DELTA = 0.5
 #: A kernel compilation longer than this many seconds is reported (the pre-flight's one-cell call).
@@ -371,10 +375,18 @@ def _statement(confidence: float, noise_bound, data_fail: float, iid_delta: floa
             "unknown component is within the misspecification of a function of RKHS norm <= rkhs_bound")
 
 
+def _grid_chunk(run: _Run) -> int:
+    """The bound stage's default cells per task: :data:`CHUNK_CELLS_IN_PROCESS` where the run's scheduler is this
+    process (``parallel.open_scheduler``: no client, no address, ``workers`` None or 1), else :data:`CHUNK_CELLS`."""
+    in_process = (run.client is None and run.scheduler_address is None
+                  and (run.workers is None or int(run.workers) == 1))
+    return CHUNK_CELLS_IN_PROCESS if in_process else CHUNK_CELLS
+
+
 def learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" = None, cache_dir=None):
     """The RKHS route's bound stage over the grid's cells: ``(cell_bounds, None, diagnostics)``.
 
-    Chunks of :data:`CHUNK_CELLS` cells per mode, saved under the bounds' cache key as they complete
+    Chunks of :data:`CHUNK_CELLS` cells per mode (in process :data:`CHUNK_CELLS_IN_PROCESS`), saved under the bounds' cache key as they complete
     (an interrupted run resumes from them); the assumption check and the diagnostics are
     ``bound_stage``'s.
     """
@@ -394,7 +406,7 @@ def learn_and_bound(problem: Problem, partition, log: _Log, run: "_Run | None" =
     scales = getattr(run, "margin_scales", None)
     if scales is not None:
         settings["scales"] = tuple(float(s) for s in scales)
-    chunk = _chunk_cells(run, N, CHUNK_CELLS)
+    chunk = _chunk_cells(run, N, _grid_chunk(run))
     tasks = [(u, s0) for u in range(M) for s0 in range(0, N, chunk)]
     local, extras = _mode_settings(problem, data, partition, noise_bound)
     if any(loc is not None for loc in local):
