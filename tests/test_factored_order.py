@@ -251,3 +251,37 @@ def test_the_pass_alone_gives_sound_bounds_with_rest_entries(seed, monkeypatch):
             lo, up = seen["lo"][0], seen["up"][0]
             assert np.all(lo <= ref.upper + 1e-12), (objective, adversary, np.max(lo - ref.upper))
             assert np.all(up >= ref.lower - 1e-12), (objective, adversary, np.max(ref.lower - up))
+
+
+# --------------------------------------------------------------------------- upper guesses (Lemma OVI)
+def _slow_loop(stay=0.99):
+    """Cell 0 stays w.p. ``stay`` and moves to the target cell 1 otherwise (exact intervals): value 1 (the
+    target is reached almost surely), approached by the lower iterates as 1 - stay^k."""
+    ax = AxisMarginals(n=2, periodic=False, start=np.array([[0, 0]]),
+                       lower=np.array([[[stay, 1 - stay], [0.0, 1.0]]]), upper=np.array([[[stay, 1 - stay], [0.0, 1.0]]]),
+                       out_lower=np.zeros((1, 2)), out_upper=np.zeros((1, 2)), rest_upper=np.zeros((1, 2)))
+    return FactoredIMDP(shape=(2,), axes=(ax,))
+
+
+def test_an_upper_guess_below_the_value_is_refuted_and_undone(monkeypatch):
+    # the lower end moves by 0.01 * 0.99^k per sweep: when that is below the guessing threshold it is still
+    # ~25 delta below 1, so the guess lo + delta is below the value 1 and its check must fail; the upper end
+    # must stay 1 (the exact value; any lower is unsound) and the lower converge to within the precision
+    m = _slow_loop()
+    r = solve_factored_reachability(m, [1], avoid=[2], precision=1e-9)
+    assert r.converged and r.upper[0] == 1.0 and r.lower[0] >= 1.0 - 1e-9
+    # the same for the pessimistic and optimistic adversaries of a product layer (the intervals are points)
+    o = solve_factored_reachability(m, [1], avoid=[2], precision=1e-9, adversary="optimistic")
+    assert o.upper[0] == 1.0 and o.lower[0] >= 1.0 - 1e-9
+
+
+def test_an_upper_guess_above_the_value_is_accepted_on_a_contracting_loop():
+    # stay w.p. [0.5, 0.6], to the target w.p. [0.2, 0.5], out w.p. [0, 0.2]: pessimistic value from
+    # V = 0.6 V + 0.2 (the adversary keeps the most mass in the loop and sends 0.2 out) -> V = 0.5;
+    # the bracket holds 0.5 and is within the precision
+    ax = AxisMarginals(n=2, periodic=False, start=np.array([[0, 0]]),
+                       lower=np.array([[[0.5, 0.2], [0.0, 1.0]]]), upper=np.array([[[0.6, 0.5], [0.0, 1.0]]]),
+                       out_lower=np.zeros((1, 2)), out_upper=np.array([[0.2, 0.0]]), rest_upper=np.zeros((1, 2)))
+    m = FactoredIMDP(shape=(2,), axes=(ax,))
+    r = solve_factored_reachability(m, [1], avoid=[2], precision=1e-9)
+    assert r.converged and r.lower[0] <= 0.5 <= r.upper[0] and r.upper[0] - r.lower[0] <= 1e-9

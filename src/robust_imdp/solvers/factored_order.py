@@ -52,6 +52,9 @@ from robust_imdp.solvers.factored_kernels import _finish, _insert
 #: The fewest nodes of a cyclic component whose two ends are swept side by side on numba's threads.
 PAR_MIN_NODES = 256
 
+#: Refuted upper guesses (Lemma OVI) per component before its sweeps go on without guessing.
+OVI_MAX_FAILS = 4
+
 #: Controller codes of the kernels (the values of :class:`robust_imdp.solvers.common.Control`).
 _MAX, _MIN, _FIXED = 0, 1, 2
 
@@ -364,6 +367,25 @@ def _sweep_end(grid, mg, pr, V, nodes, c0, c1, wr, adv_max, direction):
     return change
 
 
+@njit(cache=True)
+def _verify_up(grid, mg, pr, up, nodes, c0, c1, wr, adv_max):
+    """Lemma OVI's check of an upper guess on ``nodes[c0:c1]`` (module docstring of
+    :mod:`robust_imdp.solvers.engine`): the in-place sweep ``u(s) <- B_up(u)(s)``; True when no value
+    increased (then the vector is a proven upper bound), False at the first increase (the caller restores
+    the last proven vector)."""
+    buf, keys, caps, st, ke, offs, idx = _scratch(grid, mg)
+    n = pr.n
+    for i in range(c0, c1):
+        node = nodes[i]
+        s = node // n
+        wo = up[pr.nxt[s * n + n - 1] * n + n - 1]
+        v = _node_value(grid, mg, pr, up, node, wo, wr[s], adv_max, 1, buf, keys, caps, st, ke, offs, idx)
+        if v > up[node]:
+            return False
+        up[node] = v
+    return True
+
+
 @njit(cache=True, parallel=True)
 def solve_components(grid, mg, pr, lo, up, nodes, comp_ptr, cyclic, wr_lo, wr_up, adv_max, precision, stall,
                      max_sweeps, sweeps):
@@ -371,11 +393,18 @@ def solve_components(grid, mg, pr, lo, up, nodes, comp_ptr, cyclic, wr_lo, wr_up
     update of an acyclic one, in-place sweeps of a cyclic one until its bracket is within
     ``precision``, both ends stop moving by more than ``stall`` per sweep, or ``max_sweeps``.
     The two ends of a sweep are independent iterations: they run side by side on numba's threads.
+    Once the lower end moves by at most ``precision / 8`` per sweep, the upper end is guessed at ``min(up,
+    lo + precision / 2)`` and checked by one sweep (:func:`_verify_up`, Lemma OVI of
+    :mod:`robust_imdp.solvers.engine`, sound here because every successor outside the component is final
+    and the guess only lowers values, so the pass's stale rest value stays on the safe side); a refuted guess
+    is undone and the next waits for a lower end 4 x more settled, at most ``OVI_MAX_FAILS`` times.  A
+    check counts as a sweep.
     ``lo``/``up`` (S * n,) are updated in place; ``sweeps[c]`` receives each component's count.
     Returns the number of components that stopped at ``max_sweeps`` with a gap above ``precision``."""
     capped = 0
     nc = comp_ptr.shape[0] - 1
     change = np.zeros(2)
+    saved = np.empty(1)
     for c in range(nc):
         c0 = comp_ptr[c]
         c1 = comp_ptr[c + 1]
@@ -387,6 +416,11 @@ def solve_components(grid, mg, pr, lo, up, nodes, comp_ptr, cyclic, wr_lo, wr_up
         k = 0
         do_lo = True
         do_up = True
+        fails = 0
+        delta = 0.5 * precision
+        aim = 0.25 * delta
+        if saved.shape[0] < c1 - c0:
+            saved = np.empty(c1 - c0)
         while k < max_sweeps:
             k += 1
             change[0] = 0.0
@@ -409,6 +443,29 @@ def solve_components(grid, mg, pr, lo, up, nodes, comp_ptr, cyclic, wr_lo, wr_up
                     gap = g
             if gap <= precision:
                 break
+            if fails < OVI_MAX_FAILS and (change[0] <= aim or not do_lo):
+                # the lower end has (nearly) settled: guess the upper end at lower + delta and check it
+                # (Lemma OVI: every node's outside successors already hold their final, proven brackets)
+                k += 1
+                for i in range(c0, c1):
+                    node = nodes[i]
+                    saved[i - c0] = up[node]
+                    g = lo[node] + delta
+                    if g < up[node]:
+                        up[node] = g
+                if _verify_up(grid, mg, pr, up, nodes, c0, c1, wr_up, adv_max):
+                    gap = 0.0
+                    for i in range(c0, c1):
+                        g = up[nodes[i]] - lo[nodes[i]]
+                        if g > gap:
+                            gap = g
+                    if gap <= precision:
+                        break
+                else:
+                    for i in range(c0, c1):
+                        up[nodes[i]] = saved[i - c0]  # refuted: back to the last proven vector
+                    fails += 1
+                    aim *= 0.25
             # an end that stopped moving is not swept again in this pass (sound: no update is needed)
             if do_lo and change[0] <= stall:
                 do_lo = False
