@@ -61,3 +61,45 @@ def test_run_is_the_same_for_one_and_two_blas_threads(monkeypatch):
     # teeth: without the pin the two-thread run's fit differs (LAPACK's threaded LU)
     loose = _run(2, pin=False, monkeypatch=monkeypatch)
     assert loose.diagnostics["eps"] != one.diagnostics["eps"]
+
+
+def test_idle_openmp_threads_sleep_soon_unless_the_user_chose(monkeypatch):
+    monkeypatch.delenv("GOMP_SPINCOUNT", raising=False)
+    monkeypatch.delenv("OMP_WAIT_POLICY", raising=False)
+    assert _blas.quiet_openmp_waits() and os.environ["GOMP_SPINCOUNT"] == _blas.OMP_SPIN
+    monkeypatch.setenv("GOMP_SPINCOUNT", "300000")  # the user's value is kept
+    assert not _blas.quiet_openmp_waits() and os.environ["GOMP_SPINCOUNT"] == "300000"
+    monkeypatch.delenv("GOMP_SPINCOUNT")
+    monkeypatch.setenv("OMP_WAIT_POLICY", "ACTIVE")  # so is the user's wait policy (it decides the spinning)
+    assert not _blas.quiet_openmp_waits() and "GOMP_SPINCOUNT" not in os.environ
+
+
+def test_the_command_sets_the_spin_count_before_the_openmp_runtime_loads(tmp_path):
+    """In a fresh process the command line sets GOMP_SPINCOUNT before numba loads libgomp (which reads it then)."""
+    import subprocess
+    import sys
+
+    code = ("import os, sys\n"
+            "from robust_imdp import cli\n"
+            "import numba.np.ufunc.parallel as par\n"
+            "seen = []\n"
+            "orig = par._launch_threads\n"
+            "def spy():\n"
+            "    seen.append(os.environ.get('GOMP_SPINCOUNT'))\n"
+            "    return orig()\n"
+            "par._launch_threads = spy\n"
+            "rc = cli.main(['run', sys.argv[2], '--out', sys.argv[1], '--quiet', '--advice', 'off', '--margins', 'off',"
+            " '--no-figures'])\n"
+            "print(rc, seen[:1])\n")
+    import shutil
+    from pathlib import Path
+
+    src = Path(__file__).resolve().parents[1] / "examples" / "problems"
+    shutil.copy(src / "three_mode_linear_data.csv", tmp_path)
+    text = (src / "three_mode_linear.toml").read_text().replace("cell_size = [0.125, 0.125]", "cell_size = [0.5, 0.5]")
+    (tmp_path / "p.toml").write_text(text)
+    env = {k: v for k, v in os.environ.items() if k not in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY")}
+    p = subprocess.run([sys.executable, "-c", code, str(tmp_path / "out"), str(tmp_path / "p.toml")],
+                       capture_output=True, text=True, env=env, cwd=tmp_path, timeout=900)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert p.stdout.split()[-1] == f"['{_blas.OMP_SPIN}']", p.stdout

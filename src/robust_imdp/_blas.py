@@ -20,7 +20,7 @@ import contextlib
 import ctypes
 import os
 
-__all__ = ["blas_threads"]
+__all__ = ["blas_threads", "quiet_openmp_waits", "OMP_SPIN"]
 
 #: The variables BLAS libraries read for their thread count when they are loaded (not ``OMP_NUM_THREADS``:
 #: numba's OpenMP threading layer would read it too).
@@ -82,3 +82,21 @@ def blas_threads(n: int = 1):
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
+
+
+#: How long an idle OpenMP thread of numba's threading layer (GNU libgomp) spins before it sleeps, in spin
+#: iterations (libgomp's default is 300,000, milliseconds): a run's side work (the check, the nominal model, the
+#: margins, the figures) runs in helper processes beside the numba stages, and threads spinning at the end of
+#: every parallel region took their cores (the bound stage's CPU seconds on 2 threads: +10-15 % spinning,
+#: benchmarks/results/serial_parts.md). 10,000 iterations still catch back-to-back regions (a solver's sweeps).
+OMP_SPIN = "10000"
+
+
+def quiet_openmp_waits() -> bool:
+    """Set ``GOMP_SPINCOUNT`` to :data:`OMP_SPIN` unless the user set it (``OMP_WAIT_POLICY`` too: it decides the
+    spinning then); libgomp reads it when it is loaded, at a process's first parallel numba kernel, so it applies
+    only where none ran yet. Returns whether the variable is now this module's value."""
+    if "GOMP_SPINCOUNT" in os.environ or "OMP_WAIT_POLICY" in os.environ:
+        return os.environ.get("GOMP_SPINCOUNT") == OMP_SPIN
+    os.environ["GOMP_SPINCOUNT"] = OMP_SPIN
+    return True

@@ -785,6 +785,9 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
 
 def main(argv=None) -> int:
     """Entry point of ``robust-imdp``; returns the exit status."""
+    from robust_imdp._blas import quiet_openmp_waits
+
+    quiet_openmp_waits()  # before any parallel kernel loads the OpenMP runtime (robust_imdp._blas.OMP_SPIN)
     args = _parser().parse_args(argv)
     commands = {"run": _cmd_run, "simulate": _cmd_simulate, "export": _cmd_export, "example": _cmd_example,
                 "suggest": _cmd_suggest, "improve": _cmd_improve, "calibrate": _cmd_calibrate}

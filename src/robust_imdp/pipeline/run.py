@@ -348,6 +348,9 @@ def synthesize_from_data(problem: Problem, *, progress: bool = True, abstraction
         raise InvalidInputError(f"advice must be 'auto', True or False; got {advice!r}")
     if margins not in (True, False):
         raise InvalidInputError(f"margins must be True or False; got {margins!r}")
+    from robust_imdp._blas import quiet_openmp_waits
+
+    quiet_openmp_waits()  # idle numba threads sleep soon, leaving the cores to the side work (robust_imdp._blas)
     log = _Log(progress)
     run = _Run(client=client, workers=workers, scheduler=scheduler, chunk_cells=chunk_cells,
                check_resources=check_resources)
