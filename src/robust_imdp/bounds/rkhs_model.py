@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import os
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -16,14 +15,14 @@ import numpy as np
 from robust_imdp._fp import U as _U, down as _down, up as _up
 from robust_imdp._kernels import inv_l2_up as _inv_l2, kernel_matrix as _kernel_matrix, kernel_rel_err as _kernel_rel_err
 from robust_imdp._kernels import kernel_rel_err_nb as _kernel_rel_err_nb
+from robust_imdp._blas import quiet_openmp_waits
 from robust_imdp.errors import DimensionError, InvalidInputError
 
-# Idle OpenMP threads (numba's "omp" layer) sleep between parallel regions instead of spinning. libgomp reads this
-# when it is loaded (the first parallel kernel, not `import numba`); a value the user set stays. Spinning, the other
-# lanes burn their cores while this thread runs the Python between kernels: on the 2-core machines the side lane's
-# helpers (the assumption check, the figures) lost that CPU, and the run's threads' CPU seconds counted it as work
-# (the unicycle's bound kernels: 2 threads 7.7 s of CPU for 7.2 s on one, 7.0 s passive). No effect on any number.
-os.environ.setdefault("OMP_WAIT_POLICY", "passive")
+# Idle OpenMP threads (numba's "omp" layer) sleep soon between parallel regions instead of spinning while this
+# thread runs the Python between kernels (robust_imdp._blas.quiet_openmp_waits: the unicycle's bound kernels on
+# 2 threads spent 7.7 s of CPU for 7.2 s on one, 7.0 s without spinning; the side lane's helpers get that CPU back).
+# libgomp reads it when it is loaded (the first parallel kernel); a value the user set stays. No effect on any number.
+quiet_openmp_waits()
 
 
 #: Cells per numba work unit: warm starts restart at every multiple of this global cell index, so
