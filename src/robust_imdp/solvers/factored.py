@@ -510,7 +510,7 @@ def _ordered_pass(lay, lo, up, active, precision, max_iterations):
     within ``precision`` (:mod:`robust_imdp.solvers.factored_order`); ``lo``/``up`` (S, n) are improved in
     place (every update is a directed Bellman update of the current vectors: sound in any order).
     Returns (largest number of sweeps of one component, number of components, number of cyclic ones)."""
-    from robust_imdp.solvers.factored_order import ProductRows, product_sccs, solve_components
+    from robust_imdp.solvers.factored_order import ProductRows, factored_components, product_sccs
 
     op = lay.op
     S, n = lo.shape
@@ -537,7 +537,7 @@ def _ordered_pass(lay, lo, up, active, precision, max_iterations):
     wr_up = np.array([pick(up[lay.nxt[s], ar]) for s in range(S)], dtype=np.float64)
     sweeps = np.zeros(cyclic.size, dtype=np.int64)
     lof, upf = lo.reshape(-1), up.reshape(-1)
-    solve_components(op.grid, op.marginals, pr, lof, upf, nodes, comp_ptr, cyclic, wr_lo, wr_up, bool(lay.adv_max),
+    factored_components(op.grid, op.marginals, pr, lof, upf, nodes, comp_ptr, cyclic, wr_lo, wr_up, bool(lay.adv_max),
                      float(precision), float(ORDER_STALL * precision), int(max_iterations), sweeps)
     return int(sweeps.max()) if sweeps.size else 0, int(cyclic.size), int(cyclic.sum())
 

@@ -387,7 +387,7 @@ def _verify_up(grid, mg, pr, up, nodes, c0, c1, wr, adv_max):
 
 
 @njit(cache=True, parallel=True)
-def solve_components(grid, mg, pr, lo, up, nodes, comp_ptr, cyclic, wr_lo, wr_up, adv_max, precision, stall,
+def factored_components(grid, mg, pr, lo, up, nodes, comp_ptr, cyclic, wr_lo, wr_up, adv_max, precision, stall,
                      max_sweeps, sweeps):
     """Every component in order (``nodes[comp_ptr[c]:comp_ptr[c + 1]]``, reverse topological): one
     update of an acyclic one, in-place sweeps of a cyclic one until its bracket is within
@@ -494,4 +494,4 @@ def row_values(grid, mg, pr, V, w_rest, adv_max, direction, out):
                                    ke, offs, idx)
 
 
-__all__ = ["ProductRows", "product_sccs", "row_values", "solve_components"]
+__all__ = ["ProductRows", "product_sccs", "row_values", "factored_components"]
