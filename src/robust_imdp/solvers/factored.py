@@ -34,6 +34,17 @@ iterates may stop at a larger fixed point, and then ``converged`` is False with 
 gap (a ``ConvergenceWarning`` is issued).  Across DFA layers the update is in place
 (Gauss-Seidel), which keeps every partial vector a vector of bounds.
 
+Order (``ORDERED``).  Before the whole-model sweeps, :func:`_ordered_pass` goes through the strongly
+connected components of the product's support graph in reverse topological order
+(:mod:`robust_imdp.solvers.factored_order`), applying the same directed updates to one node at a time
+(in place: still bounds) until each component's bracket is within the precision; in a cyclic
+component an upper guess ``min(u, l + precision / 2)`` is kept only when one in-place sweep
+``u(s) <- B_up(u)(s)`` raises no value (Lemma OVI of :mod:`robust_imdp.solvers.engine`: then ``B(u) <=
+u`` on the component with proven upper bounds outside it, so ``u >= V`` by Knaster-Tarski).  The
+whole-model iteration then runs from the improved bracket with its own stopping rule, so convergence
+and ``converged`` are decided as without the pass; ``iterations`` adds the largest sweep count of one
+component.
+
 The result types are those of the joint solvers (:class:`~robust_imdp.solvers.product.ProductResult`,
 :class:`~robust_imdp.solvers.common.ReachabilityResult`), so :mod:`robust_imdp.synthesis.core` can
 use :func:`solve_factored_product` in place of ``solve_product`` / ``evaluate_product_strategy``.
