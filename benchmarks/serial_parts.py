@@ -56,7 +56,9 @@ TARGET_SERIAL = 0.05
 #: Rows of the table: (key, label). Stage keys are Result.timings' names; the others are measured by the child.
 ROWS = [("startup", "start-up (interpreter, imports, reading the problem)"), ("specify", "specify"),
         ("partition", "partition"), ("check", "check"), ("bound", "bound"), ("abstract", "abstract"),
-        ("nominal", "nominal model"), ("synthesize", "synthesize"), ("advice", "advice"), ("margins", "margins"),
+        ("nominal", "nominal model (beside the bound stage on several cores: the wait)"), ("synthesize", "synthesize"),
+        ("advice", "advice (on several cores the margins' factors and the figures run beside it)"),
+        ("margins", "margins (on several cores: the factors left when the advice ends)"),
         ("refine", "refine"),
         ("outside_stages", "pipeline outside its stages (pre-flight, diagnostics, ...)"),
         ("figures", "figures"), ("writing", "writing (result.json, result.npz, renames)")]
