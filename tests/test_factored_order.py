@@ -285,3 +285,24 @@ def test_an_upper_guess_above_the_value_is_accepted_on_a_contracting_loop():
     m = FactoredIMDP(shape=(2,), axes=(ax,))
     r = solve_factored_reachability(m, [1], avoid=[2], precision=1e-9)
     assert r.converged and r.lower[0] <= 0.5 <= r.upper[0] and r.upper[0] - r.lower[0] <= 1e-9
+
+
+def test_the_pass_runs_only_where_marginals_are_not_widely_shared(monkeypatch):
+    # a row-wise sweep reads unshared_work entries, a shared one work: the pass runs where the ratio is at most
+    # ORDER_MAX_SHARING (the chain: every row its own marginal, ratio 1), not on a model whose cells share one
+    # marginal per axis (ratio = cells)
+    calls = []
+    orig = F._ordered_pass
+    monkeypatch.setattr(F, "_ordered_pass", lambda *a: calls.append(1) or orig(*a))
+    chain = _chain_model(20)
+    assert factored_operator(chain).unshared_work <= F.ORDER_MAX_SHARING * factored_operator(chain).work
+    solve_factored_reachability(chain, [19], avoid=[20])
+    assert calls == [1]
+    shared = FactoredIMDP(shape=(4, 4), axes=tuple(
+        AxisMarginals(n=4, periodic=False, start=np.zeros((1, 16), np.int64), lower=np.full((1, 16, 4), 0.2),
+                      upper=np.full((1, 16, 4), 0.3), out_lower=np.zeros((1, 16)), out_upper=np.full((1, 16), 0.1),
+                      rest_upper=np.zeros((1, 16)), axis=i) for i in range(2)))
+    op = factored_operator(shared)
+    assert op.unshared_work > F.ORDER_MAX_SHARING * op.work
+    solve_factored_reachability(shared, [5], avoid=[16])
+    assert calls == [1]

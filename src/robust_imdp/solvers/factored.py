@@ -34,7 +34,8 @@ iterates may stop at a larger fixed point, and then ``converged`` is False with 
 gap (a ``ConvergenceWarning`` is issued).  Across DFA layers the update is in place
 (Gauss-Seidel), which keeps every partial vector a vector of bounds.
 
-Order (``ORDERED``).  Before the whole-model sweeps, :func:`_ordered_pass` goes through the strongly
+Order (``ORDERED``, where the marginals are not widely shared: ``ORDER_MAX_SHARING``).  Before the
+whole-model sweeps, :func:`_ordered_pass` goes through the strongly
 connected components of the product's support graph in reverse topological order
 (:mod:`robust_imdp.solvers.factored_order`), applying the same directed updates to one node at a time
 (in place: still bounds) until each component's bracket is within the precision; in a cyclic
@@ -511,6 +512,13 @@ def _reach_set(lay, target, active):
 #: Run the component-ordered pass (:func:`_ordered_pass`) before the whole-model sweeps of an unbounded solve.
 ORDERED = True
 
+#: The pass evaluates one row at a time, without the prefix tree's sharing of marginals: it runs only where a
+#: per-row sweep reads at most this many times the entries of a shared sweep (``FactoredOperator.unshared_work /
+#: work``). Measured (benchmarks/results/factored_solver.md): the 4-D vehicle 1.7-2.6 (the pass wins: fewer
+#: sweeps, each no dearer), car parking 14 (a shared sweep 13 ms against 120-220 ms per row-wise sweep: the
+#: whole-model sweeps win although they need more of them).
+ORDER_MAX_SHARING = 4.0
+
 #: An end of a cyclic component that moves by at most ``ORDER_STALL * precision`` in one sweep of the ordered
 #: pass is not swept again in that pass (the whole-model sweeps after it decide convergence).
 ORDER_STALL = 1e-3
@@ -564,7 +572,7 @@ def _unbounded(lay, target, zero, active, precision, max_iterations, tie_break):
     layers = [s for s in range(S) if active2[s].any()]
     it = 0
     pre = 0  # sweeps of the ordered pass (the largest count of one component)
-    if ORDERED:
+    if ORDERED and lay.op.unshared_work <= ORDER_MAX_SHARING * lay.op.work:
         pre, _, _ = _ordered_pass(lay, lo, up, active2, precision, max_iterations)
     gap = float(np.max(up - lo)) if up.size else 0.0
     while gap > precision and it < max_iterations:
