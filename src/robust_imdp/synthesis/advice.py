@@ -259,19 +259,20 @@ def _entries(rows) -> int:
 
 
 def job_share(job: SolveJob, pieces, dfa, *, threshold: float, horizon=None, semantics: str = "auto") -> float:
-    """Q_yes share (volume) of ``job`` from its rows' chunks in cell order, after the robust solve."""
+    """Q_yes share (volume) of ``job`` from its rows' chunks in cell order, after the robust solve (its lower value
+    alone: ``synthesis.core.robust_lower``, the one solve of a synthesis that Q_yes reads)."""
     from robust_imdp.abstraction.factored import FactoredRows, abstraction_model, assemble_factored
     from robust_imdp.abstraction.rows import assemble_abstraction
-    from robust_imdp.synthesis.core import synthesize
+    from robust_imdp.synthesis.core import robust_lower
 
     part = job.partition
     pieces = list(pieces)
     assemble = assemble_factored if pieces and isinstance(pieces[0], FactoredRows) else assemble_abstraction
     ab = assemble(part, pieces)
     kw = {} if semantics == "auto" else {"semantics": semantics}
-    syn = synthesize(abstraction_model(ab), part.labels, part.atoms, dfa, threshold=threshold, horizon=horizon,
-                     outside_state=part.outside_state, **kw)
-    return _share(part, np.asarray(syn.p_low) >= threshold)  # Q_yes: p_low >= threshold (Sec. 5)
+    low = robust_lower(abstraction_model(ab), part.labels, part.atoms, dfa, horizon=horizon,
+                       outside_state=part.outside_state, **kw)
+    return _share(part, low >= threshold)  # Q_yes: p_low >= threshold (Sec. 5)
 
 
 def serial_solver(noise, dfa, *, threshold: float, horizon=None, options=None, semantics: str = "auto"):

@@ -93,7 +93,7 @@ from robust_imdp.errors import ConvergenceWarning, DimensionError, InvalidInputE
 from robust_imdp.models.factored import FactoredIMDP
 from robust_imdp.models.imdp import IMDP
 
-__all__ = ["SolverRun", "SynthesisResult", "synthesize", "remap_letters"]
+__all__ = ["SolverRun", "SynthesisResult", "synthesize", "robust_lower", "remap_letters"]
 
 CLASS_YES, CLASS_NO, CLASS_MAYBE = "yes", "no", "maybe"
 
@@ -381,6 +381,35 @@ def synthesize(
         runs=runs, precision=float(precision), strategy_choice=choice, semantics=reading,
         tie_keys=_ties.TIE_KEYS[nominal is not None],
     )
+
+
+def robust_lower(imdp, labels: Any, atoms: Sequence[str], dfa: Any, *, horizon: int | None = None,
+                 outside_state: int | None = None, precision: float = 1e-8, semantics: str = "auto") -> np.ndarray:
+    """Per cell the robust solve's proven lower value: the satisfaction probability the best strategy is
+    guaranteed (to ``precision``), which is what Q_yes reads (``p_low >= threshold``), from the one solve of
+    :func:`synthesize` that computes it: no optimistic solve, no tie keys (they choose among modes of equal lower
+    value), no evaluations of the strategy (``synthesize``'s ``p_low`` is the evaluation of its tie-broken
+    strategy, which keeps this value to the brackets' widths). For estimates that read only Q_yes (the advice's
+    re-solves); the arguments are :func:`synthesize`'s.
+
+    Returns
+    -------
+    (n_cells,) float array, read-only
+    """
+    _, horizon, atoms, lab, avoid = _check_inputs(imdp, labels, atoms, dfa, 0.5, horizon, outside_state)
+    n_cells = int(lab.shape[0])
+    cell_letters = remap_letters(lab, atoms, dfa.atoms)
+    reading, kind = resolve_semantics(dfa, semantics)
+    check_reading(dfa, cell_letters, reading, kind)
+    letters = np.concatenate([cell_letters, np.zeros(imdp.n_states - n_cells, dtype=np.int64)])
+    solve_product, _ = _solvers(imdp)
+    # k steps, joint: the lower end only (``need``; the upper one is then its trivial bound, not read here)
+    need = {"need": ("lower",)} if not isinstance(imdp, FactoredIMDP) and horizon is not None else {}
+    robust = solve_product(imdp, letters, dfa, adversary="pessimistic", avoid=avoid, horizon=horizon,
+                           precision=precision, method="vi", semantics=reading, **need)
+    out = np.array(np.asarray(robust.initial_lower)[:n_cells], dtype=np.float64)
+    out.setflags(write=False)
+    return out
 
 
 def _check_inputs(imdp, labels, atoms, dfa, threshold, horizon, outside_state):
