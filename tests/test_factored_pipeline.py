@@ -214,7 +214,9 @@ def test_unbounded_factored_iteration_stops_at_its_fixed_point():
     m = FactoredIMDP(shape=(2,), axes=(ax,))
     with pytest.warns(ConvergenceWarning, match="sound but loose"):
         r = solve_factored_reachability(m, [1], avoid=[2], precision=1e-9, max_iterations=10 ** 7)
-    assert not r.converged and r.iterations <= 3
+    # the ordered pass (solvers/factored.py): two sweeps and one refuted upper guess (the self-loop keeps 1), then
+    # one whole-model sweep that changes nothing: 4, far from max_iterations
+    assert not r.converged and r.iterations <= 5
     assert r.lower[0] == pytest.approx(0.5, abs=1e-12) and r.upper[0] == 1.0  # 1/2: mode 1; 1: the self-loop
 
 
