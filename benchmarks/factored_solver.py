@@ -242,6 +242,7 @@ def _md(data) -> str:
     if data.get("unbounded"):
         u = data["unbounded"]
         lines += _md_unbounded(u["rows"])
+        lines += _md_notes(u.get("notes", []))
         lines += ["", f"{u['command']}; {u['date']}; commit {u['commit']}."]
     return "\n".join(lines) + "\n"
 
@@ -381,6 +382,11 @@ def _md_unbounded(rows) -> list:
     return lines
 
 
+def _md_notes(notes) -> list:
+    """Measurements made outside ``--unbounded`` (the JSON's ``unbounded.notes``: text with its command)."""
+    return ["", "Other measurements (same quantities, other commands):", ""] + [f"- {n}" for n in notes] if notes else []
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--dims", type=int, nargs="+", default=[4, 5, 6])
@@ -453,6 +459,7 @@ def _run_unbounded(args, argv) -> int:
         except OSError:
             commit = None
         data["unbounded"] = {"rows": list(old.values()), "commit": commit,
+                             "notes": data.get("unbounded", {}).get("notes", []),
                              "command": "python benchmarks/factored_solver.py " + " ".join(argv or sys.argv[1:]),
                              "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
         if not args.no_write:
