@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import logging
 import os
+import queue
 import threading
 from collections import deque
 from concurrent.futures import Future
@@ -315,6 +316,31 @@ class _Helper:
         self.current: "tuple | None" = None  # (task id, future) of the task it runs
         self.reader = threading.Thread(target=self._read, name=f"robust-imdp side helper {index}", daemon=True)
         self.reader.start()
+        # tasks are pickled and written by a thread of their own: a task larger than the pipe's buffer would block
+        # the caller until the helper reads it, and a helper still starting (its imports: a second or more) reads
+        # nothing yet (the run's thread waited there, outside every stage)
+        self.outbox: "queue.Queue" = queue.Queue()
+        self.sender = threading.Thread(target=self._write, name=f"robust-imdp side sender {index}", daemon=True)
+        self.sender.start()
+
+    def _write(self) -> None:
+        import pickle
+
+        while True:
+            item = self.outbox.get()
+            if item is None:
+                return
+            tid, fut, message = item
+            try:
+                data = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
+            except Exception as exc:  # the task cannot be pickled: its failure, the helper takes the next one
+                self.lane._unsent(self, tid, fut, exc)
+                continue
+            try:
+                self.proc.stdin.write(len(data).to_bytes(_HEADER, "little") + data)
+                self.proc.stdin.flush()
+            except Exception as exc:  # the helper is gone (its reader reports it) or the lane closed its pipe
+                self.lane._unsent(self, tid, fut, exc)
 
     def _read(self) -> None:
         import pickle
@@ -389,14 +415,20 @@ class SideLane:
                 self._idle.insert(0, helper)
                 continue
             helper.current = (tid, fut)
-            try:
-                _send(helper.proc.stdin, (tid, fn, args, kwargs))
-            except Exception as exc:  # pickling failed or the helper is gone
+            helper.outbox.put((tid, fut, (tid, fn, args, kwargs)))  # pickled and written by its sender thread
+
+    def _unsent(self, helper: "_Helper", tid: int, fut: Future, exc: BaseException) -> None:
+        """A task the sender could not pickle or write: it fails with a SideLaneError, the helper is idle again."""
+        with self._lock:
+            if helper.current is not None and helper.current[0] == tid:
                 helper.current = None
-                self._idle.insert(0, helper)
-                err = SideLaneError(f"the side lane could not send the task: {type(exc).__name__}: {exc}")
-                err.__cause__ = exc
-                fut.set_exception(err)
+                if not self._closed and not getattr(helper, "lost", False):
+                    self._idle.insert(0, helper)
+                    self._dispatch()
+        err = SideLaneError(f"the side lane could not send the task: {type(exc).__name__}: {exc}")
+        err.__cause__ = exc
+        if not fut.done():
+            fut.set_exception(err)
 
     def _done(self, helper: _Helper, tid: int, ok: bool, value, text: str) -> None:
         with self._lock:
@@ -441,6 +473,7 @@ class SideLane:
         for _, fut, *_ in queued:
             fut.cancel()
         for h in self.helpers:
+            h.outbox.put(None)  # its sender ends (after a write in progress: the pipe closes below either way)
             try:
                 h.proc.stdin.close()  # the helper's loop ends at the end of its input
             except OSError:
