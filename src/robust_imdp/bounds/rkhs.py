@@ -104,7 +104,6 @@ from robust_imdp.bounds.rkhs_model import (  # noqa: F401  (re-exported)
     _combine_vertices,
     _corner_boxes,
     _known_at_vertices,
-    _dynamic,
     _lanes,
     _scaled_remainder_sqrt_up,
     _weight_parts,
@@ -258,7 +257,7 @@ def cell_ranges(model: KernelModel, cells_lower, cells_upper, *, rkhs_bound: flo
     if method == "optimal":
         cap = int(min(model.m, MAX_SUPPORT))
         ptr = _blocks(n_cells, starts, c.shape[0], int(chunk))
-        val, sup, stat, coef = _dynamic(_optimal_cells_coef, model.X, model.y, model.K, model.K_err, model.inv_l2, c, r, signs,
+        val, sup, stat, coef = _optimal_cells_coef(model.X, model.y, model.K, model.K_err, model.inv_l2, c, r, signs,
                                                    dbar, G_eff, cap, int(max_iter), float(tol), ptr, lin_v,
                                                    bool(prune), parent, _lanes())
         su, sl = val[:, :, 0], val[:, :, 1]

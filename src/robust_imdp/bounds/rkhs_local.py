@@ -12,7 +12,7 @@ import numpy as np
 
 from robust_imdp._fp import U as _U, up as _up
 from robust_imdp._kernels import inv_l2_up as _inv_l2, kernel_matrix as _kernel_matrix, kernel_rel_err_nb as _kernel_rel_err_nb, norm_inflation as _norm_inflation
-from robust_imdp.bounds.rkhs_model import (CELL_BLOCK, _blocks, _dynamic, _lanes, _certified_norms, _certified_value, _certify, _certify_parts,
+from robust_imdp.bounds.rkhs_model import (CELL_BLOCK, _blocks, _lanes, _certified_norms, _certified_value, _certify, _certify_parts,
                                            _check_cells, _weight_parts,
                                            _combine_vertices, _known_at_vertices, _vertex_functional, _writable, cell_centres,
                                            scaled_norm_bound, scaled_ranges, split_counts, sub_boxes, t_max_up,
@@ -138,7 +138,7 @@ def _local_group_optimal(Xp, Yp, inv_l2, c, r, signs, q0, q1, lin, Kp, K_err, a1
 # ============================================================================ local weights
 def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_iter, tol, ptr, group, lin):
     """:func:`_local_cells_coef` without the coefficients: ``val, support``."""
-    val, sup, _ = _dynamic(_local_cells_coef, X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_iter, tol, ptr,
+    val, sup, _ = _local_cells_coef(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_iter, tol, ptr,
                                     group, lin, _lanes())
     return val, sup
 
@@ -168,92 +168,92 @@ def _local_cells_coef(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal,
     sup = np.zeros((n, V, n_out, 2), dtype=np.int64)
     coef = np.empty((n, V, n_out, 2))
     n_chunks = ptr.shape[0] - 1
-    # dynamic under the caller's ``numba.parallel_chunksize(1)`` (_dynamic): each thread takes the next block when
-    # it is done; the blocks are independent (warm starts restart at each), so the same bits in any order
-    for ch in numba.prange(n_chunks):
-        Xp = np.empty((k, d))
-        Yp = np.empty((k, n_out))
-        L = np.empty((k, k))
-        b = np.empty(k)
-        eb = np.empty(k)
-        w = np.empty(k)
-        idx = np.arange(k)
-        v = np.empty(d)
-        ys = np.empty(k)
-        S = np.zeros((n_out, 2, k), dtype=np.int64)
-        sg = np.zeros((n_out, 2, k))
-        ws = np.zeros((n_out, 2, k))
-        nS = np.zeros((n_out, 2), dtype=np.int64)
-        bidx = np.zeros(k, dtype=np.int64)
-        bw = np.zeros(k)
-        Pw = np.empty((k, k))  # workspaces of _active_set, once per chunk
-        Lw = np.empty((k, k))
-        Kp = np.empty((k, k))
-        K_err = 0.0
-        ok = True
-        done_to = -1
-        for q in range(ptr[ch], ptr[ch + 1]):
-            if q < done_to:  # a sub-box already bounded with its group
-                continue
-            if not (q == ptr[ch] or group[q] != group[q - 1]):
-                pass  # the same pool as the previous box: keep its kernel matrix, factor and warm starts
-            else:
-                for p in range(k):
-                    for a in range(d):
-                        Xp[p, a] = X[pools[q, p], a]
-                    for o in range(n_out):
-                        Yp[p, o] = Y[pools[q, p], o]
-                Kp, zmax = _kernel_matrix(Xp, Xp, inv_l2)
-                K_err = _kernel_rel_err_nb(zmax, d)
-                ok = True
-                if not optimal:
-                    ok = _chol_factor(Kp, k, L, lam)
-                for o in range(n_out):
-                    for sd in range(2):
-                        nS[o, sd] = 0  # a new pool: restart the warm starts
-                if optimal:
-                    q1 = q + 1
-                    while q1 < ptr[ch + 1] and group[q1] == group[q]:
-                        q1 += 1
-                    if q1 - q > 1:  # the sub-boxes of one cell: bounded together, pruned
-                        _local_group_optimal(Xp, Yp, inv_l2, c, r, signs, q, q1, lin, Kp, K_err, a1, G, max_iter, tol,
-                                             S, sg, ws, nS, bidx, bw, Pw, Lw, val, sup, coef)
-                        done_to = q1
-                        continue
-            for jv in range(V):
-                s0 = _vertex_functional(Xp, inv_l2, c[q], r[q], signs[jv], v, b, eb)
-                if not optimal:
-                    if ok:
-                        _chol_solve(L, k, b, w)
-                    else:
-                        for i in range(k):
-                            w[i] = 0.0
-                    l1, l2, rr = _certified_norms(idx, w, k, b, eb, Kp, K_err, s0)
-                    for o in range(n_out):
-                        for i in range(k):
-                            ys[i] = Yp[i, o]
-                        val[q, jv, o, 0] = _certified_value(idx, w, k, ys, l1, l2, rr, a1[o], a2[o], G, 1.0)[0]
-                        val[q, jv, o, 1] = _certified_value(idx, w, k, ys, l1, l2, rr, a1[o], a2[o], G, -1.0)[0]
-                        sup[q, jv, o, 0] = k
-                        sup[q, jv, o, 1] = k
-                        coef[q, jv, o, 0] = rr  # both sides: the same weights and functional
-                        coef[q, jv, o, 1] = rr
+    nt = max(1, min(lanes, n_chunks))  # cyclic blocks per thread (rkhs_model._lanes): balance, same bits
+    for t in numba.prange(nt):
+        for ch in range(t, n_chunks, nt):
+            Xp = np.empty((k, d))
+            Yp = np.empty((k, n_out))
+            L = np.empty((k, k))
+            b = np.empty(k)
+            eb = np.empty(k)
+            w = np.empty(k)
+            idx = np.arange(k)
+            v = np.empty(d)
+            ys = np.empty(k)
+            S = np.zeros((n_out, 2, k), dtype=np.int64)
+            sg = np.zeros((n_out, 2, k))
+            ws = np.zeros((n_out, 2, k))
+            nS = np.zeros((n_out, 2), dtype=np.int64)
+            bidx = np.zeros(k, dtype=np.int64)
+            bw = np.zeros(k)
+            Pw = np.empty((k, k))  # workspaces of _active_set, once per chunk
+            Lw = np.empty((k, k))
+            Kp = np.empty((k, k))
+            K_err = 0.0
+            ok = True
+            done_to = -1
+            for q in range(ptr[ch], ptr[ch + 1]):
+                if q < done_to:  # a sub-box already bounded with its group
+                    continue
+                if not (q == ptr[ch] or group[q] != group[q - 1]):
+                    pass  # the same pool as the previous box: keep its kernel matrix, factor and warm starts
                 else:
+                    for p in range(k):
+                        for a in range(d):
+                            Xp[p, a] = X[pools[q, p], a]
+                        for o in range(n_out):
+                            Yp[p, o] = Y[pools[q, p], o]
+                    Kp, zmax = _kernel_matrix(Xp, Xp, inv_l2)
+                    K_err = _kernel_rel_err_nb(zmax, d)
+                    ok = True
+                    if not optimal:
+                        ok = _chol_factor(Kp, k, L, lam)
                     for o in range(n_out):
                         for sd in range(2):
-                            sgn = 1.0 if sd == 0 else -1.0
+                            nS[o, sd] = 0  # a new pool: restart the warm starts
+                    if optimal:
+                        q1 = q + 1
+                        while q1 < ptr[ch + 1] and group[q1] == group[q]:
+                            q1 += 1
+                        if q1 - q > 1:  # the sub-boxes of one cell: bounded together, pruned
+                            _local_group_optimal(Xp, Yp, inv_l2, c, r, signs, q, q1, lin, Kp, K_err, a1, G, max_iter, tol,
+                                                 S, sg, ws, nS, bidx, bw, Pw, Lw, val, sup, coef)
+                            done_to = q1
+                            continue
+                for jv in range(V):
+                    s0 = _vertex_functional(Xp, inv_l2, c[q], r[q], signs[jv], v, b, eb)
+                    if not optimal:
+                        if ok:
+                            _chol_solve(L, k, b, w)
+                        else:
                             for i in range(k):
-                                ys[i] = sgn * Yp[i, o]
-                            res = _active_set(Kp, ys, b, s0, a1[o], G, S[o, sd], sg[o, sd], ws[o, sd], nS[o, sd], k,
-                                              max_iter, tol, bidx, bw, Pw, Lw)
-                            nS[o, sd] = res[0] if (res[3] != 2 and res[3] != 3) else 0
-                            nb = res[1]
+                                w[i] = 0.0
+                        l1, l2, rr = _certified_norms(idx, w, k, b, eb, Kp, K_err, s0)
+                        for o in range(n_out):
                             for i in range(k):
                                 ys[i] = Yp[i, o]
-                            cert = _certify(bidx, bw, nb, ys, b, eb, Kp, K_err, s0, a1[o], 0.0, G, sgn)
-                            val[q, jv, o, sd] = cert[0]
-                            coef[q, jv, o, sd] = cert[2]
-                            sup[q, jv, o, sd] = nb
+                            val[q, jv, o, 0] = _certified_value(idx, w, k, ys, l1, l2, rr, a1[o], a2[o], G, 1.0)[0]
+                            val[q, jv, o, 1] = _certified_value(idx, w, k, ys, l1, l2, rr, a1[o], a2[o], G, -1.0)[0]
+                            sup[q, jv, o, 0] = k
+                            sup[q, jv, o, 1] = k
+                            coef[q, jv, o, 0] = rr  # both sides: the same weights and functional
+                            coef[q, jv, o, 1] = rr
+                    else:
+                        for o in range(n_out):
+                            for sd in range(2):
+                                sgn = 1.0 if sd == 0 else -1.0
+                                for i in range(k):
+                                    ys[i] = sgn * Yp[i, o]
+                                res = _active_set(Kp, ys, b, s0, a1[o], G, S[o, sd], sg[o, sd], ws[o, sd], nS[o, sd], k,
+                                                  max_iter, tol, bidx, bw, Pw, Lw)
+                                nS[o, sd] = res[0] if (res[3] != 2 and res[3] != 3) else 0
+                                nb = res[1]
+                                for i in range(k):
+                                    ys[i] = Yp[i, o]
+                                cert = _certify(bidx, bw, nb, ys, b, eb, Kp, K_err, s0, a1[o], 0.0, G, sgn)
+                                val[q, jv, o, sd] = cert[0]
+                                coef[q, jv, o, sd] = cert[2]
+                                sup[q, jv, o, sd] = nb
     return val, sup, coef
 
 
@@ -386,12 +386,12 @@ def _local_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_boun
     lanes = _lanes()
 
     def vertex_values(p_ptr):  # eq. W at the vertices of the boxes p_ptr[0] .. p_ptr[-1] - 1 (whole blocks)
-        val, sup, coef = _dynamic(_local_cells_coef, X, Y, inv_l2, c, r, signs, pools, float(lam or 0.0),
+        val, sup, coef = _local_cells_coef(X, Y, inv_l2, c, r, signs, pools, float(lam or 0.0),
                                            np.ascontiguousarray(dbar), np.zeros(n), G_eff, method == "optimal", 2000,
                                            1e-9, p_ptr, parent, lin, lanes)
         iv = icoef = None
         if iid is not None:
-            iv, _, icoef = _dynamic(_local_cells_coef, X, Y, inv_l2, c, r, signs, pools, iid[0], np.full(n, tau),
+            iv, _, icoef = _local_cells_coef(X, Y, inv_l2, c, r, signs, pools, iid[0], np.full(n, tau),
                                              np.ascontiguousarray(iid[1]), G_eff, False, 0, 0.0, p_ptr, parent, lin,
                                              lanes)
         return val, sup, coef, iv, icoef

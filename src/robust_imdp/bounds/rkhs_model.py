@@ -30,15 +30,6 @@ quiet_openmp_waits()
 CELL_BLOCK = 16
 
 
-def _dynamic(kernel, *args):
-    """``kernel(*args)`` with numba's dynamic schedule, one iteration per chunk (``numba.parallel_chunksize``: a
-    setting of the calling thread, read when a parallel loop starts): the bound kernels' blocks differ in cost, and a
-    static split left one thread idle at the end of every chunk of cells (1,536 cells of the 16,384-cell problem on
-    2 threads: 3.17 s against 5.58 s on one; dynamic 2.87 s). The blocks are independent: the same bits."""
-    with numba.parallel_chunksize(1):
-        return kernel(*args)
-
-
 def _lanes() -> int:
     """Parallel lanes of the bound kernels (``lanes`` of ``_optimal_cells_coef`` / ``_local_cells_coef``): the numba
     threads of the caller. Lane ``t`` of ``nt`` takes the work units (blocks of :data:`CELL_BLOCK` cells) ``t, t + nt,

@@ -8,7 +8,7 @@ import math
 import numba
 import numpy as np
 
-from robust_imdp.bounds.rkhs_model import KernelModel, _certify, _dynamic, _lanes, _certify_parts, _vertex_functional, _weight_parts, vertex_problems
+from robust_imdp.bounds.rkhs_model import KernelModel, _certify, _lanes, _certify_parts, _vertex_functional, _weight_parts, vertex_problems
 
 #: Ways to choose the certificate weights (see ``bounds/rkhs.py``'s docstring, sections 1-3).
 METHODS = ("optimal", "ridge")
@@ -306,7 +306,7 @@ def _largest_group(group):  # pragma: no cover - compiled
 
 def _optimal_cells(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, tol, ptr, lin, prune, group):
     """:func:`_optimal_cells_coef` without the coefficients: ``val, support, status``."""
-    val, sup, stat, _ = _dynamic(_optimal_cells_coef, X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, tol, ptr,
+    val, sup, stat, _ = _optimal_cells_coef(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_iter, tol, ptr,
                                             lin, prune, group, _lanes())
     return val, sup, stat
 
@@ -340,129 +340,129 @@ def _optimal_cells_coef(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_i
     coef = np.empty((n, V, 2))
     n_chunks = ptr.shape[0] - 1
     gmax = _largest_group(group)
-    # dynamic under the caller's ``numba.parallel_chunksize(1)`` (_dynamic): each thread takes the next block when
-    # it is done; the blocks are independent (warm starts restart at each), so the same bits in any order
-    for ch in numba.prange(n_chunks):
-        S = np.zeros((2, cap), dtype=np.int64)
-        sg = np.zeros((2, cap))
-        w = np.zeros((2, cap))
-        nS = np.zeros(2, dtype=np.int64)
-        lastS = np.zeros((2, cap), dtype=np.int64)
-        lastw = np.zeros((2, cap))
-        lastn = np.zeros(2, dtype=np.int64)
-        lastp = np.zeros((2, 4))  # _weight_parts of the last weights per side (w = 0: all zero)
-        newp = np.zeros(4)
-        bidx = np.zeros(cap, dtype=np.int64)
-        bw = np.zeros(cap)
-        Pw = np.empty((cap, cap))  # workspaces of _active_set, once per chunk
-        Lw = np.empty((cap, cap))
-        B = np.empty((gmax, V, m))  # vertex functionals of every box of the current group
-        EB = np.empty((gmax, V, m))
-        s0 = np.empty((gmax, V))
-        cheap = np.empty((gmax, V))
-        cheap_r = np.empty((gmax, V))  # the coefficient of G of each cheap value
-        key = np.empty(gmax)
-        border = np.zeros(gmax, dtype=np.int64)
-        ys = np.empty(m)
-        v = np.empty(d)
-        q = ptr[ch]
-        while q < ptr[ch + 1]:
-            q1 = q + 1
-            while q1 < ptr[ch + 1] and group[q1] == group[q]:
-                q1 += 1
-            nbox = q1 - q
-            for j in range(nbox):
-                for jv in range(V):
-                    s0[j, jv] = _vertex_functional(X, inv_l2, c[q + j], r[q + j], signs[jv], v, B[j, jv], EB[j, jv])
-            for side in range(2):
-                sgn = 1.0 if side == 0 else -1.0
-                for i in range(m):
-                    ys[i] = sgn * y[i]
-                n_first = lastn[side]
-                if nbox > 1:
-                    # sub-boxes: certified values of the previous weights everywhere, boxes in the
-                    # order of their best vertex (any order is sound; this one prunes the most)
-                    for j in range(nbox):
-                        top = -np.inf
-                        for jv in range(V):
-                            cert = _certify_parts(lastS[side], lastw[side], lastn[side], y, B[j, jv], EB[j, jv],
-                                                  K_err, s0[j, jv], dbar, 0.0, G, sgn, lastp[side])
-                            cheap[j, jv] = cert[0]
-                            cheap_r[j, jv] = cert[2]
-                            if sgn * (lin[q + j, jv] + cheap[j, jv]) > top:
-                                top = sgn * (lin[q + j, jv] + cheap[j, jv])
-                        key[j] = -top
-                    border[:nbox] = np.argsort(key[:nbox])
-                else:
-                    border[0] = 0
-                best = -np.inf
-                for jj in range(nbox):
-                    j = border[jj]
-                    qb = q + j
-                    if nbox > 1 and prune and best > -np.inf:
-                        top = -np.inf
-                        for jv in range(V):
-                            if sgn * (lin[qb, jv] + cheap[j, jv]) > top:
-                                top = sgn * (lin[qb, jv] + cheap[j, jv])
-                        if top <= best:  # no vertex of this sub-box can raise the cell's bound
+    nt = max(1, min(lanes, n_chunks))  # cyclic blocks per thread (rkhs_model._lanes): balance, same bits
+    for t in numba.prange(nt):
+        for ch in range(t, n_chunks, nt):
+            S = np.zeros((2, cap), dtype=np.int64)
+            sg = np.zeros((2, cap))
+            w = np.zeros((2, cap))
+            nS = np.zeros(2, dtype=np.int64)
+            lastS = np.zeros((2, cap), dtype=np.int64)
+            lastw = np.zeros((2, cap))
+            lastn = np.zeros(2, dtype=np.int64)
+            lastp = np.zeros((2, 4))  # _weight_parts of the last weights per side (w = 0: all zero)
+            newp = np.zeros(4)
+            bidx = np.zeros(cap, dtype=np.int64)
+            bw = np.zeros(cap)
+            Pw = np.empty((cap, cap))  # workspaces of _active_set, once per chunk
+            Lw = np.empty((cap, cap))
+            B = np.empty((gmax, V, m))  # vertex functionals of every box of the current group
+            EB = np.empty((gmax, V, m))
+            s0 = np.empty((gmax, V))
+            cheap = np.empty((gmax, V))
+            cheap_r = np.empty((gmax, V))  # the coefficient of G of each cheap value
+            key = np.empty(gmax)
+            border = np.zeros(gmax, dtype=np.int64)
+            ys = np.empty(m)
+            v = np.empty(d)
+            q = ptr[ch]
+            while q < ptr[ch + 1]:
+                q1 = q + 1
+                while q1 < ptr[ch + 1] and group[q1] == group[q]:
+                    q1 += 1
+                nbox = q1 - q
+                for j in range(nbox):
+                    for jv in range(V):
+                        s0[j, jv] = _vertex_functional(X, inv_l2, c[q + j], r[q + j], signs[jv], v, B[j, jv], EB[j, jv])
+                for side in range(2):
+                    sgn = 1.0 if side == 0 else -1.0
+                    for i in range(m):
+                        ys[i] = sgn * y[i]
+                    n_first = lastn[side]
+                    if nbox > 1:
+                        # sub-boxes: certified values of the previous weights everywhere, boxes in the
+                        # order of their best vertex (any order is sound; this one prunes the most)
+                        for j in range(nbox):
+                            top = -np.inf
                             for jv in range(V):
+                                cert = _certify_parts(lastS[side], lastw[side], lastn[side], y, B[j, jv], EB[j, jv],
+                                                      K_err, s0[j, jv], dbar, 0.0, G, sgn, lastp[side])
+                                cheap[j, jv] = cert[0]
+                                cheap_r[j, jv] = cert[2]
+                                if sgn * (lin[q + j, jv] + cheap[j, jv]) > top:
+                                    top = sgn * (lin[q + j, jv] + cheap[j, jv])
+                            key[j] = -top
+                        border[:nbox] = np.argsort(key[:nbox])
+                    else:
+                        border[0] = 0
+                    best = -np.inf
+                    for jj in range(nbox):
+                        j = border[jj]
+                        qb = q + j
+                        if nbox > 1 and prune and best > -np.inf:
+                            top = -np.inf
+                            for jv in range(V):
+                                if sgn * (lin[qb, jv] + cheap[j, jv]) > top:
+                                    top = sgn * (lin[qb, jv] + cheap[j, jv])
+                            if top <= best:  # no vertex of this sub-box can raise the cell's bound
+                                for jv in range(V):
+                                    val[qb, jv, side] = cheap[j, jv]
+                                    coef[qb, jv, side] = cheap_r[j, jv]
+                                    sup[qb, jv, side] = n_first
+                                    stat[qb, jv, side] = 6
+                                continue
+                        for jv in range(V):
+                            cert = _certify_parts(lastS[side], lastw[side], lastn[side], y, B[j, jv], EB[j, jv], K_err,
+                                                  s0[j, jv], dbar, 0.0, G, sgn, lastp[side])
+                            if nbox == 1 or sgn * cert[0] < sgn * cheap[j, jv]:
+                                cheap[j, jv] = cert[0]
+                                cheap_r[j, jv] = cert[2]
+                        order = np.argsort(-sgn * (lin[qb] + cheap[j]))
+                        for k in range(V):
+                            jv = order[k]
+                            if prune and best > -np.inf and sgn * (lin[qb, jv] + cheap[j, jv]) <= best:
                                 val[qb, jv, side] = cheap[j, jv]
                                 coef[qb, jv, side] = cheap_r[j, jv]
-                                sup[qb, jv, side] = n_first
+                                sup[qb, jv, side] = lastn[side]
                                 stat[qb, jv, side] = 6
-                            continue
-                    for jv in range(V):
-                        cert = _certify_parts(lastS[side], lastw[side], lastn[side], y, B[j, jv], EB[j, jv], K_err,
-                                              s0[j, jv], dbar, 0.0, G, sgn, lastp[side])
-                        if nbox == 1 or sgn * cert[0] < sgn * cheap[j, jv]:
-                            cheap[j, jv] = cert[0]
-                            cheap_r[j, jv] = cert[2]
-                    order = np.argsort(-sgn * (lin[qb] + cheap[j]))
-                    for k in range(V):
-                        jv = order[k]
-                        if prune and best > -np.inf and sgn * (lin[qb, jv] + cheap[j, jv]) <= best:
-                            val[qb, jv, side] = cheap[j, jv]
-                            coef[qb, jv, side] = cheap_r[j, jv]
-                            sup[qb, jv, side] = lastn[side]
-                            stat[qb, jv, side] = 6
-                            continue
-                        res = _active_set(K, ys, B[j, jv], s0[j, jv], dbar, G, S[side], sg[side], w[side], nS[side],
-                                          cap, max_iter, tol, bidx, bw, Pw, Lw)
-                        nS[side] = res[0]
-                        nb = res[1]
-                        stat[qb, jv, side] = res[3]
-                        # the certificate: the best weights met (any weights are sound; none -> w = 0)
-                        newp[0], newp[1], newp[2], newp[3] = _weight_parts(bidx, bw, nb, K)
-                        cert = _certify_parts(bidx, bw, nb, y, B[j, jv], EB[j, jv], K_err, s0[j, jv], dbar, 0.0, G,
-                                              sgn, newp)
-                        cv = cert[0]
-                        cr = cert[2]
-                        if sgn * cv > sgn * cheap[j, jv]:  # the neighbour's weights were better: keep them
-                            cv = cheap[j, jv]
-                            cr = cheap_r[j, jv]
-                        val[qb, jv, side] = cv
-                        coef[qb, jv, side] = cr
-                        sup[qb, jv, side] = nb
-                        if sgn * (lin[qb, jv] + cv) > best:
-                            best = sgn * (lin[qb, jv] + cv)
-                        lastn[side] = nb
-                        for p in range(nb):
-                            lastS[side, p] = bidx[p]
-                            lastw[side, p] = bw[p]
-                        for p in range(4):
-                            lastp[side, p] = newp[p]
-                        if prune:  # the weights just found certify the remaining vertices of this box too
-                            for k2 in range(k + 1, V):
-                                j2 = order[k2]
-                                cert = _certify_parts(bidx, bw, nb, y, B[j, j2], EB[j, j2], K_err, s0[j, j2], dbar,
-                                                      0.0, G, sgn, newp)
-                                if sgn * cert[0] < sgn * cheap[j, j2]:
-                                    cheap[j, j2] = cert[0]
-                                    cheap_r[j, j2] = cert[2]
-                        if res[3] == 2 or res[3] == 3:
-                            # inconsistent or ill-conditioned support: restart cold next time
-                            nS[side] = 0
-            q = q1
+                                continue
+                            res = _active_set(K, ys, B[j, jv], s0[j, jv], dbar, G, S[side], sg[side], w[side], nS[side],
+                                              cap, max_iter, tol, bidx, bw, Pw, Lw)
+                            nS[side] = res[0]
+                            nb = res[1]
+                            stat[qb, jv, side] = res[3]
+                            # the certificate: the best weights met (any weights are sound; none -> w = 0)
+                            newp[0], newp[1], newp[2], newp[3] = _weight_parts(bidx, bw, nb, K)
+                            cert = _certify_parts(bidx, bw, nb, y, B[j, jv], EB[j, jv], K_err, s0[j, jv], dbar, 0.0, G,
+                                                  sgn, newp)
+                            cv = cert[0]
+                            cr = cert[2]
+                            if sgn * cv > sgn * cheap[j, jv]:  # the neighbour's weights were better: keep them
+                                cv = cheap[j, jv]
+                                cr = cheap_r[j, jv]
+                            val[qb, jv, side] = cv
+                            coef[qb, jv, side] = cr
+                            sup[qb, jv, side] = nb
+                            if sgn * (lin[qb, jv] + cv) > best:
+                                best = sgn * (lin[qb, jv] + cv)
+                            lastn[side] = nb
+                            for p in range(nb):
+                                lastS[side, p] = bidx[p]
+                                lastw[side, p] = bw[p]
+                            for p in range(4):
+                                lastp[side, p] = newp[p]
+                            if prune:  # the weights just found certify the remaining vertices of this box too
+                                for k2 in range(k + 1, V):
+                                    j2 = order[k2]
+                                    cert = _certify_parts(bidx, bw, nb, y, B[j, j2], EB[j, j2], K_err, s0[j, j2], dbar,
+                                                          0.0, G, sgn, newp)
+                                    if sgn * cert[0] < sgn * cheap[j, j2]:
+                                        cheap[j, j2] = cert[0]
+                                        cheap_r[j, j2] = cert[2]
+                            if res[3] == 2 or res[3] == 3:
+                                # inconsistent or ill-conditioned support: restart cold next time
+                                nS[side] = 0
+                q = q1
     return val, sup, stat, coef
 
 
