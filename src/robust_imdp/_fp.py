@@ -79,10 +79,7 @@ def outward(x, err, upward: bool):
     (the value was computed exactly and is returned unchanged)."""
     x = np.asarray(x, dtype=float)
     err = np.broadcast_to(np.asarray(err, dtype=float), x.shape)
-    if upward:
-        moved = np.nextafter(x + err, np.inf)
-    else:
-        moved = np.nextafter(x - err, -np.inf)
+    moved = _step(np.asarray(x + err if upward else x - err), upward)
     return np.where(err > 0, moved, x)
 
 

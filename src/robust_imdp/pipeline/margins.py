@@ -134,6 +134,16 @@ def _abstraction_form(problem: Problem, partition) -> str:
     return problem.form_choice()[0] if isinstance(partition, Partition) else "joint"
 
 
+def _factor_args(problem: Problem, partition, synthesis, lower, upper, dfa) -> list:
+    """The arguments of :func:`_margin_task` for every factor (``lower`` / ``upper``: ``(n_scales, n_modes, n_cells,
+    n)``): the run's form and abstraction options, its controller as a picklable :class:`_Controller`."""
+    ctrl = _Controller(np.asarray(synthesis.strategy), synthesis.horizon, float(synthesis.precision),
+                       getattr(synthesis, "semantics", "reach"))
+    form = _abstraction_form(problem, partition)
+    return [(partition, lower[j], upper[j], problem.noise, form, problem.abstraction_options(), dfa, ctrl)
+            for j in range(len(lower))]
+
+
 def _margin_task(partition, lower, upper, noise, form, options, dfa, controller, *, threads=1):
     """One factor of the margins (a module-level function: it runs in helper processes and on workers): the
     abstraction of ``partition`` with the boxes ``lower``/``upper`` (n_modes, n_cells, n) in the run's ``form``
@@ -207,11 +217,7 @@ def start_margins(problem: Problem, grid, synthesis, classes, dfa, log: _Log, ru
     if not isinstance(sched, InProcess) or not sched.use_side_lane():
         return None
     scales, lower, upper = got
-    ctrl = _Controller(np.asarray(synthesis.strategy), synthesis.horizon, float(synthesis.precision),
-                       getattr(synthesis, "semantics", "reach"))
-    form = _abstraction_form(problem, grid)
-    args = [(grid, lower[j], upper[j], problem.noise, form, problem.abstraction_options(), dfa, ctrl)
-            for j in range(len(scales))]
+    args = _factor_args(problem, grid, synthesis, lower, upper, dfa)
     futures = []
     try:
         for a in args:
@@ -283,11 +289,7 @@ def run_margins(problem: Problem, grid, partition, synthesis, classes, dfa, log:
 
             def evaluate(scale):
                 if not done:
-                    form = _abstraction_form(problem, partition)
-                    ctrl = _Controller(np.asarray(synthesis.strategy), synthesis.horizon, float(synthesis.precision),
-                                       getattr(synthesis, "semantics", "reach"))
-                    args = [(partition, lower[j], upper[j], problem.noise, form, problem.abstraction_options(), dfa,
-                             ctrl) for j in range(len(scales))]
+                    args = _factor_args(problem, partition, synthesis, lower, upper, dfa)
                     done.update(spread(sched, _margin_task, args))
                 return done[index[float(scale)]]
         else:
