@@ -389,6 +389,17 @@ def _verify_up(grid, mg, pr, up, nodes, c0, c1, wr, adv_max):
     return True
 
 
+
+@njit(cache=True)
+def _gap(lo, up, nodes, c0, c1):  # pragma: no cover - compiled
+    """The widest bracket ``up - lo`` over the component's nodes ``nodes[c0:c1]``."""
+    gap = 0.0
+    for i in range(c0, c1):
+        g = up[nodes[i]] - lo[nodes[i]]
+        if g > gap:
+            gap = g
+    return gap
+
 @njit(cache=True, parallel=True)
 def factored_components(grid, mg, pr, lo, up, nodes, comp_ptr, cyclic, wr_lo, wr_up, adv_max, precision, stall,
                      max_sweeps, sweeps):
@@ -439,12 +450,7 @@ def factored_components(grid, mg, pr, lo, up, nodes, comp_ptr, cyclic, wr_lo, wr
                         change[0] = _sweep_end(grid, mg, pr, lo, nodes, c0, c1, wr_lo, adv_max, -1, k % 2 == 0)
                     elif e == 1 and do_up:
                         change[1] = _sweep_end(grid, mg, pr, up, nodes, c0, c1, wr_up, adv_max, 1, k % 2 == 0)
-            gap = 0.0
-            for i in range(c0, c1):
-                g = up[nodes[i]] - lo[nodes[i]]
-                if g > gap:
-                    gap = g
-            if gap <= precision:
+            if _gap(lo, up, nodes, c0, c1) <= precision:
                 break
             if fails < OVI_MAX_FAILS and (change[0] <= aim or not do_lo):
                 # the lower end has (nearly) settled: guess the upper end at lower + delta and check it
@@ -457,12 +463,7 @@ def factored_components(grid, mg, pr, lo, up, nodes, comp_ptr, cyclic, wr_lo, wr
                     if g < up[node]:
                         up[node] = g
                 if _verify_up(grid, mg, pr, up, nodes, c0, c1, wr_up, adv_max):
-                    gap = 0.0
-                    for i in range(c0, c1):
-                        g = up[nodes[i]] - lo[nodes[i]]
-                        if g > gap:
-                            gap = g
-                    if gap <= precision:
+                    if _gap(lo, up, nodes, c0, c1) <= precision:
                         break
                 else:
                     for i in range(c0, c1):
