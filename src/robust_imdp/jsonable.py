@@ -6,6 +6,8 @@ validation report (``cli``) all go through :func:`jsonable`, so they write the s
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 __all__ = ["jsonable"]
@@ -26,9 +28,29 @@ def jsonable(obj):
     if isinstance(obj, (list, tuple)):
         return [jsonable(v) for v in obj]
     if isinstance(obj, np.ndarray):
-        return jsonable(obj.tolist())
+        return _array(obj)
     if isinstance(obj, np.generic):
         return jsonable(obj.item())
-    if isinstance(obj, float) and not np.isfinite(obj):
+    if isinstance(obj, float) and not math.isfinite(obj):
         return None
     return obj
+
+
+def _array(a: np.ndarray):
+    """``jsonable(a.tolist())`` without walking the list where the dtype says what ``tolist`` gives.
+
+    ``tolist`` of a bool, int, unsigned or str array gives Python bools, ints and strs (nothing to change); of a
+    float16/32/64 array Python floats, of which the non-finite ones become ``None`` (set on an object copy,
+    whose ``tolist`` keeps the other floats, -0.0 included). Every other array (object, complex, bytes, dates,
+    long double, subclasses such as masked arrays) takes the element-wise route.
+    """
+    kind = a.dtype.kind
+    if type(a) is np.ndarray and kind in "biuUf" and not (kind == "f" and a.dtype.itemsize > 8):
+        if kind == "f":
+            finite = np.isfinite(a)
+            if not finite.all():
+                out = a.astype(object)
+                out[~finite] = None
+                return out.tolist()
+        return a.tolist()
+    return jsonable(a.tolist())

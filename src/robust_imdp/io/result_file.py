@@ -358,10 +358,8 @@ def result_to_dict(result) -> dict[str, Any]:
     dfa = result.dfa
     syn = result.synthesis
     modes = list(result.mode_names)
-    part_atoms = list(part.atoms)
-    labels_int = np.asarray(part.labels, dtype=np.int64)
-    labels = [[a for i, a in enumerate(part_atoms) if (int(v) >> i) & 1] for v in labels_int]
-    names = np.asarray(modes, dtype=object)
+    labels = _label_lists(_jsonable(list(part.atoms)), np.asarray(part.labels, dtype=np.int64))
+    names = np.asarray(_jsonable(modes), dtype=object)
 
     def named(table):
         table = np.asarray(table, dtype=np.int64)
@@ -378,7 +376,7 @@ def result_to_dict(result) -> dict[str, Any]:
         space["names"] = list(result.dim_names)
     if getattr(part, "periodic", None) is not None:  # only then: results without periodic dimensions are unchanged
         space["periodic"] = list(part.periodic)
-    return _jsonable({
+    doc = {
         "format": RESULT_FORMAT,
         "space": space,
         "cells": {"lower": part.cells_lower, "upper": part.cells_upper},
@@ -390,13 +388,13 @@ def result_to_dict(result) -> dict[str, Any]:
             "accepting": accepting,
             "delta": np.asarray(dfa.delta, dtype=np.int64),
         },
-        "strategy": strategy_named.tolist(),
+        "strategy": strategy_named.tolist(),  # plain already (str or None): not walked again below
         "strategy_by_time": by_time,
         "p_low": np.asarray(syn.p_low, dtype=float),
         "p_up": np.asarray(syn.p_up, dtype=float),
         "p_up_star": np.asarray(syn.p_up_star, dtype=float),
         "error": np.asarray(syn.error, dtype=float),
-        "classes": list(result.class_names),
+        "classes": np.asarray(result.class_names),
         "no_strategy_can": np.asarray(syn.p_up_star, dtype=float) < result.threshold,
         "formula": result.formula,
         "threshold": result.threshold,
@@ -409,7 +407,23 @@ def result_to_dict(result) -> dict[str, Any]:
                         **({"advice": result.advice} if getattr(result, "advice", None) else {}),
                         **({"margins": result.margins} if getattr(result, "margins", None) else {})},
         "timings": result.timings,
-    })
+    }
+    return {k: v if k in _PLAIN else _jsonable(v) for k, v in doc.items()}
+
+
+#: Entries of :func:`result_to_dict` built as plain JSON values (lists of lists of str or None), one per cell:
+#: ``jsonable`` would only walk them element by element to return them unchanged.
+_PLAIN = frozenset(("labels", "strategy", "strategy_by_time"))
+
+
+def _label_lists(atoms: list, letters: np.ndarray) -> list:
+    """``labels[q]``: the atoms whose bit is set in ``letters[q]`` (bit i = ``atoms[i]``), a new list per cell.
+
+    Built once per distinct letter (at most ``2**len(atoms)``, a handful) and copied per cell.
+    """
+    uniq, inverse = np.unique(letters, return_inverse=True)
+    lists = [[a for i, a in enumerate(atoms) if (int(v) >> i) & 1] for v in uniq.tolist()]
+    return [lists[i].copy() for i in inverse.ravel().tolist()]
 
 
 def save_result(result, out_dir) -> Path:
@@ -435,28 +449,29 @@ def save_result(result, out_dir) -> Path:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     doc = result_to_dict(result)
+    part, syn = result.partition, result.synthesis
     atoms = list(doc["dfa"]["atoms"])
-    letters = np.zeros(len(doc["labels"]), dtype=np.int64)
-    for i, a in enumerate(atoms):  # a loop over the atoms (a handful); bit i = atoms[i] holds in the cell
-        letters |= np.array([a in lab for lab in doc["labels"]], dtype=np.int64) << i
     accepting = np.zeros(len(doc["dfa"]["delta"]), dtype=bool)
     accepting[np.asarray(doc["dfa"]["accepting"], dtype=np.int64)] = True
     controller_arrays = {
-        "label_letters": letters, "dfa_atoms": np.asarray(atoms, dtype=str),
+        "label_letters": _dfa_letters(atoms, _jsonable(list(part.atoms)), np.asarray(part.labels, dtype=np.int64),
+                                      doc["labels"]),
+        "dfa_atoms": np.asarray(atoms, dtype=str),
         "dfa_initial": np.int64(doc["dfa"]["initial"]), "dfa_accepting": accepting,
         "space_lower": np.asarray(doc["space"]["lower"], dtype=float),
         "space_upper": np.asarray(doc["space"]["upper"], dtype=float),
         **({"periodic": np.asarray(doc["space"]["periodic"], dtype=bool)} if "periodic" in doc["space"] else {}),
     }
+    # the per-cell arrays from the result itself, as result.json has them (non-finite floats are null there: NaN)
     arrays = {
-        "cells_lower": np.asarray(doc["cells"]["lower"], dtype=float),
-        "cells_upper": np.asarray(doc["cells"]["upper"], dtype=float),
-        "strategy": np.asarray(result.synthesis.strategy, dtype=np.int64),  # (k, C, S) if k-step
+        "cells_lower": _nan_for_nonfinite(part.cells_lower),
+        "cells_upper": _nan_for_nonfinite(part.cells_upper),
+        "strategy": np.asarray(syn.strategy, dtype=np.int64),  # (k, C, S) if k-step
         "dfa_delta": np.asarray(doc["dfa"]["delta"], dtype=np.int64),
-        "p_low": np.asarray(doc["p_low"], dtype=float),
-        "p_up": np.asarray(doc["p_up"], dtype=float),
-        "p_up_star": np.asarray(doc["p_up_star"], dtype=float),
-        "error": np.asarray(doc["error"], dtype=float),
+        "p_low": _nan_for_nonfinite(syn.p_low),
+        "p_up": _nan_for_nonfinite(syn.p_up),
+        "p_up_star": _nan_for_nonfinite(syn.p_up_star),
+        "error": _nan_for_nonfinite(syn.error),
         "classes": np.asarray(doc["classes"], dtype=str),
         "no_strategy_can": np.asarray(doc["no_strategy_can"], dtype=bool),
         "modes": np.asarray(doc["modes"], dtype=str),
@@ -469,11 +484,80 @@ def save_result(result, out_dir) -> Path:
             np.savez(fh, **arrays)
 
     def write_json(tmp: Path) -> None:
-        tmp.write_text(json.dumps(doc, indent=1))
+        with open(tmp, "w") as fh:
+            for piece in _json_pieces(doc):
+                fh.write(piece)
 
     _atomic_write(out / "result.npz", write_npz)
     _atomic_write(out / "result.json", write_json)
     return out / "result.json"
+
+
+def _nan_for_nonfinite(x) -> np.ndarray:
+    """``x`` as a new float array with NaN for every non-finite entry (what reading result.json's null gives)."""
+    a = np.array(x, dtype=float)
+    a[~np.isfinite(a)] = np.nan
+    return a
+
+
+def _dfa_letters(dfa_atoms: list, part_atoms: list, part_letters: np.ndarray, labels: list) -> np.ndarray:
+    """(n_cells,) int64: bit i set where ``dfa_atoms[i]`` is in the cell's label (``labels[q]``, the partition's
+    atoms of bits set in ``part_letters[q]``), from the partition's bits by a shift per atom."""
+    if len(part_atoms) > 62:  # the bits would not fit an int64: ask the label lists
+        letters = np.zeros(len(labels), dtype=np.int64)
+        for i, a in enumerate(dfa_atoms):
+            letters |= np.array([a in lab for lab in labels], dtype=np.int64) << i
+        return letters
+    letters = np.zeros(part_letters.shape[0], dtype=np.int64)
+    for i, a in enumerate(dfa_atoms):  # a loop over the atoms (a handful)
+        held = np.zeros(part_letters.shape[0], dtype=bool)
+        for j, b in enumerate(part_atoms):
+            if b == a:
+                held |= ((part_letters >> j) & 1).astype(bool)
+        letters |= held.astype(np.int64) << i
+    return letters
+
+
+#: The per-cell entries of result.json (paths into :func:`result_to_dict`'s document) written on one line each by
+#: the C encoder; the rest keeps ``indent=1``.
+_ONE_LINE = (("cells", "lower"), ("cells", "upper"), ("labels",), ("strategy",), ("strategy_by_time",),
+             ("p_low",), ("p_up",), ("p_up_star",), ("error",), ("classes",), ("no_strategy_can",), ("b_margin",))
+
+
+def _json_pieces(doc: dict) -> list:
+    """The text of ``json.dumps(doc, indent=1)`` up to the layout (``json.loads`` gives the same document), as
+    pieces to write one after the other: the per-cell lists (:data:`_ONE_LINE`) are encoded by the C encoder on one
+    line each (the pure-Python encoder that ``indent`` needs takes seconds per million numbers) and spliced into the
+    indented rest in place of placeholder strings.
+
+    A placeholder carries a random nonce and must occur exactly once in the indented text (so no string of the
+    document, a region or mode name, can be taken for one); otherwise a fresh nonce is drawn, and after a few
+    tries the whole document is encoded with ``indent=1``.
+    """
+    import secrets
+
+    for _ in range(4):
+        nonce = secrets.token_hex(16)
+        skeleton, bodies = dict(doc), {}
+        for n, path in enumerate(_ONE_LINE):
+            parent = skeleton
+            for key in path[:-1]:
+                if not isinstance(parent.get(key), dict):
+                    break
+                parent[key] = parent = dict(parent[key])  # copies along the path: doc is not changed
+            else:
+                if isinstance(parent.get(path[-1]), list):
+                    token = f"robust_imdp-one-line-{nonce}-{n}"
+                    bodies[json.dumps(token)] = parent[path[-1]]
+                    parent[path[-1]] = token
+        text = json.dumps(skeleton, indent=1)
+        if all(text.count(quoted) == 1 for quoted in bodies):
+            pieces = []
+            for quoted in sorted(bodies, key=text.index):
+                head, text = text.split(quoted)
+                pieces += [head, json.dumps(bodies[quoted])]
+            return pieces + [text]
+    return [json.dumps(doc, indent=1)]
 
 
 def load_result(path):

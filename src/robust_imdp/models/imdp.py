@@ -85,7 +85,14 @@ def _segment_sum(x: np.ndarray, ptr: np.ndarray) -> np.ndarray:
     return out
 
 
-class IMDP:
+class _Cached:
+    """Slots for values derived from an :class:`IMDP`'s read-only arrays, filled on first use. They live in a base
+    class so that ``IMDP.__slots__`` stays the model's fields (what :meth:`IMDP.__reduce__` pickles)."""
+
+    __slots__ = ("_has_floor",)
+
+
+class IMDP(_Cached):
     """An interval MDP with rows grouped by state and an optional per-row floor.
 
     Build it with :meth:`from_csr` or :meth:`from_dense`; all arrays are read-only.
@@ -285,7 +292,12 @@ class IMDP:
     @property
     def has_floor(self) -> bool:
         """True when some row has a positive floor on unlisted states."""
-        return bool(np.any(self.floor[self.n_unlisted > 0] > 0))
+        try:
+            return self._has_floor
+        except AttributeError:  # first call: computed once (floor and n_unlisted are read-only, set when built)
+            value = bool(np.any(self.floor[self.n_unlisted > 0] > 0))
+            object.__setattr__(self, "_has_floor", value)
+            return value
 
     def choices_of(self, state: int) -> range:
         """Row indices of the choices of ``state``."""
