@@ -748,6 +748,17 @@ MUTATIONS = [
          replacement="        return solve_factored_product(m, letters, dfa, adversary=\"optimistic\", strategy=strategy, control=\"maximize\",",
          description="synthesis on a factored model: the strategy evaluated against the optimistic adversary for p_low",
          tests=["tests/test_factored_pipeline.py"]),
+    # ------------------------------------------------------------------ graph pre-computations (solvers/graph.py)
+    dict(name="graph-positive-attractor-strict", file="src/robust_imdp/solvers/graph.py",
+         original="            hit = lowW > 0.0 or stay < 1.0",
+         replacement="            hit = lowW > 0.0 or stay < 1.0 - 1e-3",
+         description="positive attractor (minimising adversary): a row counts as forcing mass onto W only when at most "
+                     "0.999 can stay outside: nodes of positive value fixed to 0", tests=["tests/test_graph_lanes.py"]),
+    dict(name="graph-almost-sure-no-slack", file="src/robust_imdp/solvers/graph.py",
+         original="                good = lowX > 0.0 or rest + _sum_slack(nNotX, fl and unlNotX > 0) < 1.0",
+         replacement="                good = lowX > 0.0 or rest < 1.0",
+         description="almost-sure set (minimising adversary): the rounded-to-nearest mass outside X compared with 1 "
+                     "without its rounding slack: nodes of value < 1 fixed to 1", tests=["tests/test_graph_lanes.py"]),
 ]
 
 

@@ -143,7 +143,7 @@ import numpy as np
 
 from robust_imdp.errors import ConvergenceWarning, DimensionError, InvalidInputError
 from robust_imdp.solvers.common import Control, ReachabilityResult
-from robust_imdp.solvers.graph import _end_components, almost_sure, positive_attractor, progress_strategy
+from robust_imdp.solvers.graph import _end_components, almost_sure, graph_lanes, positive_attractor, progress_strategy
 from robust_imdp.solvers.ovi import _interval_step, _ovi_jacobi, _topological
 from robust_imdp.solvers.sweep import Sweeper
 
@@ -520,12 +520,12 @@ def _fixed_nodes(imdp, nxt, target, zero, active, ctrl, adv_max, flat_strat):
     L, n = nxt.shape
     # (a) graph pre-computation: nodes that reach the target with positive probability
     W = positive_attractor(imdp.state_ptr, imdp.row_ptr, imdp.col, imdp.lower, imdp.upper, imdp.floor,
-                           nxt, target.reshape(-1), zero.reshape(-1), ctrl, flat_strat, adv_max)
+                           nxt, target.reshape(-1), zero.reshape(-1), ctrl, flat_strat, adv_max, graph_lanes())
     one = np.zeros(L * n, dtype=bool)
     if ctrl != Control.MINIMISE:
         # value exactly 1 (almost-sure reachability); not computed for a minimising controller
         one = almost_sure(imdp.state_ptr, imdp.row_ptr, imdp.col, imdp.lower, imdp.upper, imdp.floor, nxt,
-                          target.reshape(-1), W, ctrl, flat_strat, adv_max)
+                          target.reshape(-1), W, ctrl, flat_strat, adv_max, graph_lanes())
     W = W.reshape(L, n)
     one = one.reshape(L, n) & ~target
     zero_all = zero | (active & ~W)  # value exactly 0: the target cannot be reached
@@ -625,7 +625,7 @@ def _extract_strategy(sw, imdp, nxt, lo, target, active, swept, ctrl, adv_max, s
         tie_strat = tie_break.strategy.reshape(-1)
     strat = progress_strategy(imdp.state_ptr, imdp.row_ptr, imdp.col, imdp.lower, imdp.upper, imdp.floor,
                               nxt, target.reshape(-1), optimal.reshape(-1), adv_max, arg.reshape(-1),
-                              score, tie_strat)
+                              score, tie_strat, graph_lanes())
     return strat.reshape(L, n)
 
 

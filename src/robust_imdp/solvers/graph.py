@@ -29,6 +29,7 @@ Kleene's set bit for bit (benchmarks/identical.py).
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from numba import njit
 
@@ -61,6 +62,40 @@ def _rows(state_ptr, q, ctrl, strat, k):
 
 
 
+#: Nodes per work unit of the parallel sweeps (:func:`positive_attractor`, :func:`almost_sure`,
+#: :func:`progress_strategy`): lane ``t`` of ``nt`` takes the units ``t, t + nt, ...`` in sweep order
+#: (interleaved: the undecided nodes are often bunched in one layer or region). One lane visits every
+#: node in the sweep order of the serial algorithm.
+_UNIT = 2048
+
+
+def graph_lanes() -> int:
+    """Lanes of the graph kernels: the caller's numba threads (passed in, not read in a kernel: reading
+    ``numba.get_num_threads`` there would keep numba from caching it)."""
+    return int(numba.get_num_threads())
+
+
+@njit(cache=True, inline="always")
+def _add_down(a, b):
+    """The largest float <= the exact ``a + b`` (TwoSum's error term says on which side the rounded
+    sum lies); finite non-negative operands."""
+    s = a + b
+    bb = s - a
+    e = (a - (s - bb)) + (b - bb)
+    if e < 0.0:
+        s = np.nextafter(s, -np.inf)
+    return s
+
+
+@njit(cache=True, inline="always")
+def _mul_down(f, m):
+    """A float <= the exact ``f * m`` (f >= 0, m a non-negative integer count), non-decreasing in both:
+    the rounded product shrunk by 4 units of roundoff and the smallest subnormal (which covers the
+    rounding of a subnormal product), clipped at 0."""
+    p = (f * m) * (1.0 - 4.0 * U) - 5e-324
+    return p if p > 0.0 else 0.0
+
+
 @njit(cache=True, inline="always")
 def _successor_counts(mask, nxt, n, out):
     """``out[l]`` = the number of states q' whose successor node ``(nxt[l, q'], q')`` from layer l
@@ -73,9 +108,90 @@ def _successor_counts(mask, nxt, n, out):
         out[l] = c
 
 
+@njit(cache=True, inline="always")
+def _positive_node(node, l, q, n, state_ptr, row_ptr, col, lower, upper, floor, nxt, W, cntW, ctrl, strat, adv_max):
+    """:func:`positive_attractor`'s test of ``node`` = ``l * n + q`` (not in W, not blocked) against the set ``W``."""
+    r0, r1 = _rows(state_ptr, q, ctrl, strat, node)
+    any_hit = False
+    all_hit = True
+    for r in range(r0, r1):
+        lowW = 0.0
+        upOut = 0.0
+        upW = 0.0
+        listedW = 0
+        for j in range(row_ptr[r], row_ptr[r + 1]):
+            q2 = col[j]
+            if W[nxt[l, q2] * n + q2]:
+                lowW += lower[j]
+                upW += upper[j]
+                listedW += 1
+            elif upper[j] > 0.0:
+                upOut = _add_down(upOut, upper[j])
+        unlW = cntW[l] - listedW
+        unlOut = (n - (row_ptr[r + 1] - row_ptr[r])) - unlW
+        f = floor[r]
+        if adv_max:
+            hit = upW > 0.0 or (f > 0.0 and unlW > 0)
+        else:
+            # forced positive mass on W: lower mass on W (a float sum of non-negative terms is positive
+            # iff one is), or the mass that can stay outside W below 1 (a lower bound of it below 1:
+            # liberal)
+            stay = upOut
+            if f > 0.0 and unlOut > 0:
+                stay = _add_down(stay, _mul_down(f, unlOut))
+            hit = lowW > 0.0 or stay < 1.0
+        if hit:
+            any_hit = True
+        else:
+            all_hit = False
+    return (ctrl == _MIN and all_hit) or (ctrl != _MIN and any_hit)
+
+
+@njit(cache=True)
+def _positive_sweep(state_ptr, row_ptr, col, lower, upper, floor, nxt, W, blocked, cntW, ctrl, strat, adv_max, back):
+    """One in-place sweep of :func:`positive_attractor` in node order (``back``: reversed); True if it added."""
+    n = state_ptr.shape[0] - 1
+    L = nxt.shape[0]
+    changed = False
+    for li in range(L):
+        l = L - 1 - li if back else li
+        for qi in range(n):
+            q = n - 1 - qi if back else qi
+            node = l * n + q
+            if W[node] or blocked[node]:
+                continue
+            if _positive_node(node, l, q, n, state_ptr, row_ptr, col, lower, upper, floor, nxt, W, cntW, ctrl, strat,
+                              adv_max):
+                W[node] = True
+                changed = True
+    return changed
+
+
+@njit(cache=True, parallel=True)
+def _positive_sweep_lanes(state_ptr, row_ptr, col, lower, upper, floor, nxt, W, blocked, cntW, ctrl, strat, adv_max,
+                          back, nt):
+    """:func:`_positive_sweep` on ``nt`` threads, each taking interleaved units of nodes, in place."""
+    n = state_ptr.shape[0] - 1
+    N = W.shape[0]
+    nu = (N + _UNIT - 1) // _UNIT
+    flags = np.zeros(nt, dtype=np.bool_)
+    for t in numba.prange(nt):
+        for u in range(t, nu, nt):
+            for idx in range(u * _UNIT, min(N, (u + 1) * _UNIT)):
+                node = N - 1 - idx if back else idx
+                if W[node] or blocked[node]:
+                    continue
+                l = node // n
+                if _positive_node(node, l, node - l * n, n, state_ptr, row_ptr, col, lower, upper, floor, nxt, W, cntW,
+                                  ctrl, strat, adv_max):
+                    W[node] = True
+                    flags[t] = True
+    return flags.any()
+
+
 @njit(cache=True)
 def positive_attractor(state_ptr, row_ptr, col, lower, upper, floor, nxt, init, blocked,
-                       ctrl, strat, adv_max):
+                       ctrl, strat, adv_max, lanes=1):
     """States (layer, q) from which the target is reached with positive probability.
 
     Layered graph: node ``l*n + q``; listed successor ``q'`` of a row of ``q`` in layer ``l`` is
@@ -84,71 +200,145 @@ def positive_attractor(state_ptr, row_ptr, col, lower, upper, floor, nxt, init, 
     A row "hits" the set W if every admissible distribution puts positive mass on W
     (minimising adversary, ``adv_max`` False) or some does (maximising adversary).
     ctrl 0: some row of the state hits; 1: every row hits; 2: the row ``strat`` hits.
-    Liberal in borderline float cases (a node wrongly added only loosens upper bounds; a node
-    wrongly left out would fix a positive value to 0, so the tests err toward adding).
+    Liberal (a node wrongly added only loosens upper bounds; a node wrongly left out would fix a
+    positive value to 0, so the tests err toward adding): the minimising adversary's test compares
+    a lower bound of the mass that can stay outside W (sums rounded down, :func:`_add_down`) with 1.
+    The test is monotone in W (rounded-down sums of fewer non-negative terms are not larger), so the
+    least fixed point is unique and the sweeps' order does not change it: ``lanes`` threads sweep
+    interleaved units of nodes in place (the module's "In place" note) and give the same set.
     Returns the (L*n,) bool mask W (includes ``init``).
     """
     L = nxt.shape[0]
     n = state_ptr.shape[0] - 1
+    nt = max(1, min(lanes, (L * n + _UNIT - 1) // _UNIT))
     W = init.copy()
-    changed = True
     # per layer: number of q' whose successor node (nxt[l, q'], q') is in W
     cntW = np.zeros(L, dtype=np.int64)
+    changed = True
     sweep = 0
     while changed:
-        changed = False
         _successor_counts(W, nxt, n, cntW)
-        # in place (Gauss-Seidel), every other sweep backwards (the module's "In place" note)
+        # in place, every other sweep backwards (the module's "In place" note)
         back = sweep % 2 == 1
         sweep += 1
-        for li in range(L):
-            l = L - 1 - li if back else li
-            for qi in range(n):
-                q = n - 1 - qi if back else qi
-                node = l * n + q
-                if W[node] or blocked[node]:
-                    continue
-                r0, r1 = _rows(state_ptr, q, ctrl, strat, l * n + q)
-                any_hit = False
-                all_hit = True
-                for r in range(r0, r1):
-                    lowW = 0.0
-                    upOut = 0.0
-                    upW = 0.0
-                    listedW = 0
-                    nOut = 0
-                    for j in range(row_ptr[r], row_ptr[r + 1]):
-                        q2 = col[j]
-                        if W[nxt[l, q2] * n + q2]:
-                            lowW += lower[j]
-                            upW += upper[j]
-                            listedW += 1
-                        elif upper[j] > 0.0:
-                            upOut += upper[j]
-                            nOut += 1
-                    unlW = cntW[l] - listedW
-                    unlOut = (n - (row_ptr[r + 1] - row_ptr[r])) - unlW
-                    f = floor[r]
-                    if adv_max:
-                        hit = upW > 0.0 or (f > 0.0 and unlW > 0)
-                    else:
-                        # forced positive mass on W: lower mass on W, or the mass that can stay
-                        # outside W is below 1.  Liberal: the float sum of nOut terms may be
-                        # below the exact one by (nOut + 2) u, so compare with that slack.
-                        slack = (nOut + 2.0) * 2.0 * U if nOut > 1 or (f > 0.0 and unlOut > 0) else 0.0
-                        hit = lowW > 0.0 or (upOut + f * unlOut) < 1.0 + slack
-                    if hit:
-                        any_hit = True
-                    else:
-                        all_hit = False
-                if (ctrl == _MIN and all_hit) or (ctrl != _MIN and any_hit):
-                    W[node] = True
-                    changed = True
+        if nt == 1:
+            changed = _positive_sweep(state_ptr, row_ptr, col, lower, upper, floor, nxt, W, blocked, cntW, ctrl,
+                                      strat, adv_max, back)
+        else:
+            changed = _positive_sweep_lanes(state_ptr, row_ptr, col, lower, upper, floor, nxt, W, blocked, cntW,
+                                            ctrl, strat, adv_max, back, nt)
     return W
 
 
+@njit(cache=True, inline="always")
+def _sure_node(node, l, q, n, state_ptr, row_ptr, col, lower, upper, floor, nxt, X, Y, cntX, cntY, ctrl, strat,
+               adv_max):
+    """:func:`almost_sure`'s test of ``node`` = ``l * n + q`` (in Y, not in X): some (ctrl 0) / the fixed row is
+    good."""
+    r0, r1 = _rows(state_ptr, q, ctrl, strat, node)
+    for r in range(r0, r1):
+        k = row_ptr[r + 1] - row_ptr[r]
+        f = floor[r]
+        outY = False
+        lowOutY = 0.0
+        capY = 0.0
+        nY = 0
+        lowX = 0.0
+        capX = 0.0
+        lowYnX = 0.0
+        upNotX = 0.0
+        nNotX = 0
+        listedX = 0
+        listedY = 0
+        for j in range(row_ptr[r], row_ptr[r + 1]):
+            q2 = col[j]
+            node2 = nxt[l, q2] * n + q2
+            inY = Y[node2]
+            inX = X[node2]
+            if inY:
+                listedY += 1
+                capY += upper[j]
+                nY += 1
+            else:
+                lowOutY += lower[j]
+                if upper[j] > 0.0:
+                    outY = True
+            if inX:
+                listedX += 1
+                lowX += lower[j]
+                capX += upper[j]
+            else:
+                if upper[j] > 0.0:
+                    upNotX += upper[j]
+                    nNotX += 1
+                if inY:
+                    lowYnX += lower[j]
+        unlY = cntY[l] - listedY
+        unlX = cntX[l] - listedX
+        unlNotY = (n - k) - unlY
+        unlNotX = (n - k) - unlX
+        fl = f > 0.0
+        if adv_max:
+            capYt = capY + (f * unlY if fl else 0.0)
+            good = (lowOutY == 0.0
+                    and capYt - _sum_slack(nY, fl and unlY > 0) >= 1.0
+                    and (capX > 0.0 or (fl and unlX > 0))
+                    and lowYnX + _sum_slack(k, False) < 1.0)
+        else:
+            if outY or (fl and unlNotY > 0):
+                good = False
+            else:
+                rest = upNotX + (f * unlNotX if fl else 0.0)
+                good = lowX > 0.0 or rest + _sum_slack(nNotX, fl and unlNotX > 0) < 1.0
+        if good:
+            return True
+    return False
+
+
 @njit(cache=True)
-def almost_sure(state_ptr, row_ptr, col, lower, upper, floor, nxt, target, W, ctrl, strat, adv_max):
+def _sure_sweep(state_ptr, row_ptr, col, lower, upper, floor, nxt, X, Y, cntX, cntY, ctrl, strat, adv_max, back):
+    """One in-place sweep of :func:`almost_sure`'s inner fixed point; True if it added."""
+    n = state_ptr.shape[0] - 1
+    L = nxt.shape[0]
+    changed = False
+    for li in range(L):
+        l = L - 1 - li if back else li
+        for qi in range(n):
+            q = n - 1 - qi if back else qi
+            node = l * n + q
+            if X[node] or not Y[node]:
+                continue
+            if _sure_node(node, l, q, n, state_ptr, row_ptr, col, lower, upper, floor, nxt, X, Y, cntX, cntY, ctrl,
+                          strat, adv_max):
+                X[node] = True
+                changed = True
+    return changed
+
+
+@njit(cache=True, parallel=True)
+def _sure_sweep_lanes(state_ptr, row_ptr, col, lower, upper, floor, nxt, X, Y, cntX, cntY, ctrl, strat, adv_max,
+                      back, nt):
+    """:func:`_sure_sweep` on ``nt`` threads, each taking interleaved units of nodes, in place."""
+    n = state_ptr.shape[0] - 1
+    N = X.shape[0]
+    nu = (N + _UNIT - 1) // _UNIT
+    flags = np.zeros(nt, dtype=np.bool_)
+    for t in numba.prange(nt):
+        for u in range(t, nu, nt):
+            for idx in range(u * _UNIT, min(N, (u + 1) * _UNIT)):
+                node = N - 1 - idx if back else idx
+                if X[node] or not Y[node]:
+                    continue
+                l = node // n
+                if _sure_node(node, l, node - l * n, n, state_ptr, row_ptr, col, lower, upper, floor, nxt, X, Y, cntX,
+                              cntY, ctrl, strat, adv_max):
+                    X[node] = True
+                    flags[t] = True
+    return flags.any()
+
+
+@njit(cache=True)
+def almost_sure(state_ptr, row_ptr, col, lower, upper, floor, nxt, target, W, ctrl, strat, adv_max, lanes=1):
     """Nodes from which the controller reaches the target with probability 1 (ctrl 0 or 2).
 
     Nested fixed point (almost-sure reachability of turn-based stochastic games):
@@ -160,9 +350,14 @@ def almost_sure(state_ptr, row_ptr, col, lower, upper, floor, nxt, target, W, ct
     interval polytopes) without leaving Y, hence the target almost surely.  All tests are
     *conservative* (a node wrongly added would be given the value 1): sums are compared with
     a margin covering their rounding.  Starts from ``W`` (the positive-probability nodes).
+    For a fixed Y every test is monotone in X (more members: more mass on X, less outside it, fewer
+    terms and less slack), so the inner least fixed point is unique and the order of the in-place
+    sweeps does not change it: ``lanes`` threads sweep interleaved units of nodes (as in
+    :func:`positive_attractor`) and give the same nodes.
     """
     L = nxt.shape[0]
     n = state_ptr.shape[0] - 1
+    nt = max(1, min(lanes, (L * n + _UNIT - 1) // _UNIT))
     Y = W.copy()
     cntX = np.zeros(L, dtype=np.int64)
     cntY = np.zeros(L, dtype=np.int64)
@@ -172,76 +367,15 @@ def almost_sure(state_ptr, row_ptr, col, lower, upper, floor, nxt, target, W, ct
         changed = True
         sweep = 0
         while changed:
-            changed = False
             _successor_counts(X, nxt, n, cntX)
             back = sweep % 2 == 1  # in place, alternating directions (the module's "In place" note)
             sweep += 1
-            for li in range(L):
-                l = L - 1 - li if back else li
-                for qi in range(n):
-                    q = n - 1 - qi if back else qi
-                    node = l * n + q
-                    if X[node] or not Y[node]:
-                        continue
-                    r0, r1 = _rows(state_ptr, q, ctrl, strat, node)
-                    for r in range(r0, r1):
-                        k = row_ptr[r + 1] - row_ptr[r]
-                        f = floor[r]
-                        outY = False
-                        lowOutY = 0.0
-                        capY = 0.0
-                        nY = 0
-                        lowX = 0.0
-                        capX = 0.0
-                        lowYnX = 0.0
-                        upNotX = 0.0
-                        nNotX = 0
-                        listedX = 0
-                        listedY = 0
-                        for j in range(row_ptr[r], row_ptr[r + 1]):
-                            q2 = col[j]
-                            node2 = nxt[l, q2] * n + q2
-                            inY = Y[node2]
-                            inX = X[node2]
-                            if inY:
-                                listedY += 1
-                                capY += upper[j]
-                                nY += 1
-                            else:
-                                lowOutY += lower[j]
-                                if upper[j] > 0.0:
-                                    outY = True
-                            if inX:
-                                listedX += 1
-                                lowX += lower[j]
-                                capX += upper[j]
-                            else:
-                                if upper[j] > 0.0:
-                                    upNotX += upper[j]
-                                    nNotX += 1
-                                if inY:
-                                    lowYnX += lower[j]
-                        unlY = cntY[l] - listedY
-                        unlX = cntX[l] - listedX
-                        unlNotY = (n - k) - unlY
-                        unlNotX = (n - k) - unlX
-                        fl = f > 0.0
-                        if adv_max:
-                            capYt = capY + (f * unlY if fl else 0.0)
-                            good = (lowOutY == 0.0
-                                    and capYt - _sum_slack(nY, fl and unlY > 0) >= 1.0
-                                    and (capX > 0.0 or (fl and unlX > 0))
-                                    and lowYnX + _sum_slack(k, False) < 1.0)
-                        else:
-                            if outY or (fl and unlNotY > 0):
-                                good = False
-                            else:
-                                rest = upNotX + (f * unlNotX if fl else 0.0)
-                                good = lowX > 0.0 or rest + _sum_slack(nNotX, fl and unlNotX > 0) < 1.0
-                        if good:
-                            X[node] = True
-                            changed = True
-                            break
+            if nt == 1:
+                changed = _sure_sweep(state_ptr, row_ptr, col, lower, upper, floor, nxt, X, Y, cntX, cntY, ctrl,
+                                      strat, adv_max, back)
+            else:
+                changed = _sure_sweep_lanes(state_ptr, row_ptr, col, lower, upper, floor, nxt, X, Y, cntX, cntY, ctrl,
+                                            strat, adv_max, back, nt)
         same = True
         for i in range(Y.shape[0]):
             if Y[i] != X[i]:
@@ -356,9 +490,9 @@ def strong_components(indptr, indices):
     return comp, nc
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def progress_strategy(state_ptr, row_ptr, col, lower, upper, floor, nxt, target, optimal, adv_max,
-                      fallback, score, tie_strat):
+                      fallback, score, tie_strat, lanes=1):
     """Among optimal rows pick, per node, one that makes progress toward the target.
 
     ``optimal`` (R*L,) bool: row r in layer l is optimal (index ``l*R + r``).  Backward
@@ -374,6 +508,8 @@ def progress_strategy(state_ptr, row_ptr, col, lower, upper, floor, nxt, target,
     choice ``tie_strat[node]`` if that row is optimal (``tie_strat`` (L*n,) holds -1 where there
     is none), else its optimal row of largest finite score, else ``fallback``.  With all scores
     -inf and ``tie_strat`` all -1 this is the first hitting row / ``fallback``.
+    A round reads only the previous rounds' nodes, so ``lanes`` threads share its nodes (interleaved
+    units, as in :func:`positive_attractor`) with the same result.
     """
     L = nxt.shape[0]
     n = state_ptr.shape[0] - 1
@@ -381,53 +517,63 @@ def progress_strategy(state_ptr, row_ptr, col, lower, upper, floor, nxt, target,
     W = target.copy()
     strat = fallback.copy()
     cntW = np.zeros(L, dtype=np.int64)
+    N = L * n
+    nu = (N + _UNIT - 1) // _UNIT
+    nt = max(1, min(lanes, nu))
+    flags = np.zeros(nt, dtype=np.bool_)
     changed = True
     while changed:
-        changed = False
         _successor_counts(W, nxt, n, cntW)
         newW = W.copy()
-        for l in range(L):
-            for q in range(n):
-                node = l * n + q
-                if W[node]:
-                    continue
-                best = -np.inf
-                for r in range(state_ptr[q], state_ptr[q + 1]):
-                    if not optimal[l * R + r]:
+        flags[:] = False
+        for t in numba.prange(nt):
+            for u in range(t, nu, nt):
+                for node in range(u * _UNIT, min(N, (u + 1) * _UNIT)):
+                    l = node // n
+                    q = node - l * n
+                    if W[node]:
                         continue
-                    lowW = 0.0
-                    upW = 0.0
-                    upOut = 0.0
-                    listedW = 0
-                    for j in range(row_ptr[r], row_ptr[r + 1]):
-                        q2 = col[j]
-                        if W[nxt[l, q2] * n + q2]:
-                            lowW += lower[j]
-                            upW += upper[j]
-                            listedW += 1
+                    best = -np.inf
+                    for r in range(state_ptr[q], state_ptr[q + 1]):
+                        if not optimal[l * R + r]:
+                            continue
+                        lowW = 0.0
+                        upW = 0.0
+                        upOut = 0.0
+                        listedW = 0
+                        for j in range(row_ptr[r], row_ptr[r + 1]):
+                            q2 = col[j]
+                            if W[nxt[l, q2] * n + q2]:
+                                lowW += lower[j]
+                                upW += upper[j]
+                                listedW += 1
+                            else:
+                                upOut += upper[j]
+                        unlW = cntW[l] - listedW
+                        unlOut = (n - (row_ptr[r + 1] - row_ptr[r])) - unlW
+                        f = floor[r]
+                        if adv_max:
+                            hit = upW > 0.0 or (f > 0.0 and unlW > 0)
                         else:
-                            upOut += upper[j]
-                    unlW = cntW[l] - listedW
-                    unlOut = (n - (row_ptr[r + 1] - row_ptr[r])) - unlW
-                    f = floor[r]
-                    if adv_max:
-                        hit = upW > 0.0 or (f > 0.0 and unlW > 0)
-                    else:
-                        hit = lowW > 0.0 or (upOut + f * unlOut) * (1.0 + 1e-12) < 1.0
-                    if hit and (not newW[node] or score[l * R + r] > best):
-                        newW[node] = True
-                        strat[node] = r - state_ptr[q]
-                        best = score[l * R + r]
-                        changed = True
+                            hit = lowW > 0.0 or (upOut + f * unlOut) * (1.0 + 1e-12) < 1.0
+                        if hit and (not newW[node] or score[l * R + r] > best):
+                            newW[node] = True
+                            strat[node] = r - state_ptr[q]
+                            best = score[l * R + r]
+                            flags[t] = True
+        changed = False
+        for tt in range(nt):
+            if flags[tt]:
+                changed = True
         W = newW
     for l in range(L):
         for q in range(n):
             node = l * n + q
             if W[node]:
                 continue
-            t = tie_strat[node]
-            if t >= 0 and optimal[l * R + state_ptr[q] + t]:
-                strat[node] = t
+            ts = tie_strat[node]
+            if ts >= 0 and optimal[l * R + state_ptr[q] + ts]:
+                strat[node] = ts
                 continue
             best = -np.inf
             for r in range(state_ptr[q], state_ptr[q + 1]):
