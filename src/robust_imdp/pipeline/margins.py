@@ -66,6 +66,12 @@ def _read_scaled(path: Path, scales, shape):
     return tuple(scales), z["lower"], z["upper"]
 
 
+def _save_scaled(path: Path, boxes) -> None:
+    """Save ``(scales, lower, upper)`` as the cache entry ``path``."""
+    write_cache_entry(path, lambda tmp: _savez(tmp, {"scales": np.asarray(boxes[0]), "lower": boxes[1],
+                                                     "upper": boxes[2]}))
+
+
 def _scaled_bounds(problem: Problem, grid, log: _Log, run: _Run, cache_dir, learn_and_bound):
     """``(scales, lower, upper)``, each box array ``(n_scales, n_modes, n_grid_cells, n)``: from this run's bound
     stage, the cache, or the bound stage run again with the scales (once: saved in the cache)."""
@@ -75,8 +81,7 @@ def _scaled_bounds(problem: Problem, grid, log: _Log, run: _Run, cache_dir, lear
     got = getattr(run, "scaled_bounds", None)
     if got is not None and tuple(got[0]) == scales:
         if path is not None:
-            write_cache_entry(path, lambda tmp: _savez(tmp, {"scales": np.asarray(scales), "lower": got[1],
-                                                             "upper": got[2]}))
+            _save_scaled(path, got)
         return got
     if path is not None:
         got = read_cache_entry(path, lambda f: _read_scaled(f, scales, shape))
@@ -89,8 +94,7 @@ def _scaled_bounds(problem: Problem, grid, log: _Log, run: _Run, cache_dir, lear
     learn_and_bound(problem, grid, log, run, cache_dir)
     got = run.scaled_bounds
     if path is not None:
-        write_cache_entry(path, lambda tmp: _savez(tmp, {"scales": np.asarray(scales), "lower": got[1],
-                                                         "upper": got[2]}))
+        _save_scaled(path, got)
     return got
 
 
@@ -167,66 +171,301 @@ def _margin_task(partition, lower, upper, noise, form, options, dfa, controller,
                            outside_state=partition.outside_state)
 
 
+#: Row tasks of a factor built piece by piece (:class:`PendingMargins`): about this many per factor, each of at least
+#: ``pipeline.run.MAX_ROW_CELLS`` cells (the partition travels with every task sent to a helper: 12.6 MB at 64^3).
+FACTOR_PIECES = 16
+MIN_PIECE_CELLS = 4096
+
+
+def _rows_task(partition, lower, upper, noise, form, options, k, *, threads=1):
+    """The rows of one chunk of cells of a factor's abstraction (a module-level function: it runs in helper processes
+    too): ``abstract_rows`` of the boxes ``lower``/``upper`` (n_modes, n_chunk_cells, n) in the run's form, the
+    listed lengths ``k`` of every cell where it is factored. The rows do not depend on the chunking
+    (tests/test_chunks.py): assembled in cell order they are the abstraction of :func:`_margin_task`."""
+    from robust_imdp.abstraction.cell_bounds import CellBounds
+
+    cb = CellBounds(lower, upper, None)
+    if form == "factored":
+        from robust_imdp.abstraction.factored import AXIS_TOL, factored_rows
+
+        return factored_rows(partition, cb, noise, k, tol=AXIS_TOL)
+    from robust_imdp.abstraction.rows import abstract_rows
+
+    return abstract_rows(partition, cb, noise, None, **options)
+
+
+def _solve_pieces(partition, form, pieces, dfa, controller):
+    """``(p_low, p_up)`` of the run's controller on the abstraction assembled from a factor's row chunks (in cell
+    order): the same model, so the same bits, as :func:`_margin_task`."""
+    from robust_imdp.abstraction.factored import abstraction_model
+    from robust_imdp.synthesis.margins import strategy_bounds
+
+    if form == "factored":
+        from robust_imdp.abstraction.factored import assemble_factored as assemble
+    else:
+        from robust_imdp.abstraction.rows import assemble_abstraction as assemble
+    abstraction = assemble(partition, pieces)
+    return strategy_bounds(abstraction_model(abstraction), partition.labels, partition.atoms, dfa, controller,
+                           outside_state=partition.outside_state)
+
+
+class _Piecewise:
+    """A factor built here from row chunks (:class:`PendingMargins`): the chunks not yet claimed, the rows in."""
+
+    def __init__(self, n_cells: int):
+        size = max(MIN_PIECE_CELLS, -(-n_cells // FACTOR_PIECES))
+        self.starts = list(range(0, n_cells, size))
+        self.size = size
+        self.todo = list(range(len(self.starts)))
+        self.pieces: dict = {}
+        self.k = None  # the factored form's listed lengths, once computed
+        self.solving = False
+
+
 class PendingMargins:
-    """Every factor's task of the margins submitted to the side lane's helpers (:func:`start_margins`), to run
-    beside the advice; :func:`run_margins` (``pending=``) reads them."""
+    """The margins' factors of an unrefined run, worked on beside the advice (:func:`start_margins`) and read by
+    :func:`run_margins` (``pending=``): one list of work that the side lane's helpers and, once the advice is done,
+    this process take from (docs/margins.md, "On several cores").
 
-    def __init__(self, scales, futures: list, args: list):
-        self.scales, self.futures, self.args = tuple(scales), futures, args
-        self.local: dict = {}  # factor -> its value, computed in this process
+    The largest factor first (its abstraction lists the most transitions and its solves iterate longest). A
+    helper takes a whole factor (its abstraction and the three solves there: nothing large comes back) while two
+    or more factors are not started; the last factor is built here piece by piece: its row chunks go to whoever is
+    free (a helper's come back through the pipe), its solves run here. This process, once the advice is done,
+    solves the factors whose rows are in, takes row chunks, starts the next factor piece by piece, or takes back
+    a whole factor still waiting in the lane behind other side work (the figures). Every factor's rows and solves
+    are those of :func:`_margin_task`, so the results are the same bits wherever they ran.
+    """
 
-    def take_back(self) -> None:
-        """Run here, last first, the factors still waiting in the lane (its helpers busy with the first ones or with
-        other side work), so that this process, done with the advice, shares the rest."""
-        for j in reversed(range(len(self.futures))):
-            if j not in self.local and self.futures[j].cancel():
-                self.local[j] = _margin_task(*self.args[j])
+    def __init__(self, scales, lane, prepare):
+        import threading
 
-    def value(self, j: int):
-        """Factor ``j``'s ``(p_low, p_up)``: the helper's answer, or computed here (taken back, or the lane could not
-        run it: the same task, the same bits)."""
+        self.scales = tuple(scales)
+        self.lane = lane
+        self.args: list | None = None  # per factor, :func:`_margin_task`'s arguments (from ``prepare``)
+        self.values: dict = {}  # factor -> (p_low, p_up)
+        self.error: BaseException | None = None
+        self.unavailable = False  # the boxes at the larger factors are not at hand: run_margins bounds them
+        self._cond = threading.Condition()
+        self._unstarted = list(reversed(range(len(self.scales))))  # largest factor first
+        self._sent: dict = {}  # work item -> its future in the lane, while it waits or runs there
+        self.futures: list = []  # every task sent to the lane
+        self._piecewise: dict = {}  # factor -> _Piecewise, in the order started
+        self._closed = False
+        self._prepare = prepare
+        self._starter = threading.Thread(target=self._start, name="robust-imdp margins", daemon=True)
+        self._starter.start()
+
+    # ------------------------------------------------------------------------------------------ the helpers' side
+    def _start(self) -> None:
+        """(A thread of its own.) The factors' arguments (reading or saving the boxes at larger B: I/O beside the
+        advice), then one feeder per helper."""
+        import threading
+
+        try:
+            self.args = self._prepare()
+        except BaseException as exc:  # noqa: BLE001 - raised in run_margins' thread
+            with self._cond:
+                self.error = exc
+                self._cond.notify_all()
+            return
+        with self._cond:
+            if self.args is None:
+                self.unavailable = True
+            self._cond.notify_all()
+        if self.args is None:
+            return
+        for h in self.lane.helpers:
+            threading.Thread(target=self._feed, name="robust-imdp margins feeder", daemon=True).start()
+
+    def _helper_item(self):
+        """The next work of a helper (with the lock held): ``("whole", j)``, ``("rows", j, c)`` or None (none left
+        that a helper can do: the solves run here)."""
+        if self._closed or self.error is not None:
+            return None
+        if len(self._unstarted) >= 2:
+            j = self._unstarted.pop(0)
+            return ("whole", j)
+        item = self._claim_rows()
+        if item is None and self._unstarted:
+            item = self._start_piecewise(self._unstarted.pop(0))
+        return item
+
+    def _claim_rows(self):
+        for j, pw in self._piecewise.items():
+            if pw.todo:
+                return ("rows", j, pw.todo.pop(0))
+        return None
+
+    def _start_piecewise(self, j: int):
+        pw = self._piecewise[j] = _Piecewise(self.args[j][0].n_cells)
+        return ("rows", j, pw.todo.pop(0))
+
+    def _rows_args(self, j: int, c: int) -> tuple:
+        partition, lower, upper, noise, form, options, _, _ = self.args[j]
+        pw = self._piecewise[j]
+        if form == "factored" and pw.k is None:
+            from robust_imdp.abstraction.cell_bounds import CellBounds
+            from robust_imdp.abstraction.factored import axis_lengths
+
+            k = axis_lengths(partition, CellBounds(lower, upper, None), noise)  # of every cell, for every chunk
+            with self._cond:
+                pw.k = k if pw.k is None else pw.k
+        s0 = pw.starts[c]
+        sl = slice(s0, s0 + pw.size)
+        return (partition, lower[:, sl], upper[:, sl], noise, form, options, pw.k)
+
+    def _feed(self) -> None:
+        """(One thread per helper.) Send the helper its next work when it is done with the last, until none is
+        left; work the lane cannot run goes back to the list (this process does it)."""
         from robust_imdp.pipeline.parallel import SideLaneError
 
-        if j in self.local:
-            return self.local[j]
-        try:
-            return self.futures[j].result()
-        except (SideLaneError, CancelledError):
-            self.local[j] = _margin_task(*self.args[j])
-            return self.local[j]
+        while True:
+            with self._cond:
+                item = self._helper_item()
+                if item is None:
+                    return
+            try:
+                if item[0] == "whole":
+                    fut = self.lane.submit(_margin_task, *self.args[item[1]])
+                else:
+                    fut = self.lane.submit(_rows_task, *self._rows_args(item[1], item[2]))
+                with self._cond:
+                    self._sent[item] = fut
+                self.futures.append(fut)
+                value = fut.result()
+            except CancelledError:  # taken back by this process (it waited in the lane behind other side work)
+                continue
+            except SideLaneError:  # the lane is gone: the work goes back to this process
+                self._give_back(item)
+                return
+            except BaseException as exc:  # noqa: BLE001 - the task's own failure: raised in run_margins' thread
+                with self._cond:
+                    self._sent.pop(item, None)
+                    self.error = self.error or exc
+                    self._cond.notify_all()
+                return
+            self._record(item, value)
+
+    def _give_back(self, item) -> None:
+        with self._cond:
+            self._sent.pop(item, None)
+            if item[0] == "whole":
+                self._unstarted.insert(0, item[1])
+            else:
+                self._piecewise[item[1]].todo.insert(0, item[2])
+            self._cond.notify_all()
+
+    def _record(self, item, value) -> None:
+        with self._cond:
+            self._sent.pop(item, None)
+            if item[0] == "whole":
+                self.values[item[1]] = value
+            else:
+                self._piecewise[item[1]].pieces[item[2]] = value
+            self._cond.notify_all()
+
+    # ------------------------------------------------------------------------------------------ this process
+    def _local_item(self):
+        """This process's next work (with the lock held), or None (wait for the helpers)."""
+        for j, pw in self._piecewise.items():  # a factor whose rows are all in: its solves
+            if not pw.solving and j not in self.values and len(pw.pieces) == len(pw.starts):
+                pw.solving = True
+                return ("solve", j)
+        item = self._claim_rows()
+        if item is None and self._unstarted:
+            item = self._start_piecewise(self._unstarted.pop(0))
+        if item is None:  # work still waiting in the lane (its helper busy with other side work): taken back
+            for sent, fut in sorted(self._sent.items(), key=lambda kv: kv[0][0] != "rows"):
+                if fut.cancel():
+                    del self._sent[sent]
+                    item = sent if sent[0] == "rows" else self._start_piecewise(sent[1])
+                    break
+        return item
+
+    def value(self, j: int):
+        """Factor ``j``'s ``(p_low, p_up)``: this process works on the list (solves, row chunks, whole factors taken
+        back) until it is in. Raises a task's exception."""
+        self._starter.join()
+        with self._cond:
+            if self.args is None:
+                raise self.error if self.error is not None else RuntimeError("the margins' boxes are not at hand")
+        while True:
+            with self._cond:
+                if self.error is not None:
+                    raise self.error
+                if j in self.values:
+                    return self.values[j]
+                item = self._local_item()
+                if item is None:
+                    self._cond.wait(timeout=1.0)
+                    continue
+            if item[0] == "solve":
+                jj = item[1]
+                pw = self._piecewise[jj]
+                partition, _, _, _, form, _, dfa, controller = self.args[jj]
+                value = _solve_pieces(partition, form, [pw.pieces[c] for c in range(len(pw.starts))], dfa,
+                                      controller)
+                with self._cond:
+                    self.values[jj] = value
+                    pw.pieces.clear()  # the rows are in the model, which is dropped
+            else:
+                self._record(item, _rows_task(*self._rows_args(item[1], item[2])))
+
+    def wait_ready(self) -> bool:
+        """Wait for the factors' arguments; False when the boxes at the larger factors are not at hand."""
+        self._starter.join()
+        return not self.unavailable
 
     def cancel(self) -> None:
-        for f in self.futures:
+        """Nothing more starts; whole factors still waiting in the lane are cancelled (running ones are dropped)."""
+        with self._cond:
+            self._closed = True
+            self._unstarted.clear()
+            for pw in self._piecewise.values():
+                pw.todo.clear()
+            futures = list(self._sent.values())
+            self._cond.notify_all()
+        for f in futures:
             f.cancel()
 
 
 def start_margins(problem: Problem, grid, synthesis, classes, dfa, log: _Log, run: _Run, cache_dir):
-    """Submit the margins' factors of an unrefined run to the side lane's helper processes, so that they run beside
-    the advice (the advice keeps this process's cores, as on one core, so its time budget and the levers it
-    estimates are those of the run without margins beside it); None where the run has no lane (one core, a
-    Dask cluster, a problem below ``parallel.SIDE_MIN_CELL_MODES`` pairs), has no margins, or the boxes at the
-    larger factors are not at hand (from the cache: :func:`run_margins` bounds them)."""
-    from robust_imdp.pipeline.parallel import SIDE_MIN_CELL_MODES, InProcess, SideLaneError
+    """Start the margins of an unrefined run beside the advice (:class:`PendingMargins`): the side lane's helpers
+    take whole factors and row chunks while the advice keeps this process's cores (as on one core, so its time
+    budget and the levers it estimates are those of the run without margins beside it). None where the run has
+    no lane (one core, a Dask cluster, a problem below ``parallel.SIDE_MIN_CELL_MODES`` pairs) or no margins.
+    The boxes at the larger factors come from this run's bound stage or the cache (read beside the advice); when
+    neither has them, :func:`run_margins` bounds them."""
+    from robust_imdp.pipeline.parallel import SIDE_MIN_CELL_MODES, InProcess
 
     if skip_reason(problem) is not None or grid.n_cells * len(problem.mode_names) < SIDE_MIN_CELL_MODES:
-        return None
-    got = getattr(run, "scaled_bounds", None)
-    if got is None or tuple(got[0]) != bound_scales():
         return None
     sched = run.scheduler(log)
     if not isinstance(sched, InProcess) or not sched.use_side_lane():
         return None
-    scales, lower, upper = got
-    args = _factor_args(problem, grid, synthesis, lower, upper, dfa)
-    futures = []
-    try:
-        for a in args:
-            futures.append(sched.lane.submit(_margin_task, *a))
-    except SideLaneError:
-        for f in futures:
-            f.cancel()
+    scales = bound_scales()
+    shape = (len(problem.mode_names), grid.n_cells, int(np.size(problem.space_lower)))
+    path = _cache_file(problem, cache_dir)
+    got = getattr(run, "scaled_bounds", None)
+    if got is not None and tuple(got[0]) != scales:
+        got = None
+    if got is None and path is None:
         return None
-    return PendingMargins(scales, futures, args)
+
+    def prepare():
+        boxes = got
+        if boxes is not None:
+            if path is not None:  # the run's, saved in the cache (beside the advice)
+                _save_scaled(path, boxes)
+        else:
+            boxes = read_cache_entry(path, lambda f: _read_scaled(f, scales, shape))
+            if boxes is None:
+                return None
+        return _factor_args(problem, grid, synthesis, boxes[1], boxes[2], dfa)
+
+    pending = PendingMargins(scales, sched.lane, prepare)
+    pending.from_cache = got is None
+    return pending
 
 
 def run_margins(problem: Problem, grid, partition, synthesis, classes, dfa, log: _Log, run: _Run, cache_dir, *,
@@ -270,14 +509,19 @@ def run_margins(problem: Problem, grid, partition, synthesis, classes, dfa, log:
         log.info(f"assumption margins: not computed ({why})")
         return None, {"skipped": why}
     with log.stage("margins"):
-        if pending is not None:  # submitted beside the advice: read the helpers' answers
-            _scaled_bounds(problem, grid, log, run, cache_dir, learn_and_bound)  # the run's, saved in the cache
-            pending.take_back()
+        if pending is not None and pending.wait_ready():  # started beside the advice: this process joins in
+            if pending.from_cache:
+                log.info(f"margins: reused the boxes at {', '.join(f'{s:g}' for s in pending.scales)} x B "
+                         f"({_cache_file(problem, cache_dir).name})")
             index = {s: j for j, s in enumerate(pending.scales)}
-            margins = assumption_margins(classes, lambda scale: pending.value(index[float(scale)]),
-                                         problem.threshold, (1.0,) + pending.scales)
-            pending.cancel()  # factors past the last one read are not needed
+            try:
+                margins = assumption_margins(classes, lambda scale: pending.value(index[float(scale)]),
+                                             problem.threshold, (1.0,) + pending.scales)
+            finally:
+                pending.cancel()  # factors past the last one read are not needed
             return _margins_result(margins, 0, log)
+        if pending is not None:  # the boxes at larger B were in neither the run nor the cache: bounded below
+            pending.cancel()
         scales, lower, upper = _scaled_bounds(problem, grid, log, run, cache_dir, learn_and_bound)
         lower, upper, fallback = _cell_boxes(partition, lower, upper, getattr(run, "scaled_new_cells", {}))
         index = {s: j for j, s in enumerate(scales)}
