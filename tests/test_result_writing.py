@@ -24,6 +24,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from robust_imdp.errors import InvalidInputError
 from robust_imdp.io import result_file
 from robust_imdp.io.result_file import load_result, result_to_dict, save_result
 from robust_imdp.jsonable import jsonable
@@ -113,6 +114,28 @@ def test_jsonable_of_a_large_random_array_with_non_finite_entries():
     assert_same(jsonable({"x": a.astype(np.float32)}), reference_jsonable({"x": a.astype(np.float32)}))
 
 
+# ----------------------------------------------------------------------------- per-cell floats as text
+def float_arrays():
+    rng = np.random.default_rng(5)
+    grid = np.stack(np.meshgrid(np.linspace(-np.pi, np.pi, 9), [0.0, -0.0, 0.1, 1e-310], indexing="ij"), -1)
+    wild = rng.standard_normal(400) * 10.0 ** rng.integers(-300, 300, 400)
+    wild[rng.random(400) < 0.1] = np.nan
+    wild[rng.random(400) < 0.05] = np.inf
+    wild[rng.random(400) < 0.05] = -np.inf
+    wild[rng.random(400) < 0.05] = -0.0
+    neg_nan = np.array([1.0, -np.nan, np.nan, 0.0 * np.inf])  # NaNs of other bits: all null
+    return {"grid cells (n, 2)": grid.reshape(-1, 2), "1-D wild": wild, "(n, 4) wild": wild.reshape(100, 4),
+            "(1, 3)": np.array([[0.5, np.nan, -0.0]]), "(3, 1)": np.array([[0.5], [np.inf], [-0.0]]),
+            "one value": np.array([2.5]), "NaN bits": neg_nan, "empty": np.zeros(0), "empty (0, 3)": np.zeros((0, 3)),
+            "(2, 0)": np.zeros((2, 0)), "0-d": np.array(1.5), "3-D": np.arange(8.0).reshape(2, 2, 2)}
+
+
+@pytest.mark.parametrize("name", list(float_arrays()))
+def test_float_text_reads_back_as_jsonable_gives_it(name):
+    a = float_arrays()[name]
+    assert_same(json.loads(result_file._float_text(a)), reference_jsonable(a))
+
+
 # ----------------------------------------------------------------------------- a hand-built result
 def hand_result(mode_names=("m1", "m2"), k_step=False):
     """Three cells on [0, 3] x [0, 1]; partition atoms (a, b), DFA atoms (b, a); p_low with NaN, error with inf."""
@@ -151,9 +174,11 @@ def test_result_to_dict_of_a_hand_built_result():
     assert_same(k["strategy_by_time"], [[["m1", None], ["m2", "m2"], [None, "m1"]],
                                         [[None, "m1"], ["m2", "m2"], ["m1", None]]])
     assert_same(k["strategy"], doc["strategy"])  # the time-0 table
-    # a fresh list per cell: changing one label does not change another
-    doc["labels"][1].append("z")
-    assert doc["labels"][2] == ["b"]
+    # a fresh list per cell: changing one label does not change another of the same letter
+    labels = result_file._label_lists(["a", "b"], np.array([1, 3, 1]))
+    assert labels == [["a"], ["a", "b"], ["a"]]
+    labels[0].append("z")
+    assert labels[2] == ["a"]
 
 
 def previous_npz(doc: dict, result) -> dict:
@@ -205,6 +230,11 @@ def check_written(result, out: Path) -> dict:
 
 def test_save_result_of_a_hand_built_result(tmp_path):
     res = hand_result()
+    # what save_result writes from: the per-cell floats stay arrays (no lists of them are made), NaN for null
+    doc = result_file._document(res, arrays=True)
+    assert all(type(doc["cells"][k]) is np.ndarray for k in ("lower", "upper"))
+    assert all(type(doc[k]) is np.ndarray for k in ("p_low", "p_up", "p_up_star", "error", "b_margin"))
+    np.testing.assert_array_equal(doc["error"], [0.25, np.nan, -0.0])
     check_written(res, tmp_path)
     text = (tmp_path / "result.json").read_text()
     # the indented layout outside the per-cell lists (indent=1), each per-cell list on one line
@@ -216,7 +246,13 @@ def test_save_result_of_a_hand_built_result(tmp_path):
     assert back.label_letters.tolist() == [0, 3, 1]  # DFA order (b, a): cell 1 both, cell 2 b = bit 0
     np.testing.assert_array_equal(back.p_low, [0.5, np.nan, 1.0])
     np.testing.assert_array_equal(back.strategy, [[0, -1], [1, 1], [-1, 0]])
-    check_written(hand_result(k_step=True), tmp_path / "k")
+    k = hand_result(k_step=True)
+    check_written(k, tmp_path / "k")
+    np.testing.assert_array_equal(load_result(tmp_path / "k").strategy_by_time, k.synthesis.strategy)
+    bad = json.loads((tmp_path / "result.json").read_text())
+    bad["strategy"][2][1] = "m3"  # a mode the file does not have
+    with pytest.raises(InvalidInputError, match="KeyError"):
+        result_file.ResultFile.from_dict(bad)
 
 
 def test_a_name_equal_to_a_placeholder_is_written_as_it_is(tmp_path, monkeypatch):

@@ -13,8 +13,11 @@ swap leaves the previous outputs exactly as they were.
 
 from __future__ import annotations
 
+import gc
 import json
+import math
 import os
+import secrets
 import shutil
 import signal
 import tempfile
@@ -32,6 +35,23 @@ from robust_imdp.jsonable import jsonable as _jsonable
 
 __all__ = ["result_to_dict", "save_result", "load_result", "ResultFile", "as_result_file", "RESULT_FORMAT",
            "staged_outputs", "OutputStage"]
+
+
+@contextmanager
+def _gc_paused():
+    """Hold the cyclic garbage collector while the block runs (and restore its state after).
+
+    Building or parsing a result makes about a million lists and strings, none of them in a cycle; each batch of
+    new containers would otherwise start a collection that walks every object of the process (seconds at 64^3
+    cells in a run that holds the abstraction). Reference counting still frees everything as usual.
+    """
+    was = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was:
+            gc.enable()
 
 
 def _umask() -> int:
@@ -354,6 +374,14 @@ def result_to_dict(result) -> dict[str, Any]:
     find the new cell q' and set ``s = delta[s][L(q')]``. With ``semantics`` "safety" an accepting s
     decides nothing: the run is violated at a sink or on leaving X and satisfied at the horizon.
     """
+    with _gc_paused():
+        return _document(result)
+
+
+def _document(result, arrays: bool = False) -> dict:
+    """:func:`result_to_dict`'s document; with ``arrays`` the per-cell float entries (:data:`_FLOAT_ENTRIES`) are
+    kept as float64 arrays with NaN where the document has null (for :func:`save_result`, which writes them
+    without making lists of them)."""
     part = result.partition
     dfa = result.dfa
     syn = result.synthesis
@@ -369,7 +397,7 @@ def result_to_dict(result) -> dict[str, Any]:
     by_time = None
     if strategy.ndim == 3:  # k-step: strategy[t, q, s]; "strategy" is the time-0 table
         by_time, strategy = named(strategy), strategy[0]
-    strategy_named = np.asarray(named(strategy), dtype=object)
+    strategy_named = named(strategy)
     accepting = np.flatnonzero(np.asarray(dfa.accepting, dtype=bool)).tolist()
     space = {"lower": result.space_lower, "upper": result.space_upper}
     if getattr(result, "dim_names", None) is not None:
@@ -388,7 +416,7 @@ def result_to_dict(result) -> dict[str, Any]:
             "accepting": accepting,
             "delta": np.asarray(dfa.delta, dtype=np.int64),
         },
-        "strategy": strategy_named.tolist(),  # plain already (str or None): not walked again below
+        "strategy": strategy_named,  # plain already (str or None): not walked again below
         "strategy_by_time": by_time,
         "p_low": np.asarray(syn.p_low, dtype=float),
         "p_up": np.asarray(syn.p_up, dtype=float),
@@ -408,12 +436,26 @@ def result_to_dict(result) -> dict[str, Any]:
                         **({"margins": result.margins} if getattr(result, "margins", None) else {})},
         "timings": result.timings,
     }
-    return {k: v if k in _PLAIN else _jsonable(v) for k, v in doc.items()}
+    if not arrays:
+        return {k: v if k in _PLAIN else _jsonable(v) for k, v in doc.items()}
+    cells = {k: _float_entry(v) for k, v in doc["cells"].items()}
+    return {k: cells if k == "cells" else v if k in _PLAIN else _float_entry(v) if k in _FLOAT_ENTRIES else _jsonable(v)
+            for k, v in doc.items()}
+
+
+def _float_entry(value):
+    """A 1-D or 2-D float array as a float64 array with NaN for every non-finite entry (``jsonable`` writes them as
+    null, read back as NaN); anything else (an int array, a list) as ``jsonable`` gives it."""
+    if type(value) is np.ndarray and value.dtype.kind == "f" and value.dtype.itemsize <= 8 and value.ndim in (1, 2):
+        return _nan_for_nonfinite(value)
+    return _jsonable(value)
 
 
 #: Entries of :func:`result_to_dict` built as plain JSON values (lists of lists of str or None), one per cell:
 #: ``jsonable`` would only walk them element by element to return them unchanged.
 _PLAIN = frozenset(("labels", "strategy", "strategy_by_time"))
+#: Entries of the document that are per-cell floats (``cells`` holds two more: ``lower`` and ``upper``).
+_FLOAT_ENTRIES = frozenset(("p_low", "p_up", "p_up_star", "error", "b_margin"))
 
 
 def _label_lists(atoms: list, letters: np.ndarray) -> list:
@@ -441,6 +483,11 @@ def save_result(result, out_dir) -> Path:
     ``space_upper`` float (d,), and ``periodic`` bool (d,) only when a dimension is periodic; ``b_margin``
     float (n_cells,) (NaN for Q_? cells) only when the run computed assumption margins.
 
+    ``result.json`` is ``result_to_dict``'s document, indented by one space, except that each per-cell list
+    (``cells.lower``, ``cells.upper``, ``labels``, ``strategy``, ``strategy_by_time``, ``p_low``, ``p_up``,
+    ``p_up_star``, ``error``, ``classes``, ``no_strategy_can``, ``b_margin``) is on one line: ``json.loads`` gives
+    the document exactly (floats as ``repr`` writes them, so they read back bit for bit).
+
     Returns
     -------
     Path
@@ -448,30 +495,31 @@ def save_result(result, out_dir) -> Path:
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    doc = result_to_dict(result)
+    with _gc_paused():
+        return _save_result(result, out)
+
+
+def _save_result(result, out: Path) -> Path:
+    doc = _document(result, arrays=True)  # the per-cell floats as arrays (NaN for null): written without lists
     part, syn = result.partition, result.synthesis
     atoms = list(doc["dfa"]["atoms"])
     accepting = np.zeros(len(doc["dfa"]["delta"]), dtype=bool)
     accepting[np.asarray(doc["dfa"]["accepting"], dtype=np.int64)] = True
     controller_arrays = {
-        "label_letters": _dfa_letters(atoms, _jsonable(list(part.atoms)), np.asarray(part.labels, dtype=np.int64),
-                                      doc["labels"]),
+        "label_letters": _dfa_letters(atoms, _jsonable(list(part.atoms)), np.asarray(part.labels, dtype=np.int64)),
         "dfa_atoms": np.asarray(atoms, dtype=str),
         "dfa_initial": np.int64(doc["dfa"]["initial"]), "dfa_accepting": accepting,
         "space_lower": np.asarray(doc["space"]["lower"], dtype=float),
         "space_upper": np.asarray(doc["space"]["upper"], dtype=float),
         **({"periodic": np.asarray(doc["space"]["periodic"], dtype=bool)} if "periodic" in doc["space"] else {}),
     }
-    # the per-cell arrays from the result itself, as result.json has them (non-finite floats are null there: NaN)
+    # the per-cell arrays as result.json has them (non-finite floats are null there: NaN)
     arrays = {
-        "cells_lower": _nan_for_nonfinite(part.cells_lower),
-        "cells_upper": _nan_for_nonfinite(part.cells_upper),
+        "cells_lower": np.asarray(doc["cells"]["lower"], dtype=float),
+        "cells_upper": np.asarray(doc["cells"]["upper"], dtype=float),
         "strategy": np.asarray(syn.strategy, dtype=np.int64),  # (k, C, S) if k-step
         "dfa_delta": np.asarray(doc["dfa"]["delta"], dtype=np.int64),
-        "p_low": _nan_for_nonfinite(syn.p_low),
-        "p_up": _nan_for_nonfinite(syn.p_up),
-        "p_up_star": _nan_for_nonfinite(syn.p_up_star),
-        "error": _nan_for_nonfinite(syn.error),
+        **{key: np.asarray(doc[key], dtype=float) for key in ("p_low", "p_up", "p_up_star", "error")},
         "classes": np.asarray(doc["classes"], dtype=str),
         "no_strategy_can": np.asarray(doc["no_strategy_can"], dtype=bool),
         "modes": np.asarray(doc["modes"], dtype=str),
@@ -500,14 +548,9 @@ def _nan_for_nonfinite(x) -> np.ndarray:
     return a
 
 
-def _dfa_letters(dfa_atoms: list, part_atoms: list, part_letters: np.ndarray, labels: list) -> np.ndarray:
-    """(n_cells,) int64: bit i set where ``dfa_atoms[i]`` is in the cell's label (``labels[q]``, the partition's
-    atoms of bits set in ``part_letters[q]``), from the partition's bits by a shift per atom."""
-    if len(part_atoms) > 62:  # the bits would not fit an int64: ask the label lists
-        letters = np.zeros(len(labels), dtype=np.int64)
-        for i, a in enumerate(dfa_atoms):
-            letters |= np.array([a in lab for lab in labels], dtype=np.int64) << i
-        return letters
+def _dfa_letters(dfa_atoms: list, part_atoms: list, part_letters: np.ndarray) -> np.ndarray:
+    """(n_cells,) int64: bit i set where ``dfa_atoms[i]`` is in the cell's label (the partition's atoms of the bits
+    set in ``part_letters``, int64: at most 64 atoms), from the partition's bits by a shift per atom."""
     letters = np.zeros(part_letters.shape[0], dtype=np.int64)
     for i, a in enumerate(dfa_atoms):  # a loop over the atoms (a handful)
         held = np.zeros(part_letters.shape[0], dtype=bool)
@@ -534,8 +577,6 @@ def _json_pieces(doc: dict) -> list:
     document, a region or mode name, can be taken for one); otherwise a fresh nonce is drawn, and after a few
     tries the whole document is encoded with ``indent=1``.
     """
-    import secrets
-
     for _ in range(4):
         nonce = secrets.token_hex(16)
         skeleton, bodies = dict(doc), {}
@@ -546,7 +587,7 @@ def _json_pieces(doc: dict) -> list:
                     break
                 parent[key] = parent = dict(parent[key])  # copies along the path: doc is not changed
             else:
-                if isinstance(parent.get(path[-1]), list):
+                if isinstance(parent.get(path[-1]), (list, np.ndarray)):
                     token = f"robust_imdp-one-line-{nonce}-{n}"
                     bodies[json.dumps(token)] = parent[path[-1]]
                     parent[path[-1]] = token
@@ -555,9 +596,35 @@ def _json_pieces(doc: dict) -> list:
             pieces = []
             for quoted in sorted(bodies, key=text.index):
                 head, text = text.split(quoted)
-                pieces += [head, json.dumps(bodies[quoted])]
+                body = bodies[quoted]
+                pieces += [head, _float_text(body) if isinstance(body, np.ndarray) else json.dumps(body)]
             return pieces + [text]
-    return [json.dumps(doc, indent=1)]
+    return [json.dumps(_jsonable(doc), indent=1)]
+
+
+def _float_text(a: np.ndarray) -> str:
+    """``json.dumps(jsonable(a))`` (up to spaces) of a 1-D or 2-D float64 array, NaN written as null.
+
+    Each distinct value (by its bits: -0.0 is not 0.0) is written once by ``repr``, which is what the JSON encoder
+    writes for a float; the text of the cells is then put together by joins. The cells of a grid have a few
+    distinct coordinates per axis, so most of the work of formatting a float per entry goes away.
+    """
+    a = np.asarray(a, dtype=np.float64)
+    if a.size == 0 or a.ndim not in (1, 2):
+        return json.dumps(_jsonable(a))
+    a = np.ascontiguousarray(a)  # for the int64 view of its bits
+    bits, inverse = np.unique(a.view(np.int64).ravel(), return_inverse=True)
+    words = np.array([repr(v) if math.isfinite(v) else "null" for v in bits.view(np.float64).tolist()], dtype=object)
+    text = words[inverse.ravel()]
+    if a.ndim == 1:
+        return "[" + ", ".join(text.tolist()) + "]"
+    n, d = a.shape
+    parts = np.empty((n, 2 * d), dtype=object)
+    parts[:, 0::2] = text.reshape(n, d)
+    parts[:, 1::2] = ", "
+    parts[:, -1] = "], ["  # between rows
+    parts[-1, -1] = ""
+    return "[[" + "".join(parts.ravel().tolist()) + "]]"
 
 
 def load_result(path):
@@ -568,7 +635,8 @@ def load_result(path):
     if not path.exists():
         raise ProblemFileError(f"result file {path}: cannot be read (No such file or directory)")
     try:
-        doc = json.loads(_read_text(path, f"result file {path}", "result.json or the directory holding it"))
+        with _gc_paused():
+            doc = json.loads(_read_text(path, f"result file {path}", "result.json or the directory holding it"))
     except json.JSONDecodeError as exc:
         raise ProblemFileError(f"result file {path}: not valid JSON ({exc})") from None
     if not isinstance(doc, dict) or doc.get("format") != RESULT_FORMAT:
@@ -576,7 +644,8 @@ def load_result(path):
             f"result file {path}: expected format '{RESULT_FORMAT}'; "
             f"got {doc.get('format') if isinstance(doc, dict) else type(doc).__name__!r}"
         )
-    return ResultFile.from_dict(doc)
+    with _gc_paused():
+        return ResultFile.from_dict(doc)
 
 
 # --------------------------------------------------------------------------- result tables (read back)
@@ -734,7 +803,13 @@ class ResultFile:
             accepting[np.asarray(dfa["accepting"], dtype=np.int64)] = True
             index = {m: i for i, m in enumerate(modes)}
             def table(rows):
-                return np.array([[index[m] if m is not None else -1 for m in row] for row in rows],
+                # converted once per distinct row (a few mode combinations), looked up for the other cells
+                seen = {}
+
+                def convert(row):
+                    return [index[m] if m is not None else -1 for m in row]
+
+                return np.array([seen[r] if r in seen else seen.setdefault(r, convert(r)) for r in map(tuple, rows)],
                                 dtype=np.int64)
 
             strategy = table(doc["strategy"])
@@ -742,7 +817,9 @@ class ResultFile:
             by_time = None if by_time is None else np.stack([table(t) for t in by_time])
             labels = tuple(tuple(lab) for lab in doc["labels"])
             bit = {a: 1 << i for i, a in enumerate(atoms)}
-            letters = np.array([sum(bit.get(a, 0) for a in lab) for lab in labels], dtype=np.int64)
+            seen = {}  # once per distinct label
+            letters = np.array([seen[lab] if lab in seen else seen.setdefault(lab, sum(bit.get(a, 0) for a in lab))
+                                for lab in labels], dtype=np.int64)
             out = cls(
                 space_lower=np.asarray(doc["space"]["lower"], dtype=float),
                 space_upper=np.asarray(doc["space"]["upper"], dtype=float),
