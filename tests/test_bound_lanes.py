@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import time
 
+import numba
 import numpy as np
 import pytest
 
@@ -72,6 +73,11 @@ def test_global_kernel_same_bits_for_any_number_of_lanes():
     for lanes in (2, 3, 5):
         for a, b in zip(ref, rkhs._optimal_cells_coef(*common, lanes)):
             np.testing.assert_array_equal(a, b)
+    # as cell_ranges calls it: one unit per lane, on numba's dynamic schedule
+    with numba.parallel_chunksize(1):
+        dynamic = rkhs._optimal_cells_coef(*common, ptr.shape[0] - 1)
+    for a, b in zip(ref, dynamic):
+        np.testing.assert_array_equal(a, b)
 
 
 def test_local_pools_same_as_a_fresh_tree_on_one_thread():
