@@ -561,17 +561,17 @@ def _dfa_letters(dfa_atoms: list, part_atoms: list, part_letters: np.ndarray) ->
     return letters
 
 
-#: The per-cell entries of result.json (paths into :func:`result_to_dict`'s document) written on one line each by
-#: the C encoder; the rest keeps ``indent=1``.
+#: The per-cell entries of result.json (paths into :func:`result_to_dict`'s document) written on one line each
+#: (:func:`_json_pieces`); the rest keeps ``indent=1``.
 _ONE_LINE = (("cells", "lower"), ("cells", "upper"), ("labels",), ("strategy",), ("strategy_by_time",),
              ("p_low",), ("p_up",), ("p_up_star",), ("error",), ("classes",), ("no_strategy_can",), ("b_margin",))
 
 
 def _json_pieces(doc: dict) -> list:
     """The text of ``json.dumps(doc, indent=1)`` up to the layout (``json.loads`` gives the same document), as
-    pieces to write one after the other: the per-cell lists (:data:`_ONE_LINE`) are encoded by the C encoder on one
-    line each (the pure-Python encoder that ``indent`` needs takes seconds per million numbers) and spliced into the
-    indented rest in place of placeholder strings.
+    pieces to write one after the other: the per-cell entries (:data:`_ONE_LINE`) are written on one line each, a
+    list by the C encoder, a float array by :func:`_float_text` (the pure-Python encoder that ``indent`` needs takes
+    seconds per million numbers), and spliced into the indented rest in place of placeholder strings.
 
     A placeholder carries a random nonce and must occur exactly once in the indented text (so no string of the
     document, a region or mode name, can be taken for one); otherwise a fresh nonce is drawn, and after a few
