@@ -750,10 +750,17 @@ MUTATIONS = [
          tests=["tests/test_factored_pipeline.py"]),
     # ------------------------------------------------------------------ graph pre-computations (solvers/graph.py)
     dict(name="graph-positive-attractor-strict", file="src/robust_imdp/solvers/graph.py",
-         original="            hit = lowW > 0.0 or stay < 1.0",
-         replacement="            hit = lowW > 0.0 or stay < 1.0 - 1e-3",
-         description="positive attractor (minimising adversary): a row counts as forcing mass onto W only when at most "
-                     "0.999 can stay outside: nodes of positive value fixed to 0", tests=["tests/test_graph_lanes.py"]),
+         original="                    hit = down < 1.0",
+         replacement="                    hit = down < 1.0 - 1e-3",
+         description="positive attractor (minimising adversary), near a sum of 1: a row counts as forcing mass onto W "
+                     "only when at most 0.999 can stay outside: nodes of positive value fixed to 0",
+         tests=["tests/test_graph_lanes.py"]),
+    dict(name="graph-positive-attractor-no-band", file="src/robust_imdp/solvers/graph.py",
+         original="                band = (nOut + 4.0) * 8.0 * U * (1.0 + stay)",
+         replacement="                band = 0.0",
+         description="positive attractor (minimising adversary): the rounded-to-nearest mass outside W decides alone "
+                     "(a sum rounded above 1 whose exact value is below 1: a node of positive value fixed to 0)",
+         tests=["tests/test_graph_lanes.py"]),
     dict(name="graph-almost-sure-no-slack", file="src/robust_imdp/solvers/graph.py",
          original="                good = lowX > 0.0 or rest + _sum_slack(nNotX, fl and unlNotX > 0) < 1.0",
          replacement="                good = lowX > 0.0 or rest < 1.0",

@@ -179,16 +179,23 @@ def _sum_one_row(uppers, lower_in_w=0.0):
     ([0.25, 0.25, 0.5], False),
     ([0.5, np.nextafter(0.5, 0.0)], True),  # the exact sum is 1 - 2^-54 < 1: some mass must reach W
     ([0.1, 0.2, 0.7], True),  # the floats' exact sum is below 1 (their rounded sum is 1.0)
+    # exact sum 1 - 4.0e-17, rounded to nearest 1 + 2^-52: only the rounded-down sum sees it below 1
+    ([0.4133043754940587, 0.2655130893842962, 0.06297040413600605, 0.0034007843232661413, 0.07759641502040365,
+      0.17721493164196925], True),
     ([1.0], False),
     ([np.nextafter(1.0, 0.0)], True),
 ])
 def test_positive_attractor_decides_sums_at_one_exactly(uppers, reached):
     """Teeth of the rounded-down sums: a test with slack (or ``<=``) adds the first two rows, a test rounded to
-    nearest misses the fourth."""
+    nearest misses the fourth and the fifth (the band around 1 in which the rounded-down sum decides)."""
+    m = _sum_one_row(np.array(uppers))
+    rn = 0.0
+    for u in uppers:
+        rn += u
+    assert (rn > 1.0) == (len(uppers) == 6)  # the fifth case is the one the nearest sum puts above 1
     from fractions import Fraction as F
 
     assert (sum(F(u) for u in uppers) < 1) == reached  # the premise, in exact arithmetic
-    m = _sum_one_row(np.array(uppers))
     n = m[0].shape[0] - 1
     init = np.zeros(n, dtype=bool)
     init[0] = True

@@ -115,31 +115,52 @@ def _positive_node(node, l, q, n, state_ptr, row_ptr, col, lower, upper, floor, 
     any_hit = False
     all_hit = True
     for r in range(r0, r1):
-        lowW = 0.0
-        upOut = 0.0
-        upW = 0.0
         listedW = 0
-        for j in range(row_ptr[r], row_ptr[r + 1]):
-            q2 = col[j]
-            if W[nxt[l, q2] * n + q2]:
-                lowW += lower[j]
-                upW += upper[j]
-                listedW += 1
-            elif upper[j] > 0.0:
-                upOut = _add_down(upOut, upper[j])
-        unlW = cntW[l] - listedW
-        unlOut = (n - (row_ptr[r + 1] - row_ptr[r])) - unlW
         f = floor[r]
         if adv_max:
-            hit = upW > 0.0 or (f > 0.0 and unlW > 0)
+            upW = 0.0
+            for j in range(row_ptr[r], row_ptr[r + 1]):
+                q2 = col[j]
+                if W[nxt[l, q2] * n + q2]:
+                    upW += upper[j]
+                    listedW += 1
+            hit = upW > 0.0 or (f > 0.0 and cntW[l] - listedW > 0)
         else:
-            # forced positive mass on W: lower mass on W (a float sum of non-negative terms is positive
-            # iff one is), or the mass that can stay outside W below 1 (a lower bound of it below 1:
-            # liberal)
-            stay = upOut
-            if f > 0.0 and unlOut > 0:
-                stay = _add_down(stay, _mul_down(f, unlOut))
-            hit = lowW > 0.0 or stay < 1.0
+            # forced positive mass on W: lower mass on W (a float sum of non-negative terms is positive iff one
+            # is), or a lower bound of the mass that can stay outside W below 1 (liberal)
+            lowW = 0.0
+            upOut = 0.0
+            nOut = 0
+            for j in range(row_ptr[r], row_ptr[r + 1]):
+                q2 = col[j]
+                if W[nxt[l, q2] * n + q2]:
+                    lowW += lower[j]
+                    listedW += 1
+                elif upper[j] > 0.0:
+                    upOut += upper[j]
+                    nOut += 1
+            unlOut = (n - (row_ptr[r + 1] - row_ptr[r])) - (cntW[l] - listedW)
+            withf = f > 0.0 and unlOut > 0
+            if lowW > 0.0:
+                hit = True
+            else:
+                stay = upOut + f * unlOut if withf else upOut
+                # the rounded-to-nearest sum is within (nOut + 2) units of roundoff of the exact one (relative): far
+                # from 1 it decides like the rounded-down sum below, near 1 that sum decides
+                band = (nOut + 4.0) * 8.0 * U * (1.0 + stay)
+                if stay < 1.0 - band:
+                    hit = True
+                elif stay > 1.0 + band:
+                    hit = False
+                else:
+                    down = 0.0
+                    for j in range(row_ptr[r], row_ptr[r + 1]):
+                        q2 = col[j]
+                        if not W[nxt[l, q2] * n + q2] and upper[j] > 0.0:
+                            down = _add_down(down, upper[j])
+                    if withf:
+                        down = _add_down(down, _mul_down(f, unlOut))
+                    hit = down < 1.0
         if hit:
             any_hit = True
         else:
