@@ -60,9 +60,11 @@ def test_whole_factors_and_row_chunks_in_both_processes_give_the_same_bits(facto
         assert len(pw.starts) == 16 and pw.starts == list(range(0, 256, 16))
 
 
-def test_the_last_factor_is_built_from_chunks_even_when_the_helper_gets_every_other(factors, monkeypatch):
-    """This process busy elsewhere (as with the advice): the helper takes the whole factors while two or more are not
-    started, then the last factor's row chunks; this process only solves it."""
+def test_beside_the_advice_the_helper_takes_chunks_then_whole_factors_then_the_last_factor_s_chunks(factors,
+                                                                                                 monkeypatch):
+    """This process busy elsewhere (the advice, whose own tasks queue in the lane): the helper takes the row chunks
+    of the two largest factors (short tasks), then whole factors while two or more are not started, then the last
+    factor's row chunks; this process then only solves the factors built from chunks."""
     args, ref = factors
     monkeypatch.setattr(margins_stage, "MIN_PIECE_CELLS", 64)
     with SideLane(1) as lane:
@@ -70,12 +72,14 @@ def test_the_last_factor_is_built_from_chunks_even_when_the_helper_gets_every_ot
         deadline = time.perf_counter() + 120
         while time.perf_counter() < deadline:  # wait until no work is left for the helper
             with pending._cond:
-                pw = pending._piecewise.get(0)
-                if pw is not None and len(pw.pieces) == len(pw.starts) and len(pending.values) == len(args) - 1:
+                pws = pending._piecewise
+                if (sorted(pws) == [0, 3, 4] and all(len(pw.pieces) == len(pw.starts) for pw in pws.values())
+                        and sorted(pending.values) == [1, 2]):
                     break
             time.sleep(0.05)
-        assert sorted(pending.values) == [1, 2, 3, 4]  # whole factors, in the helper, largest first
-        assert len(pending._piecewise[0].starts) == 4  # 256 cells in chunks of 64, all rows from the helper
+        assert list(pending._piecewise) == [4, 3, 0]  # built from chunks, in this order, all rows from the helper
+        assert sorted(pending.values) == [1, 2]  # whole factors, in the helper
+        assert all(len(pw.starts) == 4 for pw in pending._piecewise.values())  # 256 cells in chunks of 64
         got = [pending.value(j) for j in range(len(args))]
     assert _bits(got) == _bits(ref)
 

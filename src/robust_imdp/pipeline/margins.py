@@ -6,10 +6,12 @@ nothing is optimised again). This stage gets those boxes (from the bound stage o
 cache, else by running the bound stage once more with them), abstracts them through the pipeline's own
 abstraction function (the one the run used, so ``[abstraction]`` options such as ``transitions`` apply),
 evaluates the run's controller on each (``synthesis.margins.strategy_bounds``) and stops when no cell
-keeps its class (``synthesis.margins.assumption_margins``). Where the run has several cores (a Dask cluster, or
-in process with the side lane's helper processes) every factor's abstraction and evaluation is one task
-(:func:`_margin_task`) and they run side by side (``pipeline.advice_stage.spread``), all started when the first
-factor is asked for; the results are the same bits as one after the other.
+keeps its class (``synthesis.margins.assumption_margins``). In process with the side lane's helper processes the
+margins start beside the advice (:func:`start_margins`, :class:`PendingMargins`: whole factors in the helpers,
+row chunks wherever a core is free, docs/margins.md "On several cores"); on a Dask cluster (or a refined run on
+several cores) every factor's abstraction and evaluation is one task (:func:`_margin_task`) and they run side
+by side (``pipeline.advice_stage.spread``), all started when the first factor is asked for. The results are
+the same bits as one after the other.
 
 Refined results (``BoxPartition``): a cell created by refinement uses the boxes the refinement's bounder
 certified for it at each factor when this run bounded it, else those of its grid cell (it lies inside it,
@@ -175,6 +177,8 @@ def _margin_task(partition, lower, upper, noise, form, options, dfa, controller,
 #: ``pipeline.run.MAX_ROW_CELLS`` cells (the partition travels with every task sent to a helper: 12.6 MB at 64^3).
 FACTOR_PIECES = 16
 MIN_PIECE_CELLS = 4096
+#: Factors whose row chunks a helper takes, while this process runs the advice, before it takes whole factors.
+BESIDE_PIECEWISE = 2
 
 
 def _rows_task(partition, lower, upper, noise, form, options, k, *, threads=1):
@@ -229,7 +233,9 @@ class PendingMargins:
 
     The largest factor first (its abstraction lists the most transitions and its solves iterate longest). A
     helper takes a whole factor (its abstraction and the three solves there: nothing large comes back) while two
-    or more factors are not started; the last factor is built here piece by piece: its row chunks go to whoever is
+    or more factors are not started, except while this process still runs the advice, whose own tasks queue in
+    the lane behind the helper's: then row chunks of up to :data:`BESIDE_PIECEWISE` factors first. The last
+    factor is built here piece by piece: its row chunks go to whoever is
     free (a helper's come back through the pipe), its solves run here. This process, once the advice is done,
     solves the factors whose rows are in, takes row chunks, starts the next factor piece by piece, or takes back
     a whole factor still waiting in the lane behind other side work (the figures). Every factor's rows and solves
@@ -251,6 +257,7 @@ class PendingMargins:
         self.futures: list = []  # every task sent to the lane
         self._piecewise: dict = {}  # factor -> _Piecewise, in the order started
         self._closed = False
+        self._joined = False  # this process works on the list (the advice is done)
         self._prepare = prepare
         self._starter = threading.Thread(target=self._start, name="robust-imdp margins", daemon=True)
         self._starter.start()
@@ -282,7 +289,10 @@ class PendingMargins:
         that a helper can do: the solves run here)."""
         if self._closed or self.error is not None:
             return None
-        if len(self._unstarted) >= 2:
+        # while this process runs the advice, the advice's own tasks queue in the lane behind the helper's: row
+        # chunks (short) for up to BESIDE_PIECEWISE factors, before whole factors
+        small = not self._joined and len(self._piecewise) < BESIDE_PIECEWISE
+        if len(self._unstarted) >= 2 and not small:
             j = self._unstarted.pop(0)
             return ("whole", j)
         item = self._claim_rows()
@@ -389,6 +399,8 @@ class PendingMargins:
         with self._cond:
             if self.args is None:
                 raise self.error if self.error is not None else RuntimeError("the margins' boxes are not at hand")
+        with self._cond:
+            self._joined = True
         while True:
             with self._cond:
                 if self.error is not None:
