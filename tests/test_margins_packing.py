@@ -125,20 +125,21 @@ def test_boxes_not_at_hand_leave_the_stage_to_bound_them(factors):
         assert not pending.futures
 
 
-def test_a_run_with_the_margins_packed_gives_the_one_core_margins(monkeypatch, tmp_path):
-    """A whole run from the cache of the boxes at larger B (read beside the advice) on two cores: the one-core
-    b_margin and counts, bit for bit."""
+@pytest.mark.parametrize("advice", [True, False])
+def test_a_run_with_the_margins_packed_gives_the_one_core_margins(monkeypatch, tmp_path, advice):
+    """A whole run from the cache of the boxes at larger B (read beside the advice; without an advice the margins
+    start at once) on two cores: the one-core b_margin and counts, bit for bit."""
     from robust_imdp.pipeline.run import synthesize_from_data
 
     p = _problem(cell_size=np.array([0.25, 0.25]))
-    one = synthesize_from_data(p, progress=False, workers=1, advice=True, margins=True, abstraction_cache=tmp_path)
+    one = synthesize_from_data(p, progress=False, workers=1, advice=advice, margins=True, abstraction_cache=tmp_path)
     monkeypatch.setattr(parallel, "SIDE_MIN_CELL_MODES", 0)
     monkeypatch.setattr(parallel, "local_cores", lambda: 2)
     monkeypatch.setattr(margins_stage, "MIN_PIECE_CELLS", 32)
     started = []
     start = margins_stage.start_margins
     monkeypatch.setattr(margins_stage, "start_margins", lambda *a: started.append(start(*a)) or started[-1])
-    two = synthesize_from_data(p, progress=False, advice=True, margins=True, abstraction_cache=tmp_path)
+    two = synthesize_from_data(p, progress=False, advice=advice, margins=True, abstraction_cache=tmp_path)
     assert started and started[0] is not None and started[0].from_cache  # the boxes came from the cache
     assert np.asarray(two.b_margin).tobytes() == np.asarray(one.b_margin).tobytes()
     keep = ("scales", "kept_yes", "kept_no", "solved")

@@ -450,10 +450,10 @@ def _notify_solved(problem: Problem, partition, abstraction, dfa, syn, classes, 
 
 
 def _start_margins(problem: Problem, partition, syn, classes, dfa, log: _Log, run: _Run, cache_dir):
-    """The margins' factors submitted to the side lane beside the advice (``pipeline.margins.start_margins``) when
-    the run asks for margins, has no refinement (whose rounds change the cells) and an advice to run beside;
-    else None."""
-    if not getattr(run, "margins", False) or problem.refine is not None or problem.known or run.advice is False:
+    """The margins started in the side lane beside the advice (``pipeline.margins.start_margins``; without an advice
+    they are worked on at once, by the lane's helpers and this process) when the run asks for margins and has no
+    refinement (whose rounds change the cells); else None."""
+    if not getattr(run, "margins", False) or problem.refine is not None or problem.known:
         return None
     from robust_imdp.pipeline.margins import start_margins
 
