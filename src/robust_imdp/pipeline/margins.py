@@ -399,7 +399,6 @@ class PendingMargins:
         with self._cond:
             if self.args is None:
                 raise self.error if self.error is not None else RuntimeError("the margins' boxes are not at hand")
-        with self._cond:
             self._joined = True
         while True:
             with self._cond:
@@ -429,7 +428,7 @@ class PendingMargins:
         return not self.unavailable
 
     def cancel(self) -> None:
-        """Nothing more starts; whole factors still waiting in the lane are cancelled (running ones are dropped)."""
+        """Nothing more starts; work still waiting in the lane is cancelled (what runs there is dropped)."""
         with self._cond:
             self._closed = True
             self._unstarted.clear()
