@@ -117,28 +117,7 @@ class InProcess(Scheduler):
     def run(self, fn, args, kwargs=None):
         kw = dict(kwargs or {})
         for i, a in enumerate(args):
-            threads = self.task_threads()
-            if threads == self.threads:
-                yield i, fn(*a, threads=threads, **kw)
-                continue
-            import numba
-
-            before = numba.get_num_threads()  # a task sets this thread's numba threads: the later stages keep theirs
-            try:
-                res = fn(*a, threads=threads, **kw)
-            finally:
-                numba.set_num_threads(before)
-            yield i, res
-
-    def task_threads(self) -> int:
-        """numba threads for the next task: :attr:`threads` less the side lane's helpers that run a task now
-        (at least one). A helper's task takes a core; numba threads beyond the free ones share cores, and a kernel
-        with a static split of its units then waits at its end for the thread that shared (the unicycle's bound
-        stage beside the nominal model at 64^3: 301 s on 2 cores against 282 s of CPU packed). The results do not
-        depend on the threads (the kernels' units are fixed: tests/test_bound_lanes.py)."""
-        if self.lane is None or self.threads == 1:
-            return self.threads
-        return max(1, self.threads - self.lane.busy())
+            yield i, fn(*a, threads=self.threads, **kw)
 
     @property
     def concurrent_side(self) -> bool:
@@ -426,10 +405,6 @@ class SideLane:
             self._queue.append((self._next, fut, fn, args, kwargs))
             self._dispatch()
         return fut
-
-    def busy(self) -> int:
-        """How many helpers run a task now (each takes a core)."""
-        return sum(1 for h in self.helpers if h.current is not None)
 
     def _dispatch(self) -> None:
         """Send queued tasks to idle helpers (with the lock held)."""
