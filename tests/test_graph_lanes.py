@@ -41,13 +41,19 @@ def _model(seed: int, n: int, L: int, k: int, floor: bool, choices: int = 2):
     return state_ptr, row_ptr, col, lower, upper, fl, nxt
 
 
+def _layer_counts(mask, nxt):
+    """Per layer l: how many states q' have their successor node ``(nxt[l, q'], q')`` in ``mask``."""
+    L, n = nxt.shape
+    return [sum(bool(mask[nxt[l, q2] * n + q2]) for q2 in range(n)) for l in range(L)]
+
+
 def _exact_positive(m, init, blocked, ctrl, strat, adv_max):
     """Kleene iteration of positive_attractor's exact test (rational sums)."""
     state_ptr, row_ptr, col, lower, upper, fl, nxt = m
     L, n = nxt.shape
     W = init.copy()
     while True:
-        cnt = [sum(bool(W[nxt[l, q2] * n + q2]) for q2 in range(n)) for l in range(L)]
+        cnt = _layer_counts(W, nxt)
         new = W.copy()
         for node in range(L * n):
             if W[node] or blocked[node]:
@@ -80,10 +86,10 @@ def _exact_sure(m, target, W0, ctrl, strat, adv_max):
     L, n = nxt.shape
     Y = W0.copy()
     while True:
-        cntY = [sum(bool(Y[nxt[l, q2] * n + q2]) for q2 in range(n)) for l in range(L)]
+        cntY = _layer_counts(Y, nxt)
         X = target.copy()
         while True:
-            cntX = [sum(bool(X[nxt[l, q2] * n + q2]) for q2 in range(n)) for l in range(L)]
+            cntX = _layer_counts(X, nxt)
             new = X.copy()
             for node in range(L * n):
                 if X[node] or not Y[node]:

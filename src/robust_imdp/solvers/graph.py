@@ -23,8 +23,10 @@ stops after a sweep that added nothing, with exact counts: the set is a fixed po
   is a fixed point of the float test, which passes wherever the exact one does, so it contains the
   exact least fixed point.
 
-Where the float tests are monotone too (everywhere but a rounding-slack borderline) both give
-Kleene's set bit for bit (benchmarks/identical.py).
+Both float tests are monotone too (more members never make a row fail: :func:`positive_attractor` compares
+a rounded-down sum with 1, :func:`almost_sure`'s slack shrinks as its set grows), so their least fixed point
+is unique: the in-place sweeps, on one thread or interleaved on several, give Kleene's set bit for bit
+(tests/test_graph_lanes.py).
 """
 
 from __future__ import annotations
