@@ -161,12 +161,11 @@ def test_almost_sure_matches_exact_arithmetic(ctrl, adv_max, floor):
 
 
 def _sum_one_row(uppers, lower_in_w=0.0):
-    """One state with one row: successors ``uppers`` outside W (states 1..k, absorbing with an empty row of
-    their own is not needed: the test reads only W) and state 0 in W with lower ``lower_in_w``."""
+    """Node 0 the target (in W); node 1 the tested state, one row: the target with lower ``lower_in_w`` and the
+    outside successors 2 .. k+1 with ``uppers`` (each of those a self-loop)."""
     k = len(uppers)
     n = k + 2  # node 0: the target; node 1: the tested state; 2..: the outside successors
     state_ptr = np.arange(n + 1, dtype=np.int64)
-    cols = [[]] * n
     cols = [[0]] + [[0] + list(range(2, 2 + k))] + [[q] for q in range(2, n)]
     row_ptr = np.concatenate([[0], np.cumsum([len(c) for c in cols])]).astype(np.int64)
     col = np.array([q for c in cols for q in c], dtype=np.int64)
