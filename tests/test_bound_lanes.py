@@ -1,7 +1,7 @@
 """The bound stage's work on every core, with the same bits (docs/ARCHITECTURE.md, the bound kernels):
 
-* the kernels take their blocks of cells cyclically per thread (``rkhs_model._lanes``): any number of lanes gives
-  the same arrays, for the local kernel (``_local_cells_coef``) and the global one (``_optimal_cells_coef``);
+* the kernels' lanes take their blocks of cells from a shared counter as they come free (``rkhs_model._lanes``,
+  ``_atomic.fetch_add``; the counter itself: ``test_atomic.py``): any number of lanes gives the same arrays, for the local kernel (``_local_cells_coef``) and the global one (``_optimal_cells_coef``);
 * the local pools come from a k-d tree kept per process and a query split over the threads: the same indices as a
   fresh ``cKDTree`` queried on one thread;
 * eq. C's combination of the vertex values takes every output of a chunk in one call: the same bits as one output
@@ -73,10 +73,22 @@ def test_global_kernel_same_bits_for_any_number_of_lanes():
     for lanes in (2, 3, 5):
         for a, b in zip(ref, rkhs._optimal_cells_coef(*common, lanes)):
             np.testing.assert_array_equal(a, b)
-    # as cell_ranges calls it: one unit per lane, on numba's dynamic schedule
-    with numba.parallel_chunksize(1):
-        dynamic = rkhs._optimal_cells_coef(*common, ptr.shape[0] - 1)
-    for a, b in zip(ref, dynamic):
+
+
+@pytest.mark.parametrize("lanes", [1, 2, 3])
+def test_local_kernel_counts_every_block_of_every_piece(lanes):
+    # the thread beside the kernel starts eq. C of a piece when its count is full: every block counted once, in its
+    # own piece (piece = block // piece_blocks), and the values the same as one piece
+    args, ptr, group, lin = _local_inputs()
+    n_blocks = ptr.shape[0] - 1
+    common = (1e-4, np.array([0.02, 0.02]), np.zeros(2), 1.3, True, 2000, 1e-9, ptr, group, lin)
+    ref = rkhs_local._local_cells_coef(*args, *common, 1)
+    out = [np.empty_like(ref[0]), np.zeros_like(ref[1]), np.empty_like(ref[2])]
+    done = np.zeros(-(-n_blocks // 2), dtype=np.int64)
+    rkhs_local._local_cells_into(*args, *common, lanes, *out, done, 2)
+    expect = [min(2, n_blocks - 2 * p) for p in range(done.shape[0])]
+    assert [rkhs_local._blocks_done(done, p) for p in range(done.shape[0])] == expect
+    for a, b in zip(ref, out):
         np.testing.assert_array_equal(a, b)
 
 
@@ -166,8 +178,9 @@ def test_grid_chunk_larger_in_process_only():
 
 @pytest.mark.parametrize("method", ["optimal", "ridge"])
 def test_local_chunk_in_pieces_same_bits_as_in_one(monkeypatch, method):
-    # on several threads a chunk's eq. C runs piece by piece beside the next piece's kernel (rkhs_local._cells_piece);
-    # forced here with 3 lanes and pieces of 2 blocks, with sub-boxes, the iid event and the margins' scales
+    # on several threads a chunk's eq. C runs piece by piece (rkhs_local._cells_piece) in a thread beside the chunk's
+    # one kernel call, each piece once its blocks are written; forced here with 3 lanes and pieces of 2 blocks, with
+    # sub-boxes, the iid event and the margins' scales
     rng = np.random.default_rng(4)
     d, m = 2, 150
     X = rng.uniform(-1.5, 1.5, (m, d))

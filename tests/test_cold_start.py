@@ -85,7 +85,7 @@ def test_every_kernel_is_cached_on_disk():
     from robust_imdp.warmup import kernels
 
     ks = kernels()
-    assert len(ks) > 30 and {"solvers.solve_components", "bounds._optimal_cells_coef", "bounds._local_cells_coef"} <= set(ks)
+    assert len(ks) > 30 and {"solvers.solve_components", "bounds._optimal_cells_coef", "bounds._local_cells_into"} <= set(ks)
     uncached = [name for name, d in ks.items() if isinstance(d._cache, NullCache)]
     assert uncached == []  # a kernel without cache=True compiles again in every process
 

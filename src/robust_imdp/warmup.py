@@ -18,8 +18,10 @@ are the ones a real run asks for.
 
 Invalidation: numba keys each cache file by its source file's modification time and size, so
 editing ``solve.py`` recompiles solve's kernels on their next call (the next ``make venv`` reruns
-this module when a source is newer than its stamp). No kernel calls a jitted function of another
-module, so a change in one file cannot leave a stale kernel of another file in the cache.
+this module when a source is newer than its stamp). Some kernels call jitted functions of another module
+(``bounds/rkhs_local.py`` those of ``rkhs_model``/``rkhs_weights``, the bound kernels ``_atomic.fetch_add``), whose
+change numba does not see in the caller's cache: ``make venv`` therefore empties the whole cache whenever any
+source changed (the Makefile's ``.warm`` rule).
 """
 
 from __future__ import annotations

@@ -257,15 +257,11 @@ def cell_ranges(model: KernelModel, cells_lower, cells_upper, *, rkhs_bound: flo
     if method == "optimal":
         cap = int(min(model.m, MAX_SUPPORT))
         ptr = _blocks(n_cells, starts, c.shape[0], int(chunk))
-        # numba's dynamic schedule, one work unit per iteration (numba.parallel_chunksize, a setting of the calling
-        # thread: the kernel stays cacheable): the units' costs differ (active-set iterations) and the static cyclic
-        # split left the first lane with 7 % more work on a slice of the 2-D benchmark (1.7 % dynamic). The units
-        # are independent (warm starts restart at each): the same bits. The local-weights kernel keeps the static
-        # split (balanced within 2 % on the unicycle; its dynamic schedule cost CPU).
-        with numba.parallel_chunksize(1):
-            val, sup, stat, coef = _optimal_cells_coef(model.X, model.y, model.K, model.K_err, model.inv_l2, c, r,
-                                                       signs, dbar, G_eff, cap, int(max_iter), float(tol), ptr,
-                                                       lin_v, bool(prune), parent, ptr.shape[0] - 1)
+        # the lanes take the units as they come free (rkhs_model._lanes): the units' costs differ (active-set
+        # iterations); the units are independent (warm starts restart at each): the same bits for any lanes
+        val, sup, stat, coef = _optimal_cells_coef(model.X, model.y, model.K, model.K_err, model.inv_l2, c, r,
+                                                   signs, dbar, G_eff, cap, int(max_iter), float(tol), ptr,
+                                                   lin_v, bool(prune), parent, _lanes())
         su, sl = val[:, :, 0], val[:, :, 1]
         cu, cl = coef[:, :, 0], coef[:, :, 1]
         optimised = (stat[:, :, 0] != 6) & (stat[:, :, 1] != 6)

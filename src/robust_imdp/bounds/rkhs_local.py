@@ -12,6 +12,7 @@ import numpy as np
 
 from robust_imdp._fp import U as _U, up as _up
 from robust_imdp._kernels import inv_l2_up as _inv_l2, kernel_matrix as _kernel_matrix, kernel_rel_err_nb as _kernel_rel_err_nb, norm_inflation as _norm_inflation
+from robust_imdp._atomic import fetch_add
 from robust_imdp.bounds.rkhs_model import (CELL_BLOCK, _blocks, _lanes, _certified_norms, _certified_value, _certify, _certify_parts,
                                            _check_cells, _weight_parts,
                                            _combine_vertices, _known_at_vertices, _vertex_functional, _writable, cell_centres,
@@ -143,9 +144,28 @@ def _local_cells(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_
     return val, sup
 
 
-@numba.njit(cache=True, parallel=True, nogil=True)  # nogil: the chunk writer runs beside it
-def _local_cells_coef(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_iter, tol, ptr, group,
-                      lin, lanes):  # pragma: no cover
+def _local_cells_coef(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_iter, tol, ptr, group, lin,
+                      lanes):
+    """:func:`_local_cells_into` on new arrays, every block in one piece: ``val, sup, coef``."""
+    n, V, n_out = c.shape[0], signs.shape[0], Y.shape[1]
+    val = np.empty((n, V, n_out, 2))
+    sup = np.zeros((n, V, n_out, 2), dtype=np.int64)
+    coef = np.empty((n, V, n_out, 2))
+    _local_cells_into(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_iter, tol, ptr, group, lin, lanes,
+                      val, sup, coef, np.zeros(1, dtype=np.int64), max(1, ptr.shape[0] - 1))
+    return val, sup, coef
+
+
+@numba.njit(cache=True)
+def _blocks_done(done, piece):  # pragma: no cover - compiled
+    """How many blocks of ``piece`` :func:`_local_cells_into` has finished: an atomic read (``fetch_add`` of 0,
+    sequentially consistent), so the values of those blocks, written before the count, are seen after it."""
+    return fetch_add(done, piece, 0)
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)  # nogil: the chunk writer and eq. C of the pieces run beside it
+def _local_cells_into(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal, max_iter, tol, ptr, group,
+                      lin, lanes, val, sup, coef, done, piece_blocks):  # pragma: no cover
     """Certified bounds of ``<h, phi_v>`` (eq. W) with weights on each cell's pool of data points.
 
     ``pools[q]`` are the data points allowed to carry weight for cell q (any weights are sound;
@@ -156,21 +176,25 @@ def _local_cells_coef(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal,
     one kernel matrix and factorisation, and the warm starts run on through them; with ``optimal``
     they are pruned as in ``rkhs_weights._optimal_cells`` (:func:`_local_group_optimal`, using
     ``lin (n, V, n_out)``, the float known part at the vertices). Boxes ``ptr[j] .. ptr[j+1]-1``
-    form one parallel work unit; ``lanes`` threads take them cyclically (``rkhs_model._lanes``). Returns ``val (n, V, n_out, 2)`` (side 0 upper, 1 lower), the support
-    sizes and ``coef`` (like ``val``): the upper bound of ``||phi_v - Phi* w||`` each value used (its
-    coefficient of G, for ``rkhs_model.rescale_vertex_values``).
+    form one parallel work unit (block ``j``); ``lanes`` threads take the next unit as they come free
+    (``_atomic.fetch_add``, ``rkhs_model._lanes``). Writes ``val (n, V, n_out, 2)`` (side 0 upper, 1 lower) of the
+    boxes of every block, their support sizes ``sup`` and ``coef`` (like ``val``): the upper bound of
+    ``||phi_v - Phi* w||`` each value used (its coefficient of G, for ``rkhs_model.rescale_vertex_values``).
+    When block ``j`` is written, ``done[j // piece_blocks]`` goes up by one (atomically, after its values): a
+    thread beside the kernel may use a piece's values once its count is full (:func:`_blocks_done`).
     """
     n, d = c.shape
     V = signs.shape[0]
     k = pools.shape[1]
     n_out = Y.shape[1]
-    val = np.empty((n, V, n_out, 2))
-    sup = np.zeros((n, V, n_out, 2), dtype=np.int64)
-    coef = np.empty((n, V, n_out, 2))
     n_chunks = ptr.shape[0] - 1
-    nt = max(1, min(lanes, n_chunks))  # cyclic blocks per thread (rkhs_model._lanes): balance, same bits
+    nt = max(1, min(lanes, n_chunks))  # lanes take the next block as they come free (rkhs_model._lanes): same bits
+    taken = np.zeros(1, dtype=np.int64)
     for t in numba.prange(nt):
-        for ch in range(t, n_chunks, nt):
+        while True:
+            ch = fetch_add(taken, 0, 1)
+            if ch >= n_chunks:
+                break
             Xp = np.empty((k, d))
             Yp = np.empty((k, n_out))
             L = np.empty((k, k))
@@ -254,7 +278,7 @@ def _local_cells_coef(X, Y, inv_l2, c, r, signs, pools, lam, a1, a2, G, optimal,
                                 val[q, jv, o, sd] = cert[0]
                                 coef[q, jv, o, sd] = cert[2]
                                 sup[q, jv, o, sd] = nb
-    return val, sup, coef
+            fetch_add(done, ch // piece_blocks, 1)  # block ch written (its values before the count: seq_cst)
 
 
 def local_pools(X, cells_lower, cells_upper, lengthscale, k: int) -> np.ndarray:
@@ -399,26 +423,50 @@ def _local_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_boun
     n_blocks = ptr.shape[0] - 1
     if lanes == 1 or n_blocks <= PIECE_BLOCKS:  # one piece: the kernel, then eq. C
         return _cells_piece(*vertex_values(ptr), lin_v, lin_err, t_max, starts, G_eff, tau, G_s)
-    # Pieces of PIECE_BLOCKS blocks: eq. C of a piece (numpy, one thread) runs in a thread beside the next piece's
-    # kernel (every lane, without the GIL), so no core waits for it; each piece's numbers are its own, so the
-    # concatenated arrays are those of one piece (the same bits).
-    parts = []
-    pool = _piece_thread()
-    try:
-        for j0 in range(0, n_blocks, PIECE_BLOCKS):
+    # One kernel call over the chunk: its lanes take the blocks as they come free, so a lane waits for the last block
+    # once per chunk, not once per piece (the unicycle at 32^3 had 2.8 s of idle core in its 392 piece calls). Eq. C
+    # of each piece of PIECE_BLOCKS blocks (numpy, one thread) runs in a thread beside the kernel as soon as the
+    # kernel has written the piece's blocks (``done``, read atomically by ``_blocks_done``), so no core waits for it
+    # either. Each piece's numbers are its own, so the concatenated arrays are those of one piece (the same bits).
+    N, V = c.shape[0], signs.shape[0]
+    firsts = list(range(0, n_blocks, PIECE_BLOCKS))
+
+    def arrays():  # values, supports, coefficients, blocks written per piece
+        return (np.empty((N, V, n, 2)), np.zeros((N, V, n, 2), dtype=np.int64), np.empty((N, V, n, 2)),
+                np.zeros(len(firsts), dtype=np.int64))
+
+    val, sup, coef, done = arrays()
+    iv, isup, icoef, idone = arrays() if iid is not None else (None, None, None, None)
+    stop, written = threading.Event(), threading.Event()  # the kernel stopped early; every block written
+
+    def pieces():  # eq. C of the pieces in order, each once the kernel(s) wrote its blocks
+        out = []
+        for p, j0 in enumerate(firsts):
             j1 = min(j0 + PIECE_BLOCKS, n_blocks)
+            while _blocks_done(done, p) < j1 - j0 or (idone is not None and _blocks_done(idone, p) < j1 - j0):
+                if stop.is_set():  # the kernel stopped (an interrupt): nothing more will come
+                    return out
+                written.wait(_PIECE_POLL_S)
             qa, qb = int(ptr[j0]), int(ptr[j1])  # its boxes
             ca, cb = j0 * CELL_BLOCK, min(j1 * CELL_BLOCK, n_cells)  # its cells
-            val, sup, coef, iv, icoef = vertex_values(np.ascontiguousarray(ptr[j0:j1 + 1]))
-            parts.append(pool.submit(_cells_piece, val[qa:qb], sup[qa:qb], coef[qa:qb],
-                                     None if iv is None else iv[qa:qb], None if icoef is None else icoef[qa:qb],
-                                     lin_v[:, qa:qb], lin_err[:, qa:qb], t_max[qa:qb], starts[ca:cb] - qa, G_eff,
-                                     tau, G_s))
-    except BaseException:  # an interrupted chunk: its pieces not yet started are dropped
-        for f in parts:
-            f.cancel()
+            out.append(_cells_piece(val[qa:qb], sup[qa:qb], coef[qa:qb], None if iv is None else iv[qa:qb],
+                                    None if icoef is None else icoef[qa:qb], lin_v[:, qa:qb], lin_err[:, qa:qb],
+                                    t_max[qa:qb], starts[ca:cb] - qa, G_eff, tau, G_s))
+        return out
+
+    beside = _piece_thread().submit(pieces)
+    try:
+        _local_cells_into(X, Y, inv_l2, c, r, signs, pools, float(lam or 0.0), np.ascontiguousarray(dbar), np.zeros(n),
+                          G_eff, method == "optimal", 2000, 1e-9, ptr, parent, lin, lanes, val, sup, coef, done,
+                          PIECE_BLOCKS)
+        if iid is not None:
+            _local_cells_into(X, Y, inv_l2, c, r, signs, pools, iid[0], np.full(n, tau), np.ascontiguousarray(iid[1]),
+                              G_eff, False, 0, 0.0, ptr, parent, lin, lanes, iv, isup, icoef, idone, PIECE_BLOCKS)
+        written.set()  # the last piece's eq. C starts now, not at the next look
+    except BaseException:  # an interrupted chunk: the thread beside it stops at its next look
+        stop.set()
         raise
-    parts = [f.result() for f in parts]
+    parts = beside.result()
     out = {key: np.concatenate([q[key] for q in parts], axis=0) for key in ("lower", "upper", "eps", "support")}
     out["n_unconverged"] = 0
     if G_s is not None:
@@ -427,20 +475,25 @@ def _local_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_boun
     return out
 
 
-#: Blocks of :data:`CELL_BLOCK` cells per piece of a chunk on several threads (:func:`_local_chunk`).
+#: Blocks of :data:`CELL_BLOCK` cells per piece of a chunk on several threads (:func:`_local_chunk`): eq. C of a piece
+#: runs beside the kernel once the piece is written.
 PIECE_BLOCKS = 16
+#: Seconds between two looks of the thread beside the kernel at the pieces' counts (each look costs some 30 us of
+#: a core: 1 ms cost more CPU than the lanes' idle time it saved on the unicycle; the last piece starts at once).
+_PIECE_POLL_S = 0.005
 _PIECE_POOL = None
 _PIECE_LOCK = threading.Lock()
 
 
 def _piece_thread():
-    """The process's one thread for eq. C of the pieces (started on first use, kept: no thread start per chunk)."""
+    """The process's threads for eq. C of the pieces (started on first use, kept: no thread start per chunk)."""
     global _PIECE_POOL
     with _PIECE_LOCK:
         if _PIECE_POOL is None:
             from concurrent.futures import ThreadPoolExecutor
 
-            _PIECE_POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="robust-imdp eq. C")
+            # one per chunk in flight (pipeline.parallel.InProcess.run_overlapping runs two at a time)
+            _PIECE_POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix="robust-imdp eq. C")
         return _PIECE_POOL
 
 

@@ -32,9 +32,10 @@ CELL_BLOCK = 16
 
 def _lanes() -> int:
     """Parallel lanes of the bound kernels (``lanes`` of ``_optimal_cells_coef`` / ``_local_cells_coef``): the numba
-    threads of the caller. Lane ``t`` of ``nt`` takes the work units (blocks of :data:`CELL_BLOCK` cells) ``t, t + nt,
-    t + 2 nt, ...`` (cyclic): numba's ``prange`` hands each thread one contiguous range, and the blocks' costs differ
-    (active-set iterations), so a contiguous half can hold most of the work; interleaved, every thread gets a mix.
+    threads of the caller. Every lane takes the next work unit (a block of :data:`CELL_BLOCK` cells) from a shared
+    counter as it comes free (``robust_imdp._atomic.fetch_add``): the blocks' costs differ (active-set iterations)
+    and numba's ``prange`` splits statically on the "omp" layer, also by ``numba.parallel_chunksize`` (round-robin):
+    the cyclic split had left one of two lanes with 30 % more work on a slice of the 2-D benchmark.
     Every unit allocates its own workspaces and restarts its warm starts, so the bits do not depend on the lanes.
     (Passed in, not read in the kernel: ``numba.get_num_threads`` there would keep numba from caching it.)"""
     return int(numba.get_num_threads())

@@ -8,6 +8,7 @@ import math
 import numba
 import numpy as np
 
+from robust_imdp._atomic import fetch_add
 from robust_imdp.bounds.rkhs_model import KernelModel, _certify, _lanes, _certify_parts, _vertex_functional, _weight_parts, vertex_problems
 
 #: Ways to choose the certificate weights (see ``bounds/rkhs.py``'s docstring, sections 1-3).
@@ -325,8 +326,8 @@ def _optimal_cells_coef(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_i
     the maximum over all of them) share that best value, and per side they are visited in the
     order of their neighbour-weight values (largest first): the sub-box that decides the cell's
     bound is optimised first and most of the others are pruned whole. Boxes ``ptr[j] .. ptr[j+1]-1``
-    form one parallel work unit (warm starts run through it); ``lanes`` threads take them cyclically
-    (``rkhs_model._lanes``). Returns ``val (n, V, 2)`` (side 0:
+    form one parallel work unit (warm starts run through it); ``lanes`` threads take the next unit as they come
+    free (``_atomic.fetch_add``, ``rkhs_model._lanes``). Returns ``val (n, V, 2)`` (side 0:
     upper bound, side 1: lower bound), ``support (n, V, 2)``, ``status (n, V, 2)`` and ``coef (n, V, 2)``:
     the upper bound of ``||phi_v - Phi* w||`` each value used (its coefficient of G, for
     ``rkhs_model.rescale_vertex_values``).
@@ -340,9 +341,13 @@ def _optimal_cells_coef(X, y, K, K_err, inv_l2, c, r, signs, dbar, G, cap, max_i
     coef = np.empty((n, V, 2))
     n_chunks = ptr.shape[0] - 1
     gmax = _largest_group(group)
-    nt = max(1, min(lanes, n_chunks))  # cyclic blocks per thread (rkhs_model._lanes): balance, same bits
+    nt = max(1, min(lanes, n_chunks))  # lanes take the next block as they come free (rkhs_model._lanes): same bits
+    taken = np.zeros(1, dtype=np.int64)
     for t in numba.prange(nt):
-        for ch in range(t, n_chunks, nt):
+        while True:
+            ch = fetch_add(taken, 0, 1)
+            if ch >= n_chunks:
+                break
             S = np.zeros((2, cap), dtype=np.int64)
             sg = np.zeros((2, cap))
             w = np.zeros((2, cap))

@@ -32,9 +32,9 @@ from robust_imdp.pipeline.runtime import _Log, _Run, _chunk_cells
 
 #: Cells per bound task unless the run says otherwise (``chunk_cells``; rounded to rkhs.CELL_BLOCK).
 CHUNK_CELLS = 256
-#: The same in process (one task at a time on every core): a task's Python (pools, eq. C) runs on one thread and its
-#: last block of cells leaves the other threads idle, so larger tasks leave less of the stage serial (the result
-#: does not depend on the chunking); on a Dask cluster the tasks are spread over the workers: :data:`CHUNK_CELLS`.
+#: The same in process (two tasks at a time, each on every core: ``InProcess.run_overlapping``): fewer, larger tasks
+#: cost less Python per cell (the result does not depend on the chunking); on a Dask cluster the tasks are spread
+#: over the workers: :data:`CHUNK_CELLS`.
 CHUNK_CELLS_IN_PROCESS = 1024
 #: Without a data failure budget (bounded noise) the noise bound is taken at this level (it does not use it).
 _NO_BUDGET_DELTA = 0.5
@@ -321,7 +321,7 @@ def _run_missing(problem: Problem, data, partition, settings, local, extras, tas
     writer = None if parts_dir is None else _PartWriter()
     ok = False
     try:
-        for i, res in sched.run(_bound_task, args, settings):
+        for i, res in sched.run_overlapping(_bound_task, args, settings):  # thread-safe tasks
             key = missing[i]
             if "scales" in settings:  # saved with the chunk: a resumed chunk says which scales it holds
                 res = dict(res, scales=np.asarray(settings["scales"], float))
