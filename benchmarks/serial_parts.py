@@ -144,6 +144,9 @@ class _CPU:
 
     def _read(self) -> dict:
         out = {}
+        with open("/proc/self/stat") as fh:  # the process: its live threads and those that ended
+            f = fh.read().rsplit(")", 1)[1].split()
+        process = (int(f[11]) + int(f[12])) / self.tick
         for tid in os.listdir("/proc/self/task"):
             try:
                 with open(f"/proc/self/task/{tid}/stat") as fh:
@@ -151,6 +154,7 @@ class _CPU:
                 out[("t", tid)] = (int(f[11]) + int(f[12])) / self.tick
             except OSError:  # the thread ended
                 pass
+        out[("p", "process")] = process
         from robust_imdp.pipeline import parallel
 
         for lane in list(getattr(parallel, "_LANES", [])):
@@ -165,12 +169,19 @@ class _CPU:
 
     def switch(self, bucket: str) -> None:
         now = self._read()
-        deltas = [max(0.0, v - self.last.get(k, 0.0)) for k, v in now.items()]
+        keys = [k for k in now if k[0] != "p"]
+        deltas = [max(0.0, now[k] - self.last.get(k, 0.0)) for k in keys]
+        # threads that ended since the last sample (a pool's threads, their numba threads): the process's CPU not
+        # in its live threads' deltas, as one more thread
+        ended = max(0.0, now[("p", "process")] - self.last.get(("p", "process"), 0.0)
+                    - sum(d for k, d in zip(keys, deltas) if k[0] == "t"))
+        keys.append(("t", "ended"))
+        deltas.append(ended)
         self.last.update(now)
         part = self.parts.setdefault(self.bucket, {"cpu": 0.0, "cpu_main_process": 0.0, "wall_estimate": 0.0})
         total = sum(deltas)
         part["cpu"] += total
-        part["cpu_main_process"] += sum(max(0.0, d) for (k, d) in zip(now, deltas) if k[0] == "t")
+        part["cpu_main_process"] += sum(d for k, d in zip(keys, deltas) if k[0] == "t")
         part["wall_estimate"] += max(max(deltas, default=0.0), total / self.p)
         self.bucket = bucket
 

@@ -107,6 +107,20 @@ class Scheduler:
 
 #: Tasks at a time of :meth:`InProcess.run_overlapping`.
 _OVERLAP = 2
+_TASK_POOL = None
+_TASK_POOL_LOCK = threading.Lock()
+
+
+def _task_pool():
+    """The process's threads of :meth:`InProcess.run_overlapping` (started on first use and kept, with their numba
+    threads: no thread start per stage)."""
+    global _TASK_POOL
+    with _TASK_POOL_LOCK:
+        if _TASK_POOL is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            _TASK_POOL = ThreadPoolExecutor(max_workers=_OVERLAP, thread_name_prefix="robust-imdp task")
+        return _TASK_POOL
 
 
 class InProcess(Scheduler):
@@ -140,10 +154,8 @@ class InProcess(Scheduler):
         if self.threads == 1 or len(args) < 2:
             yield from self.run(fn, args, kwargs)
             return
-        from concurrent.futures import ThreadPoolExecutor
-
         kw = dict(kwargs or {})
-        pool = ThreadPoolExecutor(max_workers=_OVERLAP, thread_name_prefix="robust-imdp task")
+        pool = _task_pool()
         pending: deque = deque()
         try:
             for i in range(len(args)):
@@ -151,7 +163,8 @@ class InProcess(Scheduler):
                     pending.append(pool.submit(fn, *args[i + len(pending)], threads=self.threads, **kw))
                 yield i, pending.popleft().result()
         finally:  # an error or an interrupt: the tasks not started are dropped, a running one ends on its own
-            pool.shutdown(wait=False, cancel_futures=True)
+            for f in pending:
+                f.cancel()
 
     @property
     def concurrent_side(self) -> bool:
