@@ -201,3 +201,19 @@ def test_local_chunk_in_pieces_same_bits_as_in_one(monkeypatch, method):
     assert len(calls) == 3  # 90 cells: blocks of 16 -> 6 blocks -> 3 pieces
     for key in ("lower", "upper", "eps", "support", "scaled_lower", "scaled_upper"):
         np.testing.assert_array_equal(pieces[key], one[key], err_msg=key)
+
+
+def test_a_kernel_that_leaves_a_piece_unwritten_is_an_error_not_a_hang(monkeypatch):
+    # the thread beside the kernel waits for each piece's count; once the kernel has returned, a count short of
+    # the piece's blocks can never fill: an error (never eq. C of unwritten values, never a wait without end)
+    rng = np.random.default_rng(5)
+    d, m = 2, 100
+    X = rng.uniform(-1.5, 1.5, (m, d))
+    Y = np.sin(2 * X[:, :1]) + rng.uniform(-0.01, 0.01, (m, 1))
+    lo, up = _cells(rng, 90, d, 0.4)
+    monkeypatch.setattr(rkhs_local, "_lanes", lambda: 3)
+    monkeypatch.setattr(rkhs_local, "PIECE_BLOCKS", 2)
+    monkeypatch.setattr(rkhs_local, "_local_cells_into", lambda *a: None)  # writes nothing, counts nothing
+    with pytest.raises(RuntimeError, match="without writing every block of piece 0"):
+        rkhs.bound_chunk(X, Y, np.eye(2)[:1], np.zeros(1), lo, up, lengthscale=0.7, rkhs_bound=2.0,
+                         noise_bound=0.01, method="optimal", local_points=12)

@@ -443,9 +443,15 @@ def _local_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_boun
         out = []
         for p, j0 in enumerate(firsts):
             j1 = min(j0 + PIECE_BLOCKS, n_blocks)
-            while _blocks_done(done, p) < j1 - j0 or (idone is not None and _blocks_done(idone, p) < j1 - j0):
+
+            def full():
+                return _blocks_done(done, p) >= j1 - j0 and (idone is None or _blocks_done(idone, p) >= j1 - j0)
+
+            while not full():
                 if stop.is_set():  # the kernel stopped (an interrupt): nothing more will come
                     return out
+                if written.is_set() and not full():  # every kernel returned: its counts are final
+                    raise RuntimeError(f"the bound kernel returned without writing every block of piece {p}")
                 written.wait(_PIECE_POLL_S)
             qa, qb = int(ptr[j0]), int(ptr[j1])  # its boxes
             ca, cb = j0 * CELL_BLOCK, min(j1 * CELL_BLOCK, n_cells)  # its cells
