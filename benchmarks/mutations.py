@@ -766,6 +766,11 @@ MUTATIONS = [
          replacement="                good = lowX > 0.0 or rest < 1.0",
          description="almost-sure set (minimising adversary): the rounded-to-nearest mass outside X compared with 1 "
                      "without its rounding slack: nodes of value < 1 fixed to 1", tests=["tests/test_graph_lanes.py"]),
+    dict(name="local-pieces-no-wait", file="src/robust_imdp/bounds/rkhs_local.py",
+         original="            while not full():",
+         replacement="            while False:",
+         description="local weights on several threads: eq. C of a piece runs without waiting for the kernel to "
+                     "write its blocks (ranges from unwritten values)", tests=["tests/test_bound_lanes.py"]),
 ]
 
 
