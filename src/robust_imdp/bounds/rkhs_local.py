@@ -409,27 +409,10 @@ def _local_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_boun
     G_s = None if scales is None else [scaled_norm_bound(rkhs_bound, sc, d) for sc in scales]
     lanes = _lanes()
 
-    def vertex_values(p_ptr):  # eq. W at the vertices of the boxes p_ptr[0] .. p_ptr[-1] - 1 (whole blocks)
-        val, sup, coef = _local_cells_coef(X, Y, inv_l2, c, r, signs, pools, float(lam or 0.0),
-                                           np.ascontiguousarray(dbar), np.zeros(n), G_eff, method == "optimal", 2000,
-                                           1e-9, p_ptr, parent, lin, lanes)
-        iv = icoef = None
-        if iid is not None:
-            iv, _, icoef = _local_cells_coef(X, Y, inv_l2, c, r, signs, pools, iid[0], np.full(n, tau),
-                                             np.ascontiguousarray(iid[1]), G_eff, False, 0, 0.0, p_ptr, parent, lin,
-                                             lanes)
-        return val, sup, coef, iv, icoef
-
     n_blocks = ptr.shape[0] - 1
-    if lanes == 1 or n_blocks <= PIECE_BLOCKS:  # one piece: the kernel, then eq. C
-        return _cells_piece(*vertex_values(ptr), lin_v, lin_err, t_max, starts, G_eff, tau, G_s)
-    # One kernel call over the chunk: its lanes take the blocks as they come free, so a lane waits for the last block
-    # once per chunk, not once per piece (the unicycle at 32^3 had 2.8 s of idle core in its 392 piece calls). Eq. C
-    # of each piece of PIECE_BLOCKS blocks (numpy, one thread) runs in a thread beside the kernel as soon as the
-    # kernel has written the piece's blocks (``done``, read atomically by ``_blocks_done``), so no core waits for it
-    # either. Each piece's numbers are its own, so the concatenated arrays are those of one piece (the same bits).
+    one_piece = lanes == 1 or n_blocks <= PIECE_BLOCKS
+    firsts = [0] if one_piece else list(range(0, n_blocks, PIECE_BLOCKS))
     N, V = c.shape[0], signs.shape[0]
-    firsts = list(range(0, n_blocks, PIECE_BLOCKS))
 
     def arrays():  # values, supports, coefficients, blocks written per piece
         return (np.empty((N, V, n, 2)), np.zeros((N, V, n, 2), dtype=np.int64), np.empty((N, V, n, 2)),
@@ -437,6 +420,23 @@ def _local_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_boun
 
     val, sup, coef, done = arrays()
     iv, isup, icoef, idone = arrays() if iid is not None else (None, None, None, None)
+
+    def vertex_values(piece_blocks):  # eq. W at every vertex: the kernel(s) write the arrays above
+        _local_cells_into(X, Y, inv_l2, c, r, signs, pools, float(lam or 0.0), np.ascontiguousarray(dbar), np.zeros(n),
+                          G_eff, method == "optimal", 2000, 1e-9, ptr, parent, lin, lanes, val, sup, coef, done,
+                          piece_blocks)
+        if iid is not None:
+            _local_cells_into(X, Y, inv_l2, c, r, signs, pools, iid[0], np.full(n, tau), np.ascontiguousarray(iid[1]),
+                              G_eff, False, 0, 0.0, ptr, parent, lin, lanes, iv, isup, icoef, idone, piece_blocks)
+
+    if one_piece:  # the kernel, then eq. C
+        vertex_values(max(1, n_blocks))
+        return _cells_piece(val, sup, coef, iv, icoef, lin_v, lin_err, t_max, starts, G_eff, tau, G_s)
+    # One kernel call over the chunk: its lanes take the blocks as they come free, so a lane waits for the last block
+    # once per chunk, not once per piece (the unicycle at 32^3 had 2.8 s of idle core in its 392 piece calls). Eq. C
+    # of each piece of PIECE_BLOCKS blocks (numpy, one thread) runs in a thread beside the kernel as soon as the
+    # kernel has written the piece's blocks (``done``, read atomically by ``_blocks_done``), so no core waits for it
+    # either. Each piece's numbers are its own, so the concatenated arrays are those of one piece (the same bits).
     stop, written = threading.Event(), threading.Event()  # the kernel stopped early; every block written
 
     def pieces():  # eq. C of the pieces in order, each once the kernel(s) wrote its blocks
@@ -462,12 +462,7 @@ def _local_chunk(X, Y, A, b, cells_lower, cells_upper, *, lengthscale, rkhs_boun
 
     beside = _piece_thread().submit(pieces)
     try:
-        _local_cells_into(X, Y, inv_l2, c, r, signs, pools, float(lam or 0.0), np.ascontiguousarray(dbar), np.zeros(n),
-                          G_eff, method == "optimal", 2000, 1e-9, ptr, parent, lin, lanes, val, sup, coef, done,
-                          PIECE_BLOCKS)
-        if iid is not None:
-            _local_cells_into(X, Y, inv_l2, c, r, signs, pools, iid[0], np.full(n, tau), np.ascontiguousarray(iid[1]),
-                              G_eff, False, 0, 0.0, ptr, parent, lin, lanes, iv, isup, icoef, idone, PIECE_BLOCKS)
+        vertex_values(PIECE_BLOCKS)
         written.set()  # the last piece's eq. C starts now, not at the next look
     except BaseException:  # an interrupted chunk: the thread beside it stops at its next look
         stop.set()
