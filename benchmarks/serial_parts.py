@@ -469,8 +469,14 @@ def write_md(doc: dict, path: Path) -> None:
         lines += _table({k: v for k, v in s["rows"].items() if k != "total"}, s["rows"]["total"], p)
         lines += ["",
                   f"Measured speed-up {s['ratio']:.2f}x (per pair {', '.join(f'{r:.2f}' for r in s['ratio_per_pair'])}); "
-                  f"serial part {100 * s['serial_share']:.1f} % (per pair "
-                  f"{', '.join(f'{100 * v:.1f}' for v in s['serial_share_per_pair'])} %). Load average before / after "
+                  + (f"serial part {100 * s['amdahl_share']:.1f} % of the one-core time, Amdahl's on the totals (per "
+                     f"pair {', '.join(f'{100 * v:.1f}' for v in s['amdahl_share_per_pair'])} %); the rows' serial "
+                     f"parts add up to {100 * s['serial_share']:.1f} % (per pair "
+                     f"{', '.join(f'{100 * v:.1f}' for v in s['serial_share_per_pair'])} %; a row's negative part "
+                     "counts as 0). " if "amdahl_share" in s else
+                     f"serial part {100 * s['serial_share']:.1f} % (per pair "
+                     f"{', '.join(f'{100 * v:.1f}' for v in s['serial_share_per_pair'])} %). ")
+                  + f"Load average before / after "
                   f"each pair: {'; '.join(f'{a:.1f} / {b:.1f}' for a, b in s['loads'])}.", "",
                   f"Identical results (result.json without run fields, every result.npz array) in all "
                   f"{2 * s['n_pairs']} runs: **{s['identical']}**; without `diagnostics.advice` (which levers the "
@@ -541,7 +547,8 @@ def main(argv=None) -> int:
             (OUT / f"{args.name}.json").write_text(json.dumps(doc, indent=1, default=float))
             write_md(doc, OUT / f"{args.name}.md")
     for name, s in doc["summary"].items():
-        print(f"{name}: speed-up {s['ratio']:.2f}x, serial part {100 * s['serial_share']:.1f} %, identical {s['identical']}")
+        print(f"{name}: speed-up {s['ratio']:.2f}x, serial part (Amdahl) {100 * s.get('amdahl_share', float('nan')):.1f} %, "
+              f"rows {100 * s['serial_share']:.1f} %, identical {s['identical']}")
     return 0
 
 
