@@ -766,6 +766,24 @@ MUTATIONS = [
          replacement="                good = lowX > 0.0 or rest < 1.0",
          description="almost-sure set (minimising adversary): the rounded-to-nearest mass outside X compared with 1 "
                      "without its rounding slack: nodes of value < 1 fixed to 1", tests=["tests/test_graph_lanes.py"]),
+    dict(name="graph-sure-lanes-skip-units", file="src/robust_imdp/solvers/graph.py",
+         original="            u = fetch_add(taken, 0, 1)\n            if u >= nu:\n                break\n"
+                  "            for idx in range(u * _UNIT, min(N, (u + 1) * _UNIT)):\n"
+                  "                node = N - 1 - idx if back else idx\n                if X[node]",
+         replacement="            u = fetch_add(taken, 0, 2)\n            if u >= nu:\n                break\n"
+                     "            for idx in range(u * _UNIT, min(N, (u + 1) * _UNIT)):\n"
+                     "                node = N - 1 - idx if back else idx\n                if X[node]",
+         description="almost-sure set on several threads: the lanes take every other unit of nodes from the shared "
+                     "counter (half the nodes never tested: nodes of value 1 left out)",
+         tests=["tests/test_graph_lanes.py"]),
+    dict(name="bellman-parallel-skip-blocks", file="src/robust_imdp/solvers/kernels.py",
+         original="            b = fetch_add(taken, 0, 1)\n            if b >= n_blocks:\n                break\n"
+                  "            for q in range(b * PAR_BLOCK",
+         replacement="            b = fetch_add(taken, 0, 2)\n            if b >= n_blocks:\n                break\n"
+                     "            for q in range(b * PAR_BLOCK",
+         description="threaded Jacobi sweep: the threads take every other block of states from the shared counter "
+                     "(half the states keep stale values)",
+         tests=["tests/test_solve.py::test_parallel_jacobi_sweeps_give_the_serial_results_bit_for_bit"]),
     dict(name="local-pieces-no-wait", file="src/robust_imdp/bounds/rkhs_local.py",
          original="            while not full():",
          replacement="            while False:",

@@ -49,8 +49,9 @@ def one_sweep(m, w, kernel, threads):
     dummy_i, dummy_f = np.zeros(1, dtype=np.int64), np.zeros(1)
     numba.set_num_threads(threads)
     t0 = time.perf_counter()
-    kernel(m.state_ptr, m.row_ptr, m.col, m.lower, m.upper, m.floor, w, active, False, False, dummy_i, dummy_f,
-           dummy_f, dummy_f, 0, dummy_i, 1, out_val, out_arg, dummy_f, False, False)
+    args = (m.state_ptr, m.row_ptr, m.col, m.lower, m.upper, m.floor, w, active, False, False, dummy_i, dummy_f,
+            dummy_f, dummy_f, 0, dummy_i, 1, out_val, out_arg, dummy_f, False, False)
+    kernel(*args, threads) if kernel is solve.bellman_layer_parallel else kernel(*args)
     return time.perf_counter() - t0, out_val
 
 

@@ -133,8 +133,9 @@ def test_bucketed_threads_same_bits(ctrl):
         numba.set_num_threads(t)
         try:
             val, arg, rows = np.zeros(m.n_states), np.zeros(m.n_states, dtype=np.int64), np.full(m.n_choices, -np.inf)
-            kernel(arrays, tr, vals, active, True, True, int(ctrl), strat, 1, val, arg, rows, True, False,
-                   np.empty(m.nnz, dtype=np.int32))
+            args = (arrays, tr, vals, active, True, True, int(ctrl), strat, 1, val, arg, rows, True, False,
+                    np.empty(m.nnz, dtype=np.int32))
+            kernel(*args) if kernel is bellman_layer_bucketed else kernel(*args, t)
         finally:
             numba.set_num_threads(threads)
         outs.append((val, arg, rows))

@@ -5,8 +5,9 @@ of the default engine (:func:`ovi_component`, :func:`solve_components`).  Why th
 sound: :mod:`robust_imdp.solvers.engine`.
 
 numba caches each kernel per source file, keyed by that file alone: a kernel here calls only
-kernels of this file (``solvers/graph.py`` has its own copy of :func:`_rows`), so editing another
-file never leaves a stale compiled kernel behind.  The integer constants read by the kernels
+kernels of this file (``solvers/graph.py`` has its own copy of :func:`_rows`) and the intrinsic
+``_atomic.fetch_add``, compiled into the caller (an edit of ``_atomic.py`` needs the cache emptied, as
+the Makefile does on any source change; ``robust_imdp.warmup``).  The integer constants read by the kernels
 (:class:`robust_imdp.solvers.common.Control`) are frozen into the compiled code; their values
 never change.
 
@@ -46,6 +47,7 @@ from numba import njit, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
+from robust_imdp._atomic import fetch_add
 from robust_imdp._fp import U
 from robust_imdp.solvers.common import Control
 
@@ -266,28 +268,37 @@ def bellman_layer(state_ptr, row_ptr, col, lower, upper, floor, w, active, adv_m
 
 
 #: States per parallel task of :func:`bellman_layer_parallel` (the fewest active states of a
-#: layer for which ``sweep.Sweeper`` uses it is ``sweep.PAR_MIN_STATES``).
+#: layer for which ``sweep.Sweeper`` uses it is ``sweep.PAR_MIN_STATES``). Every thread takes the next
+#: block from a shared counter (``_atomic.fetch_add``) as it comes free: the active states are bunched,
+#: and numba's ``prange`` splits statically on the "omp" layer (``_atomic``'s note).
 PAR_BLOCK = 1024
 
 
 @njit(cache=True, parallel=True, nogil=True)
 def bellman_layer_parallel(state_ptr, row_ptr, col, lower, upper, floor, w, active, adv_max, use_rank,
                            rank, sv, hi, lo, ctrl, strat, direction, out_val, out_arg, out_rows, want_rows,
-                           keep_better):
+                           keep_better, lanes=1):
     """:func:`bellman_layer` on numba's threads (blocks of ``PAR_BLOCK`` states).  Only for Jacobi
     sweeps (``out_val`` is not ``w``): every state's update reads ``w`` and writes its own outputs,
-    so the result is the serial one, bit for bit, for any number of threads."""
+    so the result is the serial one, bit for bit, for any number of threads. ``lanes``: the threads
+    (the caller's ``numba.get_num_threads()``; read in a kernel it would keep numba from caching it)."""
     n = state_ptr.shape[0] - 1
     maxk = _max_row_len(row_ptr)
     n_blocks = (n + PAR_BLOCK - 1) // PAR_BLOCK
-    for b in numba.prange(n_blocks):
+    lanes = max(1, min(lanes, n_blocks))
+    taken = np.zeros(1, dtype=np.int64)  # blocks handed out (PAR_BLOCK's note); never read after the loop
+    for t in numba.prange(lanes):
         keys = np.empty(maxk)
         idx = np.empty(maxk, dtype=np.int64)
-        for q in range(b * PAR_BLOCK, min(n, (b + 1) * PAR_BLOCK)):
-            if active[q]:
-                _bellman_state(q, state_ptr, row_ptr, col, lower, upper, floor, w, adv_max, use_rank, rank, sv, hi,
-                               lo, ctrl, strat, direction, out_val, out_arg, out_rows, want_rows, keep_better, keys,
-                               idx)
+        while True:
+            b = fetch_add(taken, 0, 1)
+            if b >= n_blocks:
+                break
+            for q in range(b * PAR_BLOCK, min(n, (b + 1) * PAR_BLOCK)):
+                if active[q]:
+                    _bellman_state(q, state_ptr, row_ptr, col, lower, upper, floor, w, adv_max, use_rank, rank, sv,
+                                   hi, lo, ctrl, strat, direction, out_val, out_arg, out_rows, want_rows, keep_better,
+                                   keys, idx)
 
 
 # =========================================================================== sweeps of long rows
@@ -478,13 +489,21 @@ def bellman_layer_bucketed(m, tr, vals, active, adv_max, use_rank, ctrl, strat, 
 
 @njit(cache=True, parallel=True, nogil=True)
 def bellman_layer_bucketed_parallel(m, tr, vals, active, adv_max, use_rank, ctrl, strat, direction, out_val, out_arg,
-                                    out_rows, want_rows, keep_better, sl):
+                                    out_rows, want_rows, keep_better, sl, lanes=1):
     """:func:`bellman_layer_bucketed` on numba's threads, one block of states per task: a block reads
     ``vals`` and writes only its own states, rows and entries, so the result is the serial one, bit for
-    bit, for any number of threads."""
-    for b in numba.prange(tr.bstate.shape[0] - 1):
-        _bucketed_block(b, m, tr, vals, active, adv_max, use_rank, ctrl, strat, direction, out_val, out_arg,
-                        out_rows, want_rows, keep_better, sl)
+    bit, for any number of threads (``lanes``, as in :func:`bellman_layer_parallel`), each taking the next
+    block as it comes free."""
+    n_blocks = tr.bstate.shape[0] - 1
+    lanes = max(1, min(lanes, n_blocks))
+    taken = np.zeros(1, dtype=np.int64)  # blocks handed out as lanes come free; never read after the loop
+    for t in numba.prange(lanes):
+        while True:
+            b = fetch_add(taken, 0, 1)
+            if b >= n_blocks:
+                break
+            _bucketed_block(b, m, tr, vals, active, adv_max, use_rank, ctrl, strat, direction, out_val, out_arg,
+                            out_rows, want_rows, keep_better, sl)
 
 
 @njit(cache=True, inline="always")

@@ -119,21 +119,23 @@ class Sweeper:
                 tr, arrays = self._bucket
                 if self._sl is None:
                     self._sl = np.empty(m.col.shape[0], dtype=np.int32)
-                kernel = bellman_layer_bucketed
+                args = (arrays, tr, LayerValues(w, order, rank, sv, hi, lo), self.active[l], self.adv_max,
+                        self.use_rank, self.ctrl, strat, direction, newV[l], arg[l], out_rows, want_rows, inplace,
+                        self._sl)
                 if numba.get_num_threads() > 1 and m.col.shape[0] >= PAR_MIN_ENTRIES:
-                    kernel = bellman_layer_bucketed_parallel
-                kernel(arrays, tr, LayerValues(w, order, rank, sv, hi, lo), self.active[l], self.adv_max,
-                       self.use_rank, self.ctrl, strat, direction, newV[l], arg[l], out_rows, want_rows, inplace,
-                       self._sl)
+                    bellman_layer_bucketed_parallel(*args, numba.get_num_threads())
+                else:
+                    bellman_layer_bucketed(*args)
                 continue
             # Jacobi sweeps of many states run on numba's threads (bit-identical results);
             # Gauss-Seidel ones (newV is V) stay serial: their order is part of the method
-            kernel = bellman_layer
+            args = (m.state_ptr, m.row_ptr, m.col, m.lower, m.upper, m.floor, w, self.active[l],
+                    self.adv_max, self.use_rank, rank, sv, hi, lo, self.ctrl, strat, direction,
+                    newV[l], arg[l], out_rows, want_rows, inplace)
             if not gs and numba.get_num_threads() > 1 and np.count_nonzero(self.active[l]) >= PAR_MIN_STATES:
-                kernel = bellman_layer_parallel
-            kernel(m.state_ptr, m.row_ptr, m.col, m.lower, m.upper, m.floor, w, self.active[l],
-                   self.adv_max, self.use_rank, rank, sv, hi, lo, self.ctrl, strat, direction,
-                   newV[l], arg[l], out_rows, want_rows, inplace)
+                bellman_layer_parallel(*args, numba.get_num_threads())
+            else:
+                bellman_layer(*args)
         return newV, arg, rows
 
 
