@@ -836,5 +836,37 @@ def _failure(exc: Exception, args) -> int:
     return Exit.INTERNAL
 
 
+def console_main() -> None:
+    """The ``robust-imdp`` command (the console script): :func:`main`, then :func:`end_process` with its status."""
+    end_process(main())
+
+
+def end_process(status: int) -> None:
+    """End this process with ``status`` the way the interpreter's exit would, without its teardown.
+
+    In order, as ``Py_FinalizeEx``: wait for the threads that are not daemons (``threading._shutdown``, which also
+    shuts the thread pools down), run the ``atexit`` functions (temporary folders' finalizers, the pools' and
+    the logging's clean-ups), flush stdout and stderr; then ``os._exit``. What is skipped is the teardown of every
+    module and object, which frees nothing the operating system does not free at the exit: 0.15-0.2 s of one core
+    after a 2-D run of 16,384 cells (0.03 s with this), a serial part of every run. A flush that fails (the reader
+    of a pipe has gone) exits 120, as Python does. Every file the command writes is closed and renamed before
+    :func:`main` returns (``io.result_file.staged_outputs``; the cache entries' writes are complete)."""
+    import atexit
+    import os
+    import threading
+
+    shutdown = getattr(threading, "_shutdown", None)
+    if shutdown is None or not hasattr(atexit, "_run_exitfuncs"):  # another interpreter: its own exit
+        sys.exit(status)
+    shutdown()
+    atexit._run_exitfuncs()
+    try:
+        sys.stdout.flush()
+        sys.stderr.flush()
+    except (OSError, ValueError):
+        os._exit(120)
+    os._exit(int(status))
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    console_main()
