@@ -29,7 +29,7 @@ import numpy as np
 from robust_imdp.pipeline.advice_stage import side_by_side, spread
 from robust_imdp.pipeline.cache import _load_npz, _savez, bounds_key, read_cache_entry, write_cache_entry
 from robust_imdp.pipeline.problem import Problem
-from robust_imdp.pipeline.runtime import _Log, _Run
+from robust_imdp.pipeline.runtime import MAX_ROW_CELLS, _Log, _Run
 
 __all__ = ["skip_reason", "bound_scales", "run_margins", "start_margins", "PendingMargins"]
 
@@ -154,7 +154,7 @@ def _margin_task(partition, lower, upper, noise, form, options, dfa, controller,
     """One factor of the margins (a module-level function: it runs in helper processes and on workers): the
     abstraction of ``partition`` with the boxes ``lower``/``upper`` (n_modes, n_cells, n) in the run's ``form``
     and the bounds ``(p_low, p_up)`` of the run's controller on it (``synthesis.margins.strategy_bounds``).
-    The joint rows are built in chunks of ``pipeline.run.MAX_ROW_CELLS`` cells, as the run's abstraction stage
+    The joint rows are built in chunks of ``MAX_ROW_CELLS`` cells, as the run's abstraction stage
     builds them (the rows do not depend on the chunking, tests/test_chunks.py): in one chunk the temporaries of
     every cell at once cost twice the time (unicycle 64^3 at 4 B: 18.4 s against 9.0 s, most of it the
     kernel's first touch of fresh memory); the factored rows block their cells themselves."""
@@ -170,7 +170,6 @@ def _margin_task(partition, lower, upper, noise, form, options, dfa, controller,
         abstraction = assemble_factored(partition, [factored_rows(partition, cb, noise, k, tol=AXIS_TOL)])
     else:
         from robust_imdp.abstraction.rows import abstract_rows, assemble_abstraction
-        from robust_imdp.pipeline.run import MAX_ROW_CELLS
 
         abstraction = assemble_abstraction(partition, [
             abstract_rows(partition, CellBounds(lower[:, s:s + MAX_ROW_CELLS], upper[:, s:s + MAX_ROW_CELLS], None),
@@ -180,7 +179,7 @@ def _margin_task(partition, lower, upper, noise, form, options, dfa, controller,
 
 
 #: Row tasks of a factor built piece by piece (:class:`PendingMargins`): about this many per factor, each of at least
-#: ``pipeline.run.MAX_ROW_CELLS`` cells (the partition travels with every task sent to a helper: 12.6 MB at 64^3).
+#: ``MAX_ROW_CELLS`` cells (the partition travels with every task sent to a helper: 12.6 MB at 64^3).
 FACTOR_PIECES = 16
 MIN_PIECE_CELLS = 4096
 #: Factors whose row chunks a helper takes, while this process runs the advice, before it takes whole factors.

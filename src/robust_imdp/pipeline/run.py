@@ -35,7 +35,7 @@ from robust_imdp.errors import InvalidInputError
 
 from robust_imdp.pipeline.problem import Problem, _is_affine, _setting_value, _settings
 from robust_imdp.pipeline.result import Result, diagnostics_line
-from robust_imdp.pipeline.runtime import _Log, _Run, _chunk_cells, _serial
+from robust_imdp.pipeline.runtime import MAX_ROW_CELLS, _Log, _Run, _chunk_cells, _serial
 from robust_imdp.pipeline.cache import (
     _load_abstraction_entry,
     _load_bounds,
@@ -68,8 +68,6 @@ from robust_imdp.pipeline.advice_stage import run_advice, spread
 __all__ = ["Problem", "Result", "synthesize_from_data", "resynthesize", "abstraction_key",
            "bounds_key", "estimate_resources"]
 
-#: The abstraction's rows are built in tasks of at most this many cells.
-MAX_ROW_CELLS = 4096
 
 
 def _parameters(problem: Problem, abstraction) -> dict:

@@ -9,6 +9,10 @@ import time
 
 from robust_imdp.errors import InvalidInputError, interrupt_in
 
+#: The abstraction's rows are built in tasks of at most this many cells (the run's abstraction stage,
+#: ``pipeline.run``; a margins factor's rows, ``pipeline.margins``).
+MAX_ROW_CELLS = 4096
+
 
 # --------------------------------------------------------------------------- helpers
 class _Log:
