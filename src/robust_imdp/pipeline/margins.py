@@ -153,29 +153,19 @@ def _factor_args(problem: Problem, partition, synthesis, lower, upper, dfa) -> l
 def _margin_task(partition, lower, upper, noise, form, options, dfa, controller, *, threads=1):
     """One factor of the margins (a module-level function: it runs in helper processes and on workers): the
     abstraction of ``partition`` with the boxes ``lower``/``upper`` (n_modes, n_cells, n) in the run's ``form``
-    and the bounds ``(p_low, p_up)`` of the run's controller on it (``synthesis.margins.strategy_bounds``).
-    The joint rows are built in chunks of ``MAX_ROW_CELLS`` cells, as the run's abstraction stage
-    builds them (the rows do not depend on the chunking, tests/test_chunks.py): in one chunk the temporaries of
-    every cell at once cost twice the time (unicycle 64^3 at 4 B: 18.4 s against 9.0 s, most of it the
-    kernel's first touch of fresh memory); the factored rows block their cells themselves."""
-    from robust_imdp.abstraction.cell_bounds import CellBounds
-    from robust_imdp.abstraction.factored import abstraction_model
-    from robust_imdp.synthesis.margins import strategy_bounds
+    and the bounds ``(p_low, p_up)`` of the run's controller on it: :func:`_rows_task` for every chunk of
+    ``MAX_ROW_CELLS`` cells, as the run's abstraction stage builds them, then :func:`_solve_pieces`. The rows do
+    not depend on the chunking (tests/test_chunks.py); in one chunk the temporaries of every cell at once cost
+    twice the time (unicycle 64^3 at 4 B: 18.4 s against 9.0 s, most of it the first touch of fresh memory)."""
+    k = None
+    if form == "factored":  # the listed lengths of all the cells, for every chunk
+        from robust_imdp.abstraction.cell_bounds import CellBounds
+        from robust_imdp.abstraction.factored import axis_lengths
 
-    cb = CellBounds(lower, upper, None)
-    if form == "factored":
-        from robust_imdp.abstraction.factored import AXIS_TOL, assemble_factored, axis_lengths, factored_rows
-
-        k = axis_lengths(partition, cb, noise)
-        abstraction = assemble_factored(partition, [factored_rows(partition, cb, noise, k, tol=AXIS_TOL)])
-    else:
-        from robust_imdp.abstraction.rows import abstract_rows, assemble_abstraction
-
-        abstraction = assemble_abstraction(partition, [
-            abstract_rows(partition, CellBounds(lower[:, s:s + MAX_ROW_CELLS], upper[:, s:s + MAX_ROW_CELLS], None),
-                          noise, None, **options) for s in range(0, partition.n_cells, MAX_ROW_CELLS)])
-    return strategy_bounds(abstraction_model(abstraction), partition.labels, partition.atoms, dfa, controller,
-                           outside_state=partition.outside_state)
+        k = axis_lengths(partition, CellBounds(lower, upper, None), noise)
+    pieces = [_rows_task(partition, lower[:, s:s + MAX_ROW_CELLS], upper[:, s:s + MAX_ROW_CELLS], noise, form,
+                         options, k) for s in range(0, partition.n_cells, MAX_ROW_CELLS)]
+    return _solve_pieces(partition, form, pieces, dfa, controller)
 
 
 #: Row tasks of a factor built piece by piece (:class:`PendingMargins`): about this many per factor, each of at least
